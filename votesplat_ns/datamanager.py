@@ -1,0 +1,302 @@
+"""Full-image datamanager that adds each training view's 2D vote maps to the batch.
+
+``next_train`` returns splatfacto's ``(camera, data)`` plus
+  - ``data["vote_labels"]``: int32 [L, H, W] mask ids (0 = no mask),
+  - ``data["vote_centroids"]``: float32 [L, Kmax+1, 2] (column, row) per id in pixel-index
+    coordinates, NaN-padded (row 0 is always NaN),
+both at exactly the resolution of ``data["image"]``. The level names are published as
+``train_dataset.metadata["vote_levels"]`` (the pipeline passes that metadata to the model).
+
+Masks are made once per view by a :mod:`mask source <votesplat_ns.mask_sources>` at the image
+file's resolution and cached on disk by :class:`~votesplat_ns.vote_cache.VoteCache`; the
+datamanager only maps them to the training frame:
+  - images downscaled (dataparser ``images_N/``, ``camera_res_scale_factor``): labels
+    nearest-neighbour, centroids rescaled in the continuous frame (``resize_vote_maps``);
+  - images undistorted by nerfstudio (cameras with distortion): the label images are warped
+    with the same maps nerfstudio uses for the image (nearest-neighbour) and cropped alike, and
+    the centroids are recomputed from the warped masks, since undistortion is not a similarity
+    and does not carry a mask's mean to the warped mask's mean.
+
+Cache location (``cache_dir``): by default ``outputs/<dataset folder name>/votesplat_cache``
+relative to the working directory, i.e. beside ns-train's default run folders
+(``outputs/<experiment>/votesplat/<timestamp>``), shared by all runs on that dataset, never
+inside the dataset. With ``ns-train --output-dir D`` pass ``--pipeline.datamanager.cache-dir``
+as well to keep the cache beside the runs.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from copy import deepcopy
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type
+
+import cv2
+import numpy as np
+import torch
+
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from votesplat_ns.mask_sources import (
+    SAM_CHECKPOINT_FILES,
+    SAM_LEVELS,
+    DatasetMaskSource,
+    FolderMaskSource,
+    MaskSource,
+    make_mask_source,
+)
+from votesplat_ns.vote_cache import VoteCache, VoteOptions
+from votesplat_ns.vote_maps import VoteMaps, resize_label_images, resize_vote_maps, vote_maps_from_labels
+
+DEFAULT_OUTPUT_DIR = Path("outputs")
+DATASET_LEVELS = ("instance", "part")
+CACHE_FOLDER_NAME = "votesplat_cache"
+
+
+def dataset_dir(data: Path) -> Path:
+    """The dataset folder for a ``--data`` argument (a folder or its transforms.json)."""
+    data = Path(data)
+    return data.parent if data.suffix == ".json" else data
+
+
+def default_cache_dir(data: Path, output_dir: Path = DEFAULT_OUTPUT_DIR) -> Path:
+    """``<output_dir>/<dataset folder name>/votesplat_cache``, matching ns-train's experiment folder."""
+    name = dataset_dir(data).resolve().name or "dataset"
+    return Path(output_dir) / name / CACHE_FOLDER_NAME
+
+
+def check_cache_outside_dataset(cache_dir: Path, data: Path) -> None:
+    cache_resolved = Path(cache_dir).resolve()
+    data_resolved = dataset_dir(data).resolve()
+    if cache_resolved == data_resolved or data_resolved in cache_resolved.parents:
+        raise ValueError(
+            f"vote cache folder {cache_dir} lies inside the dataset {data_resolved}; "
+            "pass --pipeline.datamanager.cache-dir <folder outside the dataset> (or run from another folder)"
+        )
+
+
+@dataclass
+class VoteDataManagerConfig(FullImageDatamanagerConfig):
+    """FullImageDatamanager plus per-view 2D vote maps (VoteSplat Sec. 3.2)."""
+
+    _target: Type = field(default_factory=lambda: VoteDataManager)
+    mask_source: Literal["auto", "dataset", "folder", "sam"] = "auto"
+    """Where masks come from: 'dataset' reads <level>_mask_path per frame of transforms.json, 'folder' reads
+    <mask_folder>/<level>/<image_stem>.png, 'sam' runs Segment Anything; 'auto' = 'dataset' if every frame lists
+    instance_mask_path, else 'sam'."""
+    mask_levels: Optional[Tuple[str, ...]] = None
+    """Mask levels, in order (one vote map each). Default: ('instance', 'part') for 'dataset', the sub-folders for
+    'folder', ('default', 's', 'm', 'l') for 'sam'. Must match the model's vote levels."""
+    mask_folder: Optional[Path] = None
+    """Root of precomputed label PNGs for mask_source='folder'."""
+    sam_checkpoint: Optional[Path] = None
+    """SAM checkpoint file (e.g. sam_vit_h_4b8939.pth from the segment-anything README); never downloaded."""
+    sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = "vit_h"
+    """SAM backbone matching the checkpoint."""
+    sam_device: Optional[str] = None
+    """Device SAM runs on; default cuda when available."""
+    sam_points_per_side: int = 32
+    sam_pred_iou_thresh: float = 0.7
+    sam_stability_score_thresh: float = 0.85
+    sam_crop_n_layers: int = 1
+    sam_min_mask_region_area: int = 100
+    sam_max_long_side: Optional[int] = 1080
+    """Images are downscaled to this long side before SAM (LangSplat works at <= 1080 px)."""
+    drop_border_masks: bool = True
+    """Drop masks touching the image border (their centroid is not the object's)."""
+    cache_dir: Optional[Path] = None
+    """Vote cache folder; default outputs/<dataset folder name>/votesplat_cache (never inside the dataset)."""
+    vote_maps_in_memory: int = 8
+    """Views whose resized/undistorted vote maps stay in RAM (the rest are re-derived from the memory-mapped cache)."""
+
+    @property
+    def dataset_path(self) -> Path:
+        return Path(self.data if self.data is not None else self.dataparser.data)
+
+    def resolved_mask_source(self) -> str:
+        """The mask source 'auto' stands for on this dataset."""
+        if self.mask_source != "auto":
+            return self.mask_source
+        return "dataset" if DatasetMaskSource.has_masks(self.dataset_path) else "sam"
+
+    def resolved_levels(self) -> Tuple[str, ...]:
+        """The mask levels, known without building the source (no SAM checkpoint needed)."""
+        if self.mask_levels:
+            return tuple(self.mask_levels)
+        kind = self.resolved_mask_source()
+        if kind == "dataset":
+            return DATASET_LEVELS
+        if kind == "sam":
+            return SAM_LEVELS
+        return FolderMaskSource(self._require_mask_folder()).levels
+
+    def _require_mask_folder(self) -> Path:
+        if self.mask_folder is None:
+            raise ValueError("mask source 'folder' needs --pipeline.datamanager.mask-folder <root> (<root>/<level>/<image_stem>.png)")
+        return Path(self.mask_folder)
+
+    def make_mask_source(self) -> MaskSource:
+        kind = self.resolved_mask_source()
+        if kind == "sam" and self.sam_checkpoint is None:
+            reason = "this dataset lists no instance_mask_path, so masks come from SAM; " if self.mask_source == "auto" else ""
+            raise ValueError(
+                f"{reason}give the SAM checkpoint with --pipeline.datamanager.sam-checkpoint /path/to/"
+                f"{SAM_CHECKPOINT_FILES[self.sam_model_type]} (the official checkpoints are listed in the README of "
+                "facebookresearch/segment-anything; nothing is downloaded), or use --pipeline.datamanager.mask-source folder"
+            )
+        if kind == "folder":
+            self._require_mask_folder()
+        return make_mask_source(
+            kind,
+            data=self.dataset_path,
+            levels=self.mask_levels,
+            mask_folder=self.mask_folder,
+            sam_checkpoint=self.sam_checkpoint,
+            sam_model_type=self.sam_model_type,
+            sam_device=self.sam_device,
+            sam_options=dict(
+                points_per_side=self.sam_points_per_side,
+                pred_iou_thresh=self.sam_pred_iou_thresh,
+                stability_score_thresh=self.sam_stability_score_thresh,
+                crop_n_layers=self.sam_crop_n_layers,
+                min_mask_region_area=self.sam_min_mask_region_area,
+                max_long_side=self.sam_max_long_side,
+            ),
+        )
+
+
+class VoteDataManager(FullImageDatamanager[InputDataset]):
+    config: VoteDataManagerConfig
+
+    def __init__(self, config: VoteDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
+        super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
+        # nerfstudio overwrites the train cameras when it undistorts images; the label images
+        # must be warped from the cameras as loaded.
+        self._cameras_as_loaded: Cameras = deepcopy(self.train_dataset.cameras)
+        self._vote_cache: Optional[VoteCache] = None
+        self._vote_keys: Optional[List[str]] = None
+        self._in_memory: "OrderedDict[int, VoteMaps]" = OrderedDict()
+        # the pipeline hands train_dataset.metadata to the model, which sizes its offsets by it
+        self.train_dataset.metadata["vote_levels"] = self.config.resolved_levels()
+        if test_mode == "val":  # ns-train: make all masks now, before training starts
+            self._prepare_votes()
+
+    # ------------------------------------------------------------------ vote cache
+    @property
+    def vote_levels(self) -> Tuple[str, ...]:
+        """Names of the vote levels, in the order of ``data["vote_labels"]``."""
+        return tuple(self.train_dataset.metadata["vote_levels"])
+
+    @property
+    def vote_cache_dir(self) -> Path:
+        data = self.config.dataset_path
+        cache_dir = Path(self.config.cache_dir) if self.config.cache_dir is not None else default_cache_dir(data)
+        check_cache_outside_dataset(cache_dir, data)
+        return cache_dir
+
+    def _prepare_votes(self) -> None:
+        if self._vote_keys is not None:
+            return
+        source = self.config.make_mask_source()
+        if tuple(source.levels) != self.vote_levels:
+            raise ValueError(f"mask source levels {list(source.levels)} differ from the announced {list(self.vote_levels)}")
+        cache = VoteCache(
+            self.vote_cache_dir,
+            source,
+            VoteOptions(drop_border_masks=self.config.drop_border_masks),
+        )
+        views = [(index, Path(path)) for index, path in enumerate(self.train_dataset.image_filenames)]
+        CONSOLE.log(f"Vote maps: {source.name} masks, levels {list(source.levels)}, cache {cache.entry_dir}")
+        self._vote_keys = cache.build_all(views, description=f"Making vote maps ({source.name} masks)")
+        self._vote_cache = cache
+
+    def vote_maps_for_train_view(self, index: int, height: int, width: int) -> VoteMaps:
+        """The view's vote maps mapped to a training image of ``height`` x ``width`` pixels."""
+        self._prepare_votes()
+        assert self._vote_cache is not None and self._vote_keys is not None
+        cached = self._in_memory.get(index)
+        if cached is not None and (cached.height, cached.width) == (height, width):
+            self._in_memory.move_to_end(index)
+            return cached
+        image_path = Path(self.train_dataset.image_filenames[index])
+        stored = self._vote_cache.load(self._vote_keys[index])
+        if stored is None:  # entry removed or damaged since start-up
+            stored = self._vote_cache.get(index, image_path)
+        vote_maps = self._to_training_frame(stored, index, height, width, image_path)
+        if vote_maps is not stored:
+            self._in_memory[index] = vote_maps
+            while len(self._in_memory) > max(0, self.config.vote_maps_in_memory):
+                self._in_memory.popitem(last=False)
+        return vote_maps
+
+    def _to_training_frame(self, stored: VoteMaps, index: int, height: int, width: int, image_path: Path) -> VoteMaps:
+        camera = self._cameras_as_loaded[index].reshape(())
+        distortion = camera.distortion_params
+        if distortion is None or bool(torch.all(distortion == 0)):
+            return resize_vote_maps(stored, height, width)
+        loaded_h, loaded_w = int(camera.height.item()), int(camera.width.item())
+        labels = resize_label_images(stored.labels, loaded_h, loaded_w)
+        warped = [undistort_label_image(np.asarray(level_labels), camera) for level_labels in labels]
+        if warped[0].shape != (height, width):
+            raise ValueError(
+                f"undistorted vote labels of {image_path} are {warped[0].shape[1]}x{warped[0].shape[0]} "
+                f"but nerfstudio's undistorted image is {width}x{height}"
+            )
+        return vote_maps_from_labels(warped, self.config.drop_border_masks, stored.level_names)
+
+    # ------------------------------------------------------------------ batches
+    def next_train(self, step: int) -> Tuple[Cameras, Dict]:
+        camera, data = super().next_train(step)
+        assert camera.metadata is not None
+        index = int(camera.metadata["cam_idx"])
+        height, width = int(data["image"].shape[0]), int(data["image"].shape[1])
+        vote_maps = self.vote_maps_for_train_view(index, height, width)
+        data["vote_labels"] = torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32)).to(self.device)
+        data["vote_centroids"] = torch.from_numpy(vote_maps.padded_centroids()).to(self.device)
+        return camera, data
+
+
+def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
+    """Warp and crop a label image exactly as nerfstudio 1.1.5 undistorts the image, without blending ids.
+
+    Mirrors ``full_images_datamanager._undistort_image`` (same new camera matrix, same crop)
+    but samples nearest-neighbour instead of bilinearly.
+    """
+    max_id = int(labels.max()) if labels.size else 0
+    if max_id > np.iinfo(np.uint16).max:
+        raise ValueError(f"a view has {max_id} masks; at most 65535 masks per level can be undistorted")
+    source = np.ascontiguousarray(labels.astype(np.uint16))
+    height, width = source.shape
+    K = camera.get_intrinsics_matrices().numpy().astype(np.float64)
+    params = camera.distortion_params.numpy().astype(np.float64)
+    camera_type = camera.camera_type.item()
+    if camera_type == CameraType.PERSPECTIVE.value:
+        if params[3] != 0:
+            raise ValueError("nerfstudio cannot undistort with the 4th Brown parameter (k4); only k1, k2, k3, p1, p2 may be non-zero")
+        opencv_params = np.array([params[0], params[1], params[4], params[5], params[2], params[3], 0, 0])
+        K[0, 2] -= 0.5  # OpenCV's pixel centres are at integers
+        K[1, 2] -= 0.5
+        if np.any(opencv_params):
+            new_K, roi = cv2.getOptimalNewCameraMatrix(K, opencv_params, (width, height), 0)
+            map_x, map_y = cv2.initUndistortRectifyMap(K, opencv_params, None, new_K, (width, height), cv2.CV_32FC1)
+            warped = cv2.remap(source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        else:
+            warped, roi = source, (0, 0, width, height)
+        x, y, w, h = roi
+        return warped[y : y + h, x : x + w].astype(np.int32)
+    if camera_type == CameraType.FISHEYE.value:
+        K[0, 2] -= 0.5
+        K[1, 2] -= 0.5
+        fisheye_params = params[:4]
+        new_K = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(K, fisheye_params, (width, height), np.eye(3), balance=0)
+        map_x, map_y = cv2.fisheye.initUndistortRectifyMap(K, fisheye_params, np.eye(3), new_K, (width, height), cv2.CV_32FC1)
+        warped = cv2.remap(source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return warped.astype(np.int32)
+    raise ValueError(
+        f"vote maps for distorted cameras of type {CameraType(camera_type).name} are not supported; "
+        "undistort the images first (e.g. COLMAP image_undistorter) so the cameras are pinhole"
+    )

@@ -1,0 +1,290 @@
+"""On-disk cache of per-view vote maps, so masks are made once and reused across runs.
+
+Layout (``cache_dir`` is chosen by the caller, next to the outputs, never inside the dataset)::
+
+    <cache_dir>/<source>-<config digest>/config.json        the arguments the entries were made with
+    <cache_dir>/<source>-<config digest>/<view key>.labels.npy  uint16/int32 [L, H, W], memory-mappable
+    <cache_dir>/<source>-<config digest>/<view key>.votes.npz   centroid tables + what the labels file must be
+
+- The config digest covers the source's ``config_key()``, the vote options and the cache format
+  version; a different configuration lives in a different folder, so changing an argument
+  rebuilds while switching back reuses the old entries.
+- A view key is the sha256 of the image file's bytes plus the source's per-view fingerprint
+  (e.g. the label files it reads), so an edited image or mask is rebuilt.
+- Each file is written to a temp file in the same folder and moved into place with os.replace;
+  the .votes.npz is written last and is the entry's commit record. A missing, truncated or
+  unreadable entry is rebuilt (with a warning when it existed but was unreadable), so an
+  interrupted build resumes where it stopped and never yields a partial entry.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import secrets
+import time
+import warnings
+from collections import OrderedDict
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+from PIL import Image
+
+from votesplat_ns.mask_sources import MaskSource, file_digest
+from votesplat_ns.vote_maps import VoteMaps, vote_maps_from_labels
+
+PathLike = Union[str, Path]
+ImageLoader = Callable[[int, Path], np.ndarray]
+
+CACHE_FORMAT_VERSION = 1
+_TEMP_MARKER = ".tmp-"
+_STALE_TEMP_SECONDS = 3600.0
+
+
+@dataclass(frozen=True)
+class VoteOptions:
+    """Options of the 2D vote construction that change the cached result."""
+
+    drop_border_masks: bool = True
+    """Drop masks touching the image border (the paper filters masks leaving the field of view)."""
+
+
+def load_image_rgb(path: PathLike) -> np.ndarray:
+    """An image file's pixels as uint8 [H, W, 3] (alpha dropped, grey expanded)."""
+    with Image.open(path) as image:
+        return np.asarray(image.convert("RGB"))
+
+
+def atomic_write_bytes(path: Path, writer: Callable[[object], None]) -> None:
+    """Write a file atomically: ``writer(file)`` fills a temp file in the same folder, then os.replace."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temp_name = path.parent / f".{path.name}{_TEMP_MARKER}{os.getpid()}-{secrets.token_hex(6)}"
+    # os.open with 0o666 honours the umask (mkstemp would make the file private)
+    fd = os.open(temp_name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            writer(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temp_name, path)
+    except BaseException:
+        try:
+            os.unlink(temp_name)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+class VoteCache:
+    """Vote maps per view, made by ``source`` once and memory-mapped from ``cache_dir`` afterwards."""
+
+    def __init__(
+        self,
+        cache_dir: PathLike,
+        source: MaskSource,
+        vote_options: VoteOptions = VoteOptions(),
+        max_open_entries: int = 8,
+    ):
+        self.source = source
+        self.vote_options = vote_options
+        self.config = {
+            "format_version": CACHE_FORMAT_VERSION,
+            "source": source.config_key(),
+            "levels": list(source.levels),
+            "vote_options": asdict(vote_options),
+        }
+        config_text = json.dumps(self.config, sort_keys=True, indent=2)
+        digest = hashlib.sha256(config_text.encode()).hexdigest()[:16]
+        self.entry_dir = Path(cache_dir) / f"{source.name}-{digest}"
+        self._ensure_config_file(config_text)
+        # open memmaps hold a file descriptor each, so only a few stay open
+        self._open: "OrderedDict[str, VoteMaps]" = OrderedDict()
+        self._max_open = max(1, int(max_open_entries))
+        self._key_memo: Dict[Tuple[str, int], Tuple[Tuple[int, int], str]] = {}
+
+    # ------------------------------------------------------------------ configuration
+    def _ensure_config_file(self, config_text: str) -> None:
+        config_path = self.entry_dir / "config.json"
+        if config_path.is_file():
+            try:
+                stored = json.loads(config_path.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                stored = None
+            if stored == json.loads(config_text):
+                return
+            # same folder name but other arguments: the entries cannot be trusted
+            warnings.warn(f"vote cache {self.entry_dir} was made with other arguments; rebuilding it")
+            for path in self.entry_dir.iterdir():
+                if path.is_file():
+                    path.unlink()
+        atomic_write_bytes(config_path, lambda handle: handle.write(config_text.encode()))
+
+    # ------------------------------------------------------------------ keys and paths
+    def view_key(self, image_path: PathLike, frame_index: int) -> str:
+        """Content key of a view: its image bytes and the source's per-view inputs."""
+        image_path = Path(image_path)
+        stat = image_path.stat()
+        memo_key = (str(image_path.resolve()), int(frame_index))
+        signature = (stat.st_size, stat.st_mtime_ns)
+        memo = self._key_memo.get(memo_key)
+        if memo is not None and memo[0] == signature:
+            return memo[1]
+        digest = hashlib.sha256()
+        digest.update(file_digest(image_path).encode())
+        digest.update(b"|")
+        digest.update(self.source.view_fingerprint(image_path, frame_index).encode())
+        key = digest.hexdigest()[:32]
+        self._key_memo[memo_key] = (signature, key)
+        return key
+
+    def labels_path(self, key: str) -> Path:
+        return self.entry_dir / f"{key}.labels.npy"
+
+    def votes_path(self, key: str) -> Path:
+        return self.entry_dir / f"{key}.votes.npz"
+
+    # ------------------------------------------------------------------ reading
+    def load(self, key: str) -> Optional[VoteMaps]:
+        """The entry for ``key`` (labels memory-mapped), or None if absent or unusable."""
+        if key in self._open:
+            self._open.move_to_end(key)
+            return self._open[key]
+        votes_path, labels_path = self.votes_path(key), self.labels_path(key)
+        if not votes_path.is_file():
+            return None
+        try:
+            vote_maps = self._read_entry(key, votes_path, labels_path)
+        except Exception as error:  # any unreadable entry is rebuilt
+            warnings.warn(f"vote cache entry {votes_path.name} is unreadable ({type(error).__name__}: {error}); rebuilding it")
+            self._remove_entry(key)
+            return None
+        self._open[key] = vote_maps
+        while len(self._open) > self._max_open:
+            self._open.popitem(last=False)
+        return vote_maps
+
+    def _read_entry(self, key: str, votes_path: Path, labels_path: Path) -> VoteMaps:
+        with np.load(votes_path, allow_pickle=False) as record:
+            stored_key = str(record["key"])
+            num_levels = int(record["num_levels"])
+            labels_shape = tuple(int(v) for v in record["labels_shape"])
+            labels_dtype = np.dtype(str(record["labels_dtype"]))
+            level_names = tuple(str(v) for v in record["level_names"])
+            centroids = [np.array(record[f"centroids_{level}"], dtype=np.float32) for level in range(num_levels)]
+        if stored_key != key:
+            raise ValueError(f"entry holds key {stored_key}")
+        labels = np.load(labels_path, mmap_mode="r", allow_pickle=False)
+        if labels.shape != labels_shape or labels.dtype != labels_dtype:
+            raise ValueError(f"labels are {labels.dtype}{labels.shape}, the record says {labels_dtype}{labels_shape}")
+        vote_maps = VoteMaps(labels=labels, centroids=centroids, level_names=level_names)
+        if level_names != tuple(self.source.levels):
+            raise ValueError(f"entry has levels {level_names}, expected {tuple(self.source.levels)}")
+        return vote_maps
+
+    def _remove_entry(self, key: str) -> None:
+        self._open.pop(key, None)
+        for path in (self.votes_path(key), self.labels_path(key)):
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                pass
+
+    # ------------------------------------------------------------------ building
+    def _build(self, key: str, frame_index: int, image_path: Path, image_loader: Optional[ImageLoader]) -> VoteMaps:
+        image = image_loader(frame_index, image_path) if image_loader is not None else load_image_rgb(image_path)
+        label_images = self.source.masks_for_image(image, image_path, frame_index)
+        if len(label_images) != len(self.source.levels):
+            raise ValueError(
+                f"mask source '{self.source.name}' returned {len(label_images)} label images for {image_path}, "
+                f"expected one per level {list(self.source.levels)}"
+            )
+        vote_maps = vote_maps_from_labels(
+            label_images, drop_border_masks=self.vote_options.drop_border_masks, level_names=self.source.levels
+        )
+        self._write_entry(key, vote_maps)
+        return vote_maps
+
+    def _write_entry(self, key: str, vote_maps: VoteMaps) -> None:
+        labels = np.ascontiguousarray(vote_maps.labels)
+        atomic_write_bytes(self.labels_path(key), lambda handle: np.save(handle, labels, allow_pickle=False))
+        record = {
+            "key": np.array(key),
+            "num_levels": np.array(vote_maps.num_levels),
+            "labels_shape": np.array(labels.shape, dtype=np.int64),
+            "labels_dtype": np.array(labels.dtype.str),
+            "level_names": np.array(list(vote_maps.level_names), dtype=str),
+        }
+        for level, table in enumerate(vote_maps.centroids):
+            record[f"centroids_{level}"] = table
+        # written last: an entry without its .votes.npz is not an entry
+        atomic_write_bytes(self.votes_path(key), lambda handle: np.savez(handle, **record))
+
+    def get(
+        self, frame_index: int, image_path: PathLike, image_loader: Optional[ImageLoader] = None
+    ) -> VoteMaps:
+        """Vote maps of one view: from the cache if a valid entry exists, else made and stored.
+
+        Args:
+            frame_index: the view's index (passed to the mask source).
+            image_path: the image file; its bytes key the entry.
+            image_loader: ``(frame_index, image_path) -> uint8 [H, W, 3]`` returning that file's
+                pixels; defaults to reading the file.
+        """
+        image_path = Path(image_path)
+        key = self.view_key(image_path, frame_index)
+        cached = self.load(key)
+        if cached is not None:
+            return cached
+        self._build(key, frame_index, image_path, image_loader)
+        loaded = self.load(key)
+        if loaded is None:
+            raise RuntimeError(f"vote cache entry {self.votes_path(key)} could not be read back after writing it")
+        return loaded
+
+    def build_all(
+        self,
+        views: Sequence[Tuple[int, PathLike]],
+        image_loader: Optional[ImageLoader] = None,
+        progress: bool = True,
+        description: Optional[str] = None,
+    ) -> List[str]:
+        """Make every missing entry (with a progress bar) and return the views' keys in order.
+
+        Entries already present and readable are reused, so an interrupted build resumes.
+        """
+        self._remove_stale_temp_files()
+        keys = [self.view_key(Path(path), index) for index, path in views]
+        missing = [i for i, key in enumerate(keys) if not self._entry_usable(key)]
+        if missing:
+            text = description or f"Making vote maps ({self.source.name} masks)"
+            steps = _progress(missing, text, enabled=progress)
+            for i in steps:
+                index, path = views[i]
+                self._build(keys[i], index, Path(path), image_loader)
+        return keys
+
+    def _entry_usable(self, key: str) -> bool:
+        return self.load(key) is not None
+
+    def _remove_stale_temp_files(self) -> None:
+        if not self.entry_dir.is_dir():
+            return
+        now = time.time()
+        for path in self.entry_dir.iterdir():
+            if _TEMP_MARKER in path.name and path.is_file():
+                try:
+                    if now - path.stat().st_mtime > _STALE_TEMP_SECONDS:
+                        path.unlink()
+                except FileNotFoundError:
+                    pass
+
+
+def _progress(items: Sequence[int], description: str, enabled: bool):
+    if not enabled:
+        return items
+    from rich.progress import track
+
+    return track(items, description=description, total=len(items), transient=False)
