@@ -1,0 +1,204 @@
+import numpy as np
+import pytest
+from PIL import Image
+
+from votesplat_ns.evaluation import (
+    contingency,
+    gaussian_purity,
+    instance_palette,
+    match_instances,
+    save_comparison_png,
+)
+
+
+def _two_views():
+    """Two 6x8 views with three GT instances; instance 3 only appears in view 1."""
+    v0 = np.zeros((6, 8), dtype=np.uint16)
+    v0[1:3, 1:4] = 1  # 6 px
+    v0[3:6, 5:8] = 2  # 9 px
+    v1 = np.zeros((6, 8), dtype=np.uint16)
+    v1[0:2, 0:2] = 1  # 4 px
+    v1[2:6, 2:4] = 2  # 8 px
+    v1[4:6, 6:8] = 3  # 4 px
+    return [v0, v1]
+
+
+def test_perfect_prediction():
+    gt = _two_views()
+    scores = match_instances(gt, [g.astype(np.int32) for g in gt])
+    assert scores.miou == 1.0
+    assert scores.precision == 1.0 and scores.recall == 1.0 and scores.f1 == 1.0
+    assert scores.matches == {1: 1, 2: 2, 3: 3}
+
+
+def test_swapped_ids_are_perfect_after_matching():
+    gt = _two_views()
+    relabel = np.array([-1, 7, 3, 12])  # 0 -> -1 (none), 1 -> 7, 2 -> 3, 3 -> 12
+    pred = [relabel[g] for g in gt]
+    scores = match_instances(gt, pred)
+    assert scores.miou == 1.0
+    assert scores.matches == {1: 7, 2: 3, 3: 12}
+    assert scores.precision == 1.0 and scores.recall == 1.0
+
+
+def test_merged_instances():
+    gt = _two_views()
+    pred = [np.where(g > 0, np.where(g == 3, 9, 5), 0) for g in gt]  # 1 and 2 merged into 5
+    scores = match_instances(gt, pred)
+    area1, area2 = 6 + 4, 9 + 8
+    # the merged prediction goes to instance 2 (IoU 17/27 beats 10/27); instance 1 is left unmatched
+    assert scores.matches == {1: None, 2: 5, 3: 9}
+    assert scores.per_gt_iou[2] == pytest.approx(area2 / (area1 + area2))
+    assert scores.per_gt_iou[1] == 0.0
+    assert scores.miou == pytest.approx((0.0 + area2 / (area1 + area2) + 1.0) / 3)
+    assert scores.true_positives == 2  # 17/27 = 0.63 >= 0.5, and instance 3
+    assert scores.precision == pytest.approx(2 / 2)
+    assert scores.recall == pytest.approx(2 / 3)
+
+
+def test_split_instance():
+    gt = _two_views()
+    pred = [g.astype(np.int64) for g in gt]
+    # instance 2 split into ids 2 (first column of each view's block) and 8 (the rest)
+    pred[0][3:6, 6:8] = 8  # 6 of its 9 px in view 0
+    pred[1][2:6, 3:4] = 8  # 4 of its 8 px in view 1
+    scores = match_instances(gt, pred)
+    assert scores.matches[2] == 8  # 10 px of 17 beats 7 of 17
+    assert scores.per_gt_iou[2] == pytest.approx(10 / 17)
+    assert scores.per_gt_iou[1] == 1.0 and scores.per_gt_iou[3] == 1.0
+    assert scores.true_positives == 3
+    assert scores.precision == pytest.approx(3 / 4)  # the other half (id 2) is a false positive
+    assert scores.recall == 1.0
+
+
+def test_split_below_threshold_is_not_a_true_positive():
+    gt = [np.array([[1, 1, 1, 1]])]
+    pred = [np.array([[4, 4, 5, 5]])]
+    scores = match_instances(gt, pred)
+    assert scores.per_gt_iou[1] == pytest.approx(0.5)
+    assert scores.true_positives == 1  # IoU exactly 0.5 counts (>=)
+    scores = match_instances(gt, [np.array([[4, 5, 5, 6]])])
+    assert scores.per_gt_iou[1] == pytest.approx(0.5)
+    gt3 = [np.array([[1, 1, 1]])]
+    scores = match_instances(gt3, [np.array([[4, 5, 6]])])
+    assert scores.per_gt_iou[1] == pytest.approx(1 / 3)
+    assert scores.true_positives == 0 and scores.precision == 0.0 and scores.recall == 0.0
+
+
+@pytest.mark.parametrize("none_value", [0, -1])
+def test_empty_prediction(none_value):
+    gt = _two_views()
+    pred = [np.full(g.shape, none_value, dtype=np.int32) for g in gt]
+    scores = match_instances(gt, pred)
+    assert scores.miou == 0.0
+    assert scores.precision == 0.0 and scores.recall == 0.0 and scores.f1 == 0.0
+    assert all(m is None for m in scores.matches.values())
+    assert len(scores.pred_ids) == 0
+
+
+def test_iou_is_joint_over_views():
+    """An id that follows the object in one view but not the other is scored on the pixel sum."""
+    gt = [np.array([[1, 1, 0, 0]]), np.array([[0, 0, 1, 1]])]
+    consistent = [np.array([[3, 3, 0, 0]]), np.array([[0, 0, 3, 3]])]
+    assert match_instances(gt, consistent).miou == 1.0
+    inconsistent = [np.array([[3, 3, 0, 0]]), np.array([[0, 0, 4, 4]])]
+    scores = match_instances(gt, inconsistent)
+    assert scores.per_gt_iou[1] == pytest.approx(0.5)
+    table = contingency(gt, inconsistent)
+    assert table.intersection.tolist() == [[2, 2]]
+    assert table.gt_area.tolist() == [4] and table.pred_area.tolist() == [2, 2]
+
+
+def test_hungarian_beats_greedy():
+    # greedy on the largest IoU would give pred 5 to GT 1 (0.5) and leave GT 2 with nothing
+    gt = [np.array([[1, 1, 1, 1, 2, 2]])]
+    pred = [np.array([[5, 5, 5, 6, 5, 5]])]
+    scores = match_instances(gt, pred)
+    iou = {(int(g), int(p)): scores.iou[i, j] for i, g in enumerate(scores.gt_ids) for j, p in enumerate(scores.pred_ids)}
+    assert iou[(1, 5)] == pytest.approx(3 / 6) and iou[(2, 5)] == pytest.approx(2 / 5)
+    assert iou[(1, 6)] == pytest.approx(1 / 4) and iou[(2, 6)] == 0.0
+    assert scores.matches == {1: 6, 2: 5}
+    assert scores.miou == pytest.approx((1 / 4 + 2 / 5) / 2)
+
+
+def test_accepts_stacked_arrays_and_single_views():
+    gt = np.stack(_two_views())
+    assert match_instances(gt, gt.astype(np.int16)).miou == 1.0
+    assert match_instances(gt[0], gt[0]).miou == 1.0
+
+
+@pytest.mark.parametrize(
+    "gt, pred, message",
+    [
+        ([np.zeros((2, 2), int)], [np.zeros((2, 3), int)], "resize"),
+        ([np.ones((2, 2), int)], [np.ones((2, 2), int)] * 2, "one prediction per GT view"),
+        ([np.ones((2, 2), int)], [np.ones((2, 2), float)], "integer"),
+        ([np.zeros((2, 2), int)], [np.ones((2, 2), int)], "no instance"),
+        ([np.full((2, 2), -1)], [np.ones((2, 2), int)], "negative"),
+        ([], [], "at least one"),
+        ([np.ones((2, 2, 2), int)], [np.ones((2, 2, 2), int)], "2D"),
+    ],
+)
+def test_bad_input_is_a_clear_error(gt, pred, message):
+    with pytest.raises(ValueError, match=message):
+        match_instances(gt, pred)
+
+
+def test_bad_threshold():
+    with pytest.raises(ValueError, match="iou_threshold"):
+        match_instances([np.ones((2, 2), int)], [np.ones((2, 2), int)], iou_threshold=0.0)
+
+
+def test_gaussian_purity_hand_case():
+    gt = np.array([1, 1, 1, 1, 2, 2, 2, 0, 0, 3])
+    pred = np.array([7, 7, 7, 8, 8, 8, 8, 8, -1, -1])
+    s = gaussian_purity(pred, gt)
+    # cluster 7 = {1,1,1} pure; cluster 8 = {1,2,2,2,0}: majority 2, purity 3/5
+    assert s.per_cluster_purity == {7: 1.0, 8: pytest.approx(3 / 5)}
+    assert s.cluster_majority == {7: 1, 8: 2}
+    assert s.purity == pytest.approx((3 + 3) / 8)
+    # instance 1: 3 of 4 in cluster 7; instance 2: 3 of 3; instance 3: unassigned
+    assert s.per_gt_completeness == {1: pytest.approx(3 / 4), 2: 1.0, 3: 0.0}
+    assert s.completeness == pytest.approx((3 + 3 + 0) / 8)
+    assert s.assigned_fraction == pytest.approx(7 / 8)
+    # 3D IoU: (1,7) = 3/4, (2,8) = 3/5, instance 3 unmatched
+    assert s.miou_3d == pytest.approx((3 / 4 + 3 / 5 + 0.0) / 3)
+
+
+def test_gaussian_purity_perfect_and_empty():
+    gt = np.array([1, 1, 2, 2, 0])
+    perfect = gaussian_purity(np.array([5, 5, 9, 9, 0]), gt)
+    assert (perfect.purity, perfect.completeness, perfect.miou_3d, perfect.assigned_fraction) == (1.0, 1.0, 1.0, 1.0)
+    empty = gaussian_purity(np.full(5, -1), gt)
+    assert (empty.purity, empty.completeness, empty.miou_3d, empty.assigned_fraction) == (0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="equal length"):
+        gaussian_purity(np.zeros(3, int), np.zeros(4, int))
+    with pytest.raises(ValueError, match="integers"):
+        gaussian_purity(np.zeros(3), np.zeros(3, int))
+    with pytest.raises(ValueError, match="empty"):
+        gaussian_purity(np.zeros(0, int), np.zeros(0, int))
+    with pytest.raises(ValueError, match="negative"):
+        gaussian_purity(np.zeros(2, int), np.array([0, -1]))
+    only_background = gaussian_purity(np.array([3, 3, 0]), np.zeros(3, int))
+    assert only_background.purity == 1.0 and only_background.completeness == 0.0 and only_background.miou_3d == 0.0
+
+
+def test_save_comparison_png(tmp_path):
+    gt = _two_views()
+    relabel = np.array([0, 7, 3, 12])
+    pred = [relabel[g] for g in gt]
+    pred[1][0, 7] = 40  # an extra, unmatched prediction
+    out = save_comparison_png(gt, pred, tmp_path / "sub" / "cmp.png", scale=2, gap=4)
+    picture = np.array(Image.open(out))
+    h, w = gt[0].shape
+    assert picture.shape == ((2 * h + 4) * 2, (2 * w + 4) * 2, 3)
+    assert not list(out.parent.glob(".*"))  # no temp file left behind
+    left = picture[: 2 * h, : 2 * w]
+    right = picture[: 2 * h, (w + 4) * 2 : (2 * w + 4) * 2]
+    assert np.array_equal(left, right)  # matched ids take their GT colour
+    palette = instance_palette(4)
+    assert tuple(left[2 * 1, 2 * 1]) == tuple(palette[1])
+    assert tuple(left[0, 0]) == (0, 0, 0)
+    row1 = picture[(h + 4) * 2 : (2 * h + 4) * 2]
+    extra = row1[0, (w + 4) * 2 + 2 * 7]
+    assert tuple(extra) not in {tuple(c) for c in palette} | {(255, 255, 255)}

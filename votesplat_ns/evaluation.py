@@ -1,0 +1,349 @@
+"""Instance segmentation scores against exact ground truth (numpy/scipy; Pillow only to save pictures).
+
+Label conventions
+-----------------
+* Ground-truth instance maps: integer [H,W] per view, 0 = background, k > 0 = instance k. Ids are
+  the same instance in every view (as in the synthetic datasets).
+* Predicted instance maps: integer [H,W] per view; any id <= 0 (0 or -1, e.g. HDBSCAN noise) means
+  "no instance". A predicted id is one instance across all views.
+
+2D score (:func:`match_instances`): IoU between every GT and predicted instance is computed over all
+views jointly (pixel counts summed over views), GT and predictions are matched one-to-one by the
+Hungarian method maximising total IoU (``scipy.optimize.linear_sum_assignment``), a pair with IoU 0
+counts as unmatched, and:
+
+* per-GT IoU: IoU with its match, 0 if unmatched; mIoU = mean over GT instances present in the maps;
+* true positive: a matched pair with IoU >= ``iou_threshold`` (0.5 by default);
+  precision = TP / #predicted instances (0 when nothing is predicted), recall = TP / #GT instances.
+
+3D score (:func:`gaussian_purity`): from per-Gaussian predicted ids and the GT instance each Gaussian
+lies on (0 = none/background, supplied by the caller).
+"""
+
+from __future__ import annotations
+
+import colorsys
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+
+def _as_views(maps, what: str) -> list:
+    if isinstance(maps, np.ndarray):
+        if maps.ndim == 2:
+            maps = [maps]
+        elif maps.ndim == 3:
+            maps = list(maps)
+        else:
+            raise ValueError(f"{what}: expected [H,W] per view or [V,H,W], got an array of shape {maps.shape}")
+    views = [np.asarray(m) for m in maps]
+    if not views:
+        raise ValueError(f"{what}: no views given; pass at least one [H,W] map")
+    for i, view in enumerate(views):
+        if view.ndim != 2:
+            raise ValueError(f"{what}: view {i} has shape {view.shape}; each view must be a 2D [H,W] id map")
+        if not (np.issubdtype(view.dtype, np.integer) or view.dtype == np.bool_):
+            raise ValueError(f"{what}: view {i} has dtype {view.dtype}; instance maps must be integer ids (cast with .astype(int))")
+    return views
+
+
+def _check_pairs(gt_views: list, pred_views: list) -> None:
+    if len(gt_views) != len(pred_views):
+        raise ValueError(f"{len(gt_views)} ground-truth views but {len(pred_views)} predicted views; pass one prediction per GT view")
+    for i, (g, p) in enumerate(zip(gt_views, pred_views)):
+        if g.shape != p.shape:
+            raise ValueError(f"view {i}: ground truth is {g.shape} but prediction is {p.shape}; resize the prediction (nearest) first")
+
+
+@dataclass(frozen=True)
+class Contingency:
+    gt_ids: np.ndarray  # [G] instance ids present in the ground truth
+    pred_ids: np.ndarray  # [P] instance ids present in the prediction
+    intersection: np.ndarray  # [G,P] pixels, summed over views
+    gt_area: np.ndarray  # [G]
+    pred_area: np.ndarray  # [P]
+
+    @property
+    def iou(self) -> np.ndarray:
+        union = self.gt_area[:, None] + self.pred_area[None, :] - self.intersection
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(union > 0, self.intersection / np.maximum(union, 1), 0.0)
+
+
+def contingency(gt_maps, pred_maps) -> Contingency:
+    """Pixel overlap counts between GT ids (> 0) and predicted ids (> 0) summed over all views."""
+    gt_views, pred_views = _as_views(gt_maps, "gt_maps"), _as_views(pred_maps, "pred_maps")
+    _check_pairs(gt_views, pred_views)
+    for i, g in enumerate(gt_views):
+        if g.size and g.min() < 0:
+            raise ValueError(f"gt_maps: view {i} has negative ids; ground truth uses 0 for background and k > 0 for instances")
+    pair_counts: Dict[Tuple[int, int], int] = {}
+    gt_area: Dict[int, int] = {}
+    pred_area: Dict[int, int] = {}
+    for g, p in zip(gt_views, pred_views):
+        g = g.astype(np.int64).ravel()
+        p = np.where(p > 0, p, 0).astype(np.int64).ravel()
+        for ids, areas in ((g, gt_area), (p, pred_area)):
+            counts = np.bincount(ids) if ids.size and ids.max() < 2**24 else None
+            if counts is None:
+                values, counts = np.unique(ids[ids > 0], return_counts=True)
+            else:
+                values = np.nonzero(counts)[0]
+                values, counts = values[values > 0], counts[values[values > 0]]
+            for v, c in zip(values.tolist(), counts.tolist()):
+                areas[v] = areas.get(v, 0) + c
+        both = (g > 0) & (p > 0)
+        if both.any():
+            stride = int(p.max()) + 1
+            keys, counts = np.unique(g[both] * stride + p[both], return_counts=True)
+            for key, c in zip(keys.tolist(), counts.tolist()):
+                pair = divmod(key, stride)
+                pair_counts[pair] = pair_counts.get(pair, 0) + c
+    gt_ids = np.array(sorted(gt_area), dtype=np.int64)
+    pred_ids = np.array(sorted(pred_area), dtype=np.int64)
+    g_index = {v: i for i, v in enumerate(gt_ids.tolist())}
+    p_index = {v: i for i, v in enumerate(pred_ids.tolist())}
+    inter = np.zeros((len(gt_ids), len(pred_ids)), dtype=np.int64)
+    for (gi, pi), c in pair_counts.items():
+        inter[g_index[gi], p_index[pi]] = c
+    return Contingency(
+        gt_ids,
+        pred_ids,
+        inter,
+        np.array([gt_area[v] for v in gt_ids.tolist()], dtype=np.int64),
+        np.array([pred_area[v] for v in pred_ids.tolist()], dtype=np.int64),
+    )
+
+
+@dataclass(frozen=True)
+class InstanceScores:
+    gt_ids: np.ndarray
+    pred_ids: np.ndarray
+    iou: np.ndarray  # [G,P] joint IoU over all views
+    matches: Dict[int, Optional[int]]  # GT id -> matched predicted id, None if unmatched
+    per_gt_iou: Dict[int, float]
+    miou: float
+    precision: float
+    recall: float
+    f1: float
+    true_positives: int
+    iou_threshold: float
+
+    def to_dict(self) -> dict:
+        return {
+            "miou": self.miou,
+            "precision": self.precision,
+            "recall": self.recall,
+            "f1": self.f1,
+            "true_positives": self.true_positives,
+            "num_gt": int(len(self.gt_ids)),
+            "num_pred": int(len(self.pred_ids)),
+            "iou_threshold": self.iou_threshold,
+            "per_gt_iou": {str(k): v for k, v in self.per_gt_iou.items()},
+            "matches": {str(k): v for k, v in self.matches.items()},
+        }
+
+
+def match_instances(gt_maps, pred_maps, iou_threshold: float = 0.5) -> InstanceScores:
+    """Hungarian matching on joint multi-view IoU; mIoU, precision and recall (see module docstring)."""
+    if not 0.0 < iou_threshold <= 1.0:
+        raise ValueError(f"iou_threshold must be in (0, 1] (got {iou_threshold})")
+    table = contingency(gt_maps, pred_maps)
+    if len(table.gt_ids) == 0:
+        raise ValueError("the ground-truth maps contain no instance (all 0); nothing to score against")
+    iou = table.iou
+    matches: Dict[int, Optional[int]] = {int(g): None for g in table.gt_ids}
+    per_gt = {int(g): 0.0 for g in table.gt_ids}
+    tp = 0
+    if len(table.pred_ids):
+        rows, cols = linear_sum_assignment(iou, maximize=True)
+        for r, c in zip(rows, cols):
+            if iou[r, c] <= 0.0:
+                continue
+            g, p = int(table.gt_ids[r]), int(table.pred_ids[c])
+            matches[g] = p
+            per_gt[g] = float(iou[r, c])
+            tp += int(iou[r, c] >= iou_threshold)
+    num_gt, num_pred = len(table.gt_ids), len(table.pred_ids)
+    precision = tp / num_pred if num_pred else 0.0
+    recall = tp / num_gt
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return InstanceScores(
+        gt_ids=table.gt_ids,
+        pred_ids=table.pred_ids,
+        iou=iou,
+        matches=matches,
+        per_gt_iou=per_gt,
+        miou=float(np.mean(list(per_gt.values()))),
+        precision=float(precision),
+        recall=float(recall),
+        f1=float(f1),
+        true_positives=tp,
+        iou_threshold=float(iou_threshold),
+    )
+
+
+@dataclass(frozen=True)
+class GaussianScores:
+    """Cluster quality of per-Gaussian instance ids.
+
+    * ``purity``: over Gaussians with a predicted id > 0, the fraction whose GT label (0 included, so
+      background swept into a cluster counts against it) is the majority GT label of their cluster;
+      equal to the mean per-Gaussian purity, i.e. cluster purities weighted by cluster size.
+    * ``completeness``: over Gaussians on a GT instance (> 0), the fraction that sit in the predicted
+      cluster holding most of their instance (unassigned Gaussians count as misses).
+    * ``miou_3d``: mean over GT instances of the Gaussian-set IoU with its Hungarian match (0 if none).
+    * ``assigned_fraction``: fraction of GT-instance Gaussians that got a predicted id > 0.
+    """
+
+    purity: float
+    completeness: float
+    miou_3d: float
+    assigned_fraction: float
+    per_cluster_purity: Dict[int, float] = field(default_factory=dict)
+    cluster_majority: Dict[int, int] = field(default_factory=dict)
+    per_gt_completeness: Dict[int, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "purity": self.purity,
+            "completeness": self.completeness,
+            "miou_3d": self.miou_3d,
+            "assigned_fraction": self.assigned_fraction,
+            "per_cluster_purity": {str(k): v for k, v in self.per_cluster_purity.items()},
+            "cluster_majority": {str(k): v for k, v in self.cluster_majority.items()},
+            "per_gt_completeness": {str(k): v for k, v in self.per_gt_completeness.items()},
+        }
+
+
+def gaussian_purity(pred_ids, gt_ids) -> GaussianScores:
+    """3D score from predicted per-Gaussian ids (<= 0 = unassigned) and GT per-Gaussian instances (0 = none)."""
+    pred = np.asarray(pred_ids)
+    gt = np.asarray(gt_ids)
+    if pred.ndim != 1 or gt.ndim != 1 or pred.shape != gt.shape:
+        raise ValueError(f"pred_ids and gt_ids must be 1D arrays of equal length (got {pred.shape} and {gt.shape})")
+    for name, arr in (("pred_ids", pred), ("gt_ids", gt)):
+        if not np.issubdtype(arr.dtype, np.integer):
+            raise ValueError(f"{name} has dtype {arr.dtype}; per-Gaussian ids must be integers")
+    if pred.size == 0:
+        raise ValueError("no Gaussians given; pred_ids and gt_ids are empty")
+    if gt.min() < 0:
+        raise ValueError("gt_ids has negative values; use 0 for Gaussians on no instance")
+    pred = np.where(pred > 0, pred, 0).astype(np.int64)
+    gt = gt.astype(np.int64)
+    # one contingency table: rows = unassigned (row 0) + predicted clusters, columns = GT labels (0 included)
+    clusters, row = np.unique(pred, return_inverse=True)
+    labels, col = np.unique(gt, return_inverse=True)
+    if clusters[0] != 0:
+        clusters, row = np.concatenate([[0], clusters]), row + 1
+    if len(labels) == 0 or labels[0] != 0:
+        labels, col = np.concatenate([[0], labels]), col + 1
+    table = np.bincount(row.ravel() * len(labels) + col.ravel(), minlength=len(clusters) * len(labels))
+    table = table.reshape(len(clusters), len(labels))
+    assigned_rows, object_cols = table[1:], table[:, 1:]
+    cluster_ids, gt_instances = clusters[1:].tolist(), labels[1:].tolist()
+
+    per_cluster, majority = {}, {}
+    for i, c in enumerate(cluster_ids):
+        j = int(np.argmax(assigned_rows[i]))
+        per_cluster[c] = float(assigned_rows[i, j] / assigned_rows[i].sum())
+        majority[c] = int(labels[j])
+    num_assigned = int(assigned_rows.sum())
+    purity = float(assigned_rows.max(axis=1).sum() / num_assigned) if num_assigned else 0.0
+
+    inter = object_cols[1:].T  # [GT instances, clusters]
+    sizes = object_cols.sum(axis=0)  # every Gaussian on the instance, assigned or not
+    best = inter.max(axis=1) if len(cluster_ids) else np.zeros(len(gt_instances), dtype=np.int64)
+    per_gt = {g: float(best[k] / sizes[k]) for k, g in enumerate(gt_instances)}
+    completeness = float(best.sum() / sizes.sum()) if len(gt_instances) else 0.0
+    miou_3d = 0.0
+    if len(gt_instances) and len(cluster_ids):
+        union = sizes[:, None] + assigned_rows.sum(axis=1)[None, :] - inter
+        iou = inter / np.maximum(union, 1)
+        rows, cols = linear_sum_assignment(iou, maximize=True)
+        miou_3d = float(iou[rows, cols].sum() / len(gt_instances))
+    on_object = int(sizes.sum())
+    assigned_fraction = float(inter.sum() / on_object) if on_object else 0.0
+    return GaussianScores(purity, completeness, miou_3d, assigned_fraction, per_cluster, majority, per_gt)
+
+
+# --------------------------------------------------------------------------------------------
+# pictures
+
+
+def instance_palette(count: int, saturation: float = 0.75, value: float = 0.95, offset: float = 0.0) -> np.ndarray:
+    """[count,3] uint8 colours with well-spread hues (golden-ratio steps); entry 0 is black."""
+    colours = np.zeros((max(count, 1), 3), dtype=np.uint8)
+    for k in range(1, count):
+        hue = (offset + k * 0.618033988749895) % 1.0
+        colours[k] = np.round(np.array(colorsys.hsv_to_rgb(hue, saturation, value)) * 255)
+    return colours
+
+
+def _colourise(ids: np.ndarray, colour_of: Dict[int, np.ndarray]) -> np.ndarray:
+    out = np.zeros(ids.shape + (3,), dtype=np.uint8)
+    for value, colour in colour_of.items():
+        out[ids == value] = colour
+    return out
+
+
+def save_comparison_png(gt_maps, pred_maps, path, scale: int = 1, gap: int = 4) -> Path:
+    """One row per view: GT instances | predicted instances, written atomically as a PNG.
+
+    A predicted instance matched to a GT instance (see :func:`match_instances`) takes that GT
+    instance's colour, so a correct prediction looks identical to the GT; unmatched predictions get
+    duller colours of their own; "none" is black.
+    """
+    from PIL import Image
+
+    gt_views, pred_views = _as_views(gt_maps, "gt_maps"), _as_views(pred_maps, "pred_maps")
+    _check_pairs(gt_views, pred_views)
+    if scale < 1 or gap < 0:
+        raise ValueError(f"scale must be >= 1 and gap >= 0 (got scale={scale}, gap={gap})")
+    table = contingency(gt_views, pred_views)
+    matches: Dict[int, int] = {}
+    if len(table.gt_ids) and len(table.pred_ids):
+        iou = table.iou
+        for r, c in zip(*linear_sum_assignment(iou, maximize=True)):
+            if iou[r, c] > 0:
+                matches[int(table.pred_ids[c])] = int(table.gt_ids[r])
+    gt_palette = instance_palette(len(table.gt_ids) + 1)
+    gt_colour = {int(g): gt_palette[i + 1] for i, g in enumerate(table.gt_ids)}
+    spare = instance_palette(len(table.pred_ids) + 1, saturation=0.45, value=0.6, offset=0.31)
+    pred_colour = {
+        int(p): gt_colour[matches[int(p)]] if int(p) in matches else spare[i + 1] for i, p in enumerate(table.pred_ids)
+    }
+    rows = []
+    for g, p in zip(gt_views, pred_views):
+        left = _colourise(g, gt_colour)
+        right = _colourise(np.where(p > 0, p, 0), pred_colour)
+        sep = np.full((g.shape[0], gap, 3), 255, dtype=np.uint8)
+        rows.append(np.concatenate([left, sep, right], axis=1))
+    width = max(r.shape[1] for r in rows)
+    padded = []
+    for i, r in enumerate(rows):
+        if r.shape[1] < width:
+            r = np.concatenate([r, np.full((r.shape[0], width - r.shape[1], 3), 255, np.uint8)], axis=1)
+        padded.append(r)
+        if i < len(rows) - 1:
+            padded.append(np.full((gap, width, 3), 255, dtype=np.uint8))
+    picture = np.concatenate(padded, axis=0)
+    if scale > 1:
+        picture = picture.repeat(scale, axis=0).repeat(scale, axis=1)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        Image.fromarray(picture).save(tmp, format="PNG")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path

@@ -1,0 +1,565 @@
+"""Render a :mod:`~votesplat_ns.synthetic.scenes` scene with mitsuba 3 and write a nerfstudio dataset.
+
+* RGB: mitsuba's path tracer (``scalar_rgb`` variant, CPU), box pixel filter, sRGB 8-bit PNG.
+* Instance ids, part ids and depth: ONE ray per pixel through the pixel centre (x + 0.5, y + 0.5)
+  cast with ``scene.ray_intersect`` on the same mitsuba scene, so label edges are exact and agree with
+  the depth. 16-bit single-channel PNGs; 0 = background/nothing.
+* Depth: camera z (OpenCV, along the optical axis, not the ray length) in millimetres, uint16; 0 where
+  no surface was hit or z > 65.535 m. nerfstudio reads it with its default ``depth_unit_scale_factor``
+  of 1e-3.
+
+Dataset layout (``transforms.json`` is written last, so a folder without it is an unfinished run)::
+
+    transforms.json   nerfstudio format + "instances", "touching", "votesplat_synthetic"
+    images/frame_00001.png  instances/frame_00001.png  parts/frame_00001.png  depth/frame_00001.png
+    sparse_pc.ply     surface points seen by >= 2 training views, RGB albedo (SfM stand-in)
+
+The reading helpers at the bottom need only numpy and Pillow, not mitsuba.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from votesplat_ns.synthetic.scenes import (
+    GENERATOR_VERSION,
+    Camera,
+    Part,
+    Scene,
+    linear_to_srgb_uint8,
+    primitive_mesh,
+    srgb_to_linear,
+)
+
+MITSUBA_MISSING = "mitsuba not installed (pip install votesplat_ns[synthetic])"
+MITSUBA_VARIANT = "scalar_rgb"
+DEPTH_UNIT_METRES = 1e-3
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+# mitsuba's camera frame has +x to the image's left and +y up (it looks along +z)
+_OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
+_SUBDIRS = ("images", "instances", "parts", "depth")
+
+
+def require_mitsuba():
+    """Import mitsuba and select the CPU ``scalar_rgb`` variant; clear error if it is missing."""
+    try:
+        import mitsuba as mi
+    except ImportError as exc:
+        raise ImportError(MITSUBA_MISSING) from exc
+    if mi.variant() != MITSUBA_VARIANT:
+        mi.set_variant(MITSUBA_VARIANT)
+        mi.set_log_level(mi.LogLevel.Error)
+    return mi
+
+
+def mitsuba_available() -> bool:
+    try:
+        import mitsuba  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+# --------------------------------------------------------------------------------------------
+# atomic writers
+
+
+def _atomic_write_bytes(path: Path, write: Callable[[str], None], suffix: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_png(path: Path, array: np.ndarray) -> None:
+    """Atomic PNG write: uint8 [H,W,3] RGB, or uint16 [H,W] single channel (16-bit PNG)."""
+    from PIL import Image
+
+    array = np.ascontiguousarray(array)
+    if array.dtype == np.uint16 and array.ndim == 2:
+        image = Image.fromarray(array)
+    elif array.dtype == np.uint8 and array.ndim in (2, 3):
+        image = Image.fromarray(array)
+    else:
+        raise ValueError(f"write_png: expected uint8 [H,W(,3)] or uint16 [H,W], got {array.dtype} {array.shape}")
+    _atomic_write_bytes(path, lambda tmp: image.save(tmp, format="PNG"), ".png")
+
+
+def write_json(path: Path, data: dict) -> None:
+    text = json.dumps(data, indent=2)
+
+    def write(tmp):
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text + "\n")
+
+    _atomic_write_bytes(path, write, ".json")
+
+
+def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -> None:
+    """Binary PLY with float x,y,z and uchar red,green,blue (what nerfstudio's loader, via open3d, reads)."""
+    from plyfile import PlyData, PlyElement
+
+    vertex = np.zeros(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = np.asarray(points, dtype=np.float32).T
+    vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours_uint8, dtype=np.uint8).T
+    data = PlyData([PlyElement.describe(vertex, "vertex")], text=False)
+    _atomic_write_bytes(path, lambda tmp: data.write(tmp), ".ply")
+
+
+def _write_mesh_ply(path: str, mesh) -> None:
+    from plyfile import PlyData, PlyElement
+
+    fields = [("x", "f4"), ("y", "f4"), ("z", "f4"), ("nx", "f4"), ("ny", "f4"), ("nz", "f4"), ("u", "f4"), ("v", "f4")]
+    vertex = np.zeros(len(mesh.vertices), dtype=fields)
+    vertex["x"], vertex["y"], vertex["z"] = mesh.vertices.astype(np.float32).T
+    vertex["nx"], vertex["ny"], vertex["nz"] = mesh.normals.astype(np.float32).T
+    vertex["u"], vertex["v"] = mesh.uvs.astype(np.float32).T
+    faces = mesh.faces
+    face = np.zeros(len(faces), dtype=[("vertex_indices", "i4", (3,))])
+    face["vertex_indices"] = faces
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=False).write(path)
+
+
+# --------------------------------------------------------------------------------------------
+# camera helpers
+
+
+def pixel_rays(camera: Camera, intrinsics) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World ray origin [3], unit directions [H,W,3] through pixel centres, and the camera z of each unit direction."""
+    w, h = intrinsics.width, intrinsics.height
+    xs = (np.arange(w) + 0.5 - intrinsics.cx) / intrinsics.fx
+    ys = (np.arange(h) + 0.5 - intrinsics.cy) / intrinsics.fy
+    dirs_cam = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], np.ones((1, 1))), axis=-1)
+    norm = np.linalg.norm(dirs_cam, axis=-1, keepdims=True)
+    dirs_cam = dirs_cam / norm
+    dirs_world = dirs_cam @ camera.c2w[:3, :3].T
+    return camera.c2w[:3, 3].copy(), dirs_world, dirs_cam[..., 2]
+
+
+def opencv_c2w_to_nerfstudio(c2w: np.ndarray) -> np.ndarray:
+    """Camera-to-world in OpenCV convention -> nerfstudio/OpenGL convention (x right, y up, looks along -z)."""
+    return np.asarray(c2w, dtype=np.float64) @ OPENCV_TO_OPENGL
+
+
+def nerfstudio_to_opencv_c2w(transform_matrix) -> np.ndarray:
+    m = np.asarray(transform_matrix, dtype=np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    return m @ OPENCV_TO_OPENGL
+
+
+# --------------------------------------------------------------------------------------------
+# mitsuba scene
+
+
+class SceneRenderer:
+    """A scene loaded into mitsuba: ``cast`` gives exact ids/depth, ``render_rgb`` path-traces colour."""
+
+    def __init__(self, scene: Scene, max_depth: int = 4):
+        mi = require_mitsuba()
+        self.scene = scene
+        self._mi = mi
+        self.max_depth = int(max_depth)
+        self.shape_labels: Dict[str, Tuple[int, int]] = {}
+        entries: List[Tuple[int, Part]] = [(0, part) for part in scene.background] + scene.parts
+        with tempfile.TemporaryDirectory(prefix="votesplat_synth_") as tmp:
+            desc = {"type": "scene", "integrator": {"type": "path", "max_depth": self.max_depth}}
+            n = 0
+            for instance_id, part in entries:
+                bsdf = self._bsdf(part)
+                for primitive in part.primitives:
+                    mesh = primitive_mesh(primitive)
+                    key = f"shape_{n:04d}"
+                    path = os.path.join(tmp, key + ".ply")
+                    _write_mesh_ply(path, mesh)
+                    desc[key] = {"type": "ply", "filename": path, "bsdf": bsdf}
+                    self.shape_labels[key] = (instance_id, part.id)
+                    n += 1
+            light = scene.lighting
+            desc["sun"] = {
+                "type": "directional",
+                "direction": list(light.sun_direction),
+                "irradiance": {"type": "rgb", "value": light.sun_irradiance},
+            }
+            desc["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": light.ambient_radiance}}
+            # optimize=False: merging shapes that share a material would lose their ids
+            self.mi_scene = mi.load_dict(desc, optimize=False)
+
+    def _bsdf(self, part: Part) -> dict:
+        mi = self._mi
+        if part.material.texture is not None:
+            texture = self.scene.textures[part.material.texture]
+            reflectance = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(texture, dtype=np.float32))}
+        else:
+            linear = srgb_to_linear(np.asarray(part.material.srgb)).tolist()
+            reflectance = {"type": "rgb", "value": linear}
+        return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": reflectance}}
+
+    def cast(self, camera: Camera) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(instance ids uint16 [H,W], part ids uint16 [H,W], camera-z depth float64 [H,W] metres, 0 = miss)."""
+        mi = self._mi
+        intr = self.scene.intrinsics
+        origin, dirs, z_per_unit = pixel_rays(camera, intr)
+        h, w = intr.height, intr.width
+        instance = np.zeros((h, w), dtype=np.uint16)
+        part = np.zeros((h, w), dtype=np.uint16)
+        depth = np.zeros((h, w), dtype=np.float64)
+        o = mi.Point3f(*origin.tolist())
+        intersect = self.mi_scene.ray_intersect
+        labels = self.shape_labels
+        flat = dirs.reshape(-1, 3).tolist()
+        for index, (dx, dy, dz) in enumerate(flat):
+            si = intersect(mi.Ray3f(o, mi.Vector3f(dx, dy, dz)))
+            if not si.is_valid():
+                continue
+            y, x = divmod(index, w)
+            inst, prt = labels[si.shape.id()]
+            instance[y, x] = inst
+            part[y, x] = prt
+            depth[y, x] = float(si.t) * z_per_unit[y, x]
+        return instance, part, depth
+
+    def sensor(self, camera: Camera, spp: int):
+        mi = self._mi
+        intr = self.scene.intrinsics
+        if abs(intr.cx - intr.width / 2.0) > 1e-9 or abs(intr.cy - intr.height / 2.0) > 1e-9 or abs(intr.fx - intr.fy) > 1e-9:
+            raise ValueError("the mitsuba sensor needs a centred principal point and square pixels (fx == fy)")
+        to_world = np.asarray(camera.c2w, dtype=np.float64) @ _OPENCV_TO_MITSUBA
+        return mi.load_dict(
+            {
+                "type": "perspective",
+                "fov": intr.fov_x_degrees,
+                "fov_axis": "x",
+                "near_clip": 0.01,
+                "far_clip": 1000.0,
+                "to_world": mi.ScalarTransform4f(to_world.tolist()),
+                "film": {
+                    "type": "hdrfilm",
+                    "width": intr.width,
+                    "height": intr.height,
+                    "rfilter": {"type": "box"},
+                    "pixel_format": "rgb",
+                },
+                "sampler": {"type": "independent", "sample_count": int(spp)},
+            }
+        )
+
+    def render_rgb(self, camera: Camera, spp: int = 64, seed: int = 0) -> np.ndarray:
+        """Path-traced sRGB uint8 [H,W,3]."""
+        mi = self._mi
+        image = mi.render(self.mi_scene, sensor=self.sensor(camera, spp), spp=int(spp), seed=int(seed))
+        linear = np.array(image, dtype=np.float64)[..., :3]
+        return linear_to_srgb_uint8(linear)
+
+
+# --------------------------------------------------------------------------------------------
+# sparse point cloud
+
+
+def _sample_surface(rng, parts: Sequence[Part], textures, count: int) -> Tuple[np.ndarray, np.ndarray]:
+    """``count`` area-uniform points on the parts' meshes with their albedo as sRGB uint8."""
+    meshes = [(part, primitive_mesh(p)) for part in parts for p in part.primitives]
+    areas = []
+    for _, mesh in meshes:
+        tri = mesh.vertices[mesh.faces]
+        areas.append(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1))
+    total = np.concatenate(areas)
+    choice = rng.choice(len(total), size=count, p=total / total.sum())
+    offsets = np.cumsum([0] + [len(a) for a in areas])
+    r1, r2 = rng.random(count), rng.random(count)
+    swap = r1 + r2 > 1.0
+    r1[swap], r2[swap] = 1.0 - r1[swap], 1.0 - r2[swap]
+    points = np.zeros((count, 3))
+    colours = np.zeros((count, 3), dtype=np.uint8)
+    for m, (part, mesh) in enumerate(meshes):
+        sel = np.nonzero((choice >= offsets[m]) & (choice < offsets[m + 1]))[0]
+        if len(sel) == 0:
+            continue
+        faces = mesh.faces[choice[sel] - offsets[m]]
+        a, b, c = (mesh.vertices[faces[:, k]] for k in range(3))
+        points[sel] = a + r1[sel, None] * (b - a) + r2[sel, None] * (c - a)
+        if part.material.texture is None:
+            colours[sel] = part.material.srgb
+        else:
+            ua, ub, uc = (mesh.uvs[faces[:, k]] for k in range(3))
+            uv = ua + r1[sel, None] * (ub - ua) + r2[sel, None] * (uc - ua)
+            tex = textures[part.material.texture]
+            th, tw = tex.shape[:2]
+            # mitsuba samples bitmaps with v = 0 at the first (top) row
+            col = np.floor(np.mod(uv[:, 0], 1.0) * tw).astype(int) % tw
+            row = np.floor(np.mod(uv[:, 1], 1.0) * th).astype(int) % th
+            colours[sel] = linear_to_srgb_uint8(tex[row, col])
+    return points, colours
+
+
+def _visible_count(points: np.ndarray, scene: Scene, depths: Sequence[np.ndarray], views: Sequence[int]) -> np.ndarray:
+    intr = scene.intrinsics
+    counts = np.zeros(len(points), dtype=np.int64)
+    for view in views:
+        viewmat = scene.cameras[view].viewmat
+        cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = intr.fx * cam[:, 0] / z + intr.cx
+            v = intr.fy * cam[:, 1] / z + intr.cy
+        ok = (z > 1e-3) & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
+        x = np.clip(np.floor(np.nan_to_num(u)).astype(int), 0, intr.width - 1)
+        y = np.clip(np.floor(np.nan_to_num(v)).astype(int), 0, intr.height - 1)
+        d = depths[view][y, x]
+        # a point hidden behind a nearer surface reads a smaller depth at its pixel
+        ok &= (d > 0) & (z <= d + np.maximum(0.01, 0.01 * d))
+        counts += ok
+    return counts
+
+
+def sparse_point_cloud(scene: Scene, depths: Sequence[np.ndarray], num_points: int = 4000, seed: int = 0):
+    """SfM stand-in: surface points (half on objects, half on the background) seen by >= 2 training views."""
+    rng = np.random.default_rng([scene.seed, 5, seed])
+    train = [i for i in range(len(scene.cameras)) if i not in set(scene.eval_indices)]
+    min_views = 2 if len(train) >= 2 else 1
+    chosen_pts, chosen_cols = [], []
+    object_parts = [part for _, part in scene.parts]
+    for parts, budget in ((object_parts, num_points // 2), (list(scene.background), num_points - num_points // 2)):
+        if not parts or budget <= 0:
+            continue
+        kept_pts, kept_cols, have = [], [], 0
+        # most of a large background is out of every view: draw bigger batches until the budget is met
+        for round_index in range(8):
+            pts, cols = _sample_surface(rng, parts, scene.textures, budget * 4 * 2**round_index)
+            keep = np.nonzero(_visible_count(pts, scene, depths, train) >= min_views)[0][: budget - have]
+            kept_pts.append(pts[keep])
+            kept_cols.append(cols[keep])
+            have += len(keep)
+            if have >= budget:
+                break
+        chosen_pts += kept_pts
+        chosen_cols += kept_cols
+    return np.concatenate(chosen_pts), np.concatenate(chosen_cols)
+
+
+# --------------------------------------------------------------------------------------------
+# dataset writer
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    spp: int = 64
+    max_depth: int = 4
+    num_points: int = 4000
+
+
+def encode_depth_mm(depth_m: np.ndarray) -> np.ndarray:
+    """Metres -> uint16 millimetres; 0 (invalid) where there is no surface or it is beyond 65.535 m."""
+    mm = np.round(np.asarray(depth_m, dtype=np.float64) / DEPTH_UNIT_METRES)
+    mm[(mm <= 0) | (mm > np.iinfo(np.uint16).max) | ~np.isfinite(mm)] = 0
+    return mm.astype(np.uint16)
+
+
+def frame_name(index: int) -> str:
+    return f"frame_{index + 1:05d}.png"
+
+
+def _prepare_output(output_dir: Path, overwrite: bool) -> None:
+    if output_dir.exists() and not output_dir.is_dir():
+        raise ValueError(f"{output_dir} exists and is not a folder; choose another output directory")
+    ours = [output_dir / d for d in _SUBDIRS] + [output_dir / "transforms.json", output_dir / "sparse_pc.ply"]
+    existing = [p for p in ours if p.exists()]
+    if existing and not overwrite:
+        raise ValueError(f"{output_dir} already holds a dataset ({existing[0].name}); pass --overwrite to replace it")
+    for path in existing:
+        if path.is_dir():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+    output_dir.mkdir(parents=True, exist_ok=True)
+
+
+def write_dataset(
+    scene: Scene,
+    output_dir,
+    settings: RenderSettings = RenderSettings(),
+    overwrite: bool = False,
+    progress: Optional[Callable[[int, int], None]] = None,
+) -> Path:
+    """Render every view of ``scene`` and write the dataset; returns the path of ``transforms.json``."""
+    if settings.spp < 1:
+        raise ValueError(f"spp must be at least 1 (got {settings.spp})")
+    output_dir = Path(output_dir)
+    mi = require_mitsuba()
+    _prepare_output(output_dir, overwrite)
+    renderer = SceneRenderer(scene, max_depth=settings.max_depth)
+    intr = scene.intrinsics
+    frames, depths = [], []
+    eval_set = set(scene.eval_indices)
+    for index, camera in enumerate(scene.cameras):
+        name = frame_name(index)
+        instance, part, depth = renderer.cast(camera)
+        rgb = renderer.render_rgb(camera, spp=settings.spp, seed=scene.seed * 100_003 + index)
+        write_png(output_dir / "images" / name, rgb)
+        write_png(output_dir / "instances" / name, instance)
+        write_png(output_dir / "parts" / name, part)
+        depth_mm = encode_depth_mm(depth)
+        write_png(output_dir / "depth" / name, depth_mm)
+        depths.append(depth_mm.astype(np.float64) * DEPTH_UNIT_METRES)
+        frames.append(
+            {
+                "file_path": f"images/{name}",
+                "transform_matrix": opencv_c2w_to_nerfstudio(camera.c2w).tolist(),
+                "instance_mask_path": f"instances/{name}",
+                "part_mask_path": f"parts/{name}",
+                "depth_file_path": f"depth/{name}",
+            }
+        )
+        if progress is not None:
+            progress(index + 1, len(scene.cameras))
+    points, colours = sparse_point_cloud(scene, depths, settings.num_points)
+    write_point_ply(output_dir / "sparse_pc.ply", points, colours)
+
+    instances = []
+    for obj in scene.objects:
+        lo, hi = scene.object_bounds(obj)
+        instances.append(
+            {
+                "id": obj.id,
+                "name": obj.name,
+                "kind": obj.kind,
+                "colour": obj.colour,
+                "parts": [{"id": p.id, "name": p.name} for p in obj.parts],
+                "centre": ((lo + hi) / 2.0).tolist(),
+                "interior_point": np.asarray(obj.interior_point).tolist(),
+                "bbox_min": lo.tolist(),
+                "bbox_max": hi.tolist(),
+            }
+        )
+    meta = {
+        "camera_model": "OPENCV",
+        "fl_x": intr.fx,
+        "fl_y": intr.fy,
+        "cx": intr.cx,
+        "cy": intr.cy,
+        "w": intr.width,
+        "h": intr.height,
+        "k1": 0.0,
+        "k2": 0.0,
+        "k3": 0.0,
+        "k4": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "frames": frames,
+        "ply_file_path": "sparse_pc.ply",
+    }
+    if eval_set:
+        meta["train_filenames"] = [f["file_path"] for i, f in enumerate(frames) if i not in eval_set]
+        meta["val_filenames"] = [f["file_path"] for i, f in enumerate(frames) if i in eval_set]
+        # nerfstudio asks for the "test" split when loading for inference (viewer, ns-render)
+        meta["test_filenames"] = list(meta["val_filenames"])
+    meta["instances"] = instances
+    meta["touching"] = [list(pair) for pair in scene.touching]
+    meta["background_parts"] = [part.name for part in scene.background]
+    meta["votesplat_synthetic"] = {
+        "recipe": scene.recipe,
+        "seed": scene.seed,
+        "generator_version": GENERATOR_VERSION,
+        "mitsuba_version": mi.__version__,
+        "mitsuba_variant": MITSUBA_VARIANT,
+        "spp": settings.spp,
+        "max_depth": settings.max_depth,
+        "num_views": len(scene.cameras) - len(eval_set),
+        "num_eval_views": len(eval_set),
+        "eval_frames": [frame_name(i) for i in sorted(eval_set)],
+        "width": intr.width,
+        "height": intr.height,
+        "scene_options": _jsonable(scene.parameters.get("options", {})),
+        "parameters": _jsonable({k: v for k, v in scene.parameters.items() if k != "options"}),
+        "world": "metres, z up; instance centres/boxes are in this frame (before nerfstudio's dataparser transform)",
+        "depth_encoding": "uint16 PNG, millimetres of camera z (along the optical axis), 0 = no surface",
+        "label_encoding": "uint16 PNG; instances 1..K, parts globally unique, 0 = background",
+    }
+    out = output_dir / "transforms.json"
+    write_json(out, meta)
+    return out
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# reading (numpy + Pillow only)
+
+
+def read_label_png(path) -> np.ndarray:
+    """A 16-bit (or 8-bit) single-channel label/depth PNG as an integer array [H,W]."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        if image.mode not in ("I;16", "I;16B", "I", "L"):
+            raise ValueError(f"{path}: expected a single-channel 8/16-bit PNG, got mode {image.mode}")
+        return np.array(image)
+
+
+def read_depth_png(path) -> np.ndarray:
+    """Depth PNG -> metres (float64), 0 where invalid."""
+    return read_label_png(path).astype(np.float64) * DEPTH_UNIT_METRES
+
+
+@dataclass(frozen=True)
+class DatasetView:
+    name: str
+    c2w: np.ndarray  # OpenCV camera-to-world
+    viewmat: np.ndarray  # OpenCV world-to-camera
+    K: np.ndarray
+    is_eval: bool
+
+
+def scene_from_dataset(meta: dict) -> Scene:
+    """Rebuild the generating scene (exact geometry, no rendering) from a dataset's transforms.json."""
+    from votesplat_ns.synthetic.scenes import make_scene
+
+    info = meta.get("votesplat_synthetic")
+    if info is None:
+        raise ValueError("transforms.json has no 'votesplat_synthetic' entry; it was not written by votesplat-synth")
+    if info.get("generator_version") != GENERATOR_VERSION:
+        raise ValueError(
+            f"dataset made by generator version {info.get('generator_version')}, this is {GENERATOR_VERSION}; regenerate it"
+        )
+    return make_scene(info["recipe"], seed=int(info["seed"]), **info["scene_options"])
+
+
+def read_views(dataset_dir) -> Tuple[dict, List[DatasetView]]:
+    """transforms.json and the cameras in OpenCV convention (in the dataset's own world frame)."""
+    dataset_dir = Path(dataset_dir)
+    path = dataset_dir / "transforms.json"
+    if not path.exists():
+        raise ValueError(f"{path} not found; point at a folder written by votesplat-synth")
+    meta = json.loads(path.read_text(encoding="utf-8"))
+    K = np.array([[meta["fl_x"], 0.0, meta["cx"]], [0.0, meta["fl_y"], meta["cy"]], [0.0, 0.0, 1.0]])
+    val = set(meta.get("val_filenames", []))
+    views = []
+    for frame in meta["frames"]:
+        c2w = nerfstudio_to_opencv_c2w(frame["transform_matrix"])
+        views.append(DatasetView(Path(frame["file_path"]).name, c2w, np.linalg.inv(c2w), K, frame["file_path"] in val))
+    return meta, views
