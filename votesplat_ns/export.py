@@ -1,0 +1,596 @@
+"""Export VoteSplat instances: ``ns-export votesplat-instances`` / ``votesplat-export`` (paper §3.4).
+
+Output folder (every PLY is a standard 3DGS file, see ``ply_io``):
+
+    instances.json            manifest: levels, per instance count/bbox/vote centre/parent/file,
+                              clustering parameters, written files
+    instance_ids.npz          per-Gaussian instance ids of every level (before PLY filtering)
+    scene.ply                 the whole scene
+    scene_instance_ids.npy    int32 instance id (export level) of each scene.ply vertex, -1 = none
+    background.ply            Gaussians in no instance at the export level (background and noise)
+    instances/instance_XXXX.ply   one file per instance of the export level
+    scene_without_<ids>.ply   the scene minus the instances asked for with ``remove`` (object removal)
+    instances.png             instance colours from a few training views (if a renderer is available)
+
+The folder is built next to the target and renamed into place at the end, so an interrupted
+export leaves nothing half-written. An existing target is replaced only if it is empty or holds a
+previous export (an instances.json).
+
+This module keeps nerfstudio imports inside functions: the plugin's method entry point imports it
+(for ``install_ns_export_hook``) while nerfstudio is still importing its method configs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.abc
+import math
+import shutil
+import sys
+import tempfile
+import types
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, Iterator, List, Literal, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+import tyro
+from typing_extensions import Annotated
+
+from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
+from votesplat_ns.instances import MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture
+from votesplat_ns.ply_io import SH_C0, gaussian_vertex_table, write_gaussian_table, write_instance_id_file
+
+VOTE_OFFSETS_KEY = "vote_offsets"
+VOTE_SUPPORT_KEY = "vote_support"
+SUBCOMMAND_NAME = "votesplat-instances"
+EXPORTER_MODULE = "nerfstudio.scripts.exporter"
+
+
+@dataclass
+class View:
+    """A camera to draw the instance picture from (OpenCV world-to-camera, as gsplat)."""
+
+    viewmat: torch.Tensor  # [4, 4]
+    K: torch.Tensor  # [3, 3]
+    width: int
+    height: int
+    image: Optional[torch.Tensor] = None  # [H, W, 3] in [0, 1], shown above the id map
+
+
+@dataclass
+class _Params:
+    means: np.ndarray
+    log_scales: np.ndarray
+    quats: np.ndarray
+    opacity_logits: np.ndarray
+    sh_dc: np.ndarray
+    sh_rest: Optional[np.ndarray]
+    vote_offsets: np.ndarray
+    vote_support: np.ndarray
+    level_names: Tuple[str, ...]
+
+
+def _numpy(value) -> np.ndarray:
+    if hasattr(value, "detach"):
+        value = value.detach().float().cpu().numpy()
+    return np.asarray(value)
+
+
+def _read_params(model_or_params, level_names: Optional[Sequence[str]], sh_degree: Optional[int]) -> _Params:
+    """Raw splatfacto-style parameters (+ votes) from a model or a gauss_params-like mapping.
+
+    With sh_degree 0, splatfacto stores RGB logits in features_dc; they are converted to SH DC
+    exactly as nerfstudio's exporter does (RGB2SH(sigmoid(.))).
+    """
+    if hasattr(model_or_params, "gauss_params"):
+        params = model_or_params.gauss_params
+        config = getattr(model_or_params, "config", None)
+        if level_names is None:
+            level_names = getattr(config, "vote_levels", None)
+        if sh_degree is None:
+            sh_degree = getattr(config, "sh_degree", None)
+    elif isinstance(model_or_params, Mapping):
+        params = model_or_params
+    else:
+        raise ValueError(f"expected a VoteSplat model or a dict of Gaussian parameters, got {type(model_or_params).__name__}")
+    keys = set(params.keys())
+    missing_votes = [k for k in (VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY) if k not in keys]
+    if missing_votes:
+        raise ValueError(
+            f"the checkpoint has no {' / '.join(missing_votes)}: it was not trained with the votesplat method; "
+            "export instances from a VoteSplat run (ns-train votesplat ...)"
+        )
+    missing = [k for k in ("means", "scales", "quats", "opacities", "features_dc") if k not in keys]
+    if missing:
+        raise ValueError(f"Gaussian parameters are missing {missing}; pass splatfacto's gauss_params")
+    offsets = _numpy(params[VOTE_OFFSETS_KEY])
+    support = _numpy(params[VOTE_SUPPORT_KEY])
+    if offsets.ndim == 2:  # a single level may be stored as [N, 3]
+        offsets = offsets[:, None, :]
+    if support.ndim == 1:
+        support = support[:, None]
+    if level_names is None:
+        level_names = tuple(f"level_{i}" for i in range(offsets.shape[1]))
+    level_names = tuple(str(name) for name in level_names)
+    if len(level_names) != offsets.shape[1]:
+        raise ValueError(f"the model has {offsets.shape[1]} vote levels but {len(level_names)} level names {level_names}")
+    rest = _numpy(params["features_rest"]) if "features_rest" in keys else None
+    if sh_degree is None:
+        sh_degree = int(round(math.sqrt(rest.shape[1] + 1))) - 1 if rest is not None and rest.ndim == 3 else 0
+    dc = _numpy(params["features_dc"]).reshape(offsets.shape[0], 3)
+    if sh_degree == 0:
+        # float32 torch ops in nerfstudio's order, so the PLY bytes equal ns-export's
+        dc = ((torch.sigmoid(torch.as_tensor(dc, dtype=torch.float32)) - 0.5) / SH_C0).numpy()
+        rest = None
+    return _Params(
+        means=_numpy(params["means"]),
+        log_scales=_numpy(params["scales"]),
+        quats=_numpy(params["quats"]),
+        opacity_logits=_numpy(params["opacities"]).reshape(-1),
+        sh_dc=dc.astype(np.float32),
+        sh_rest=rest if rest is not None and rest.size else None,
+        vote_offsets=offsets,
+        vote_support=support,
+        level_names=level_names,
+    )
+
+
+@contextlib.contextmanager
+def _progress(enabled: bool) -> Iterator[Callable[..., Callable[[int], None]]]:
+    """``task(description, total) -> advance(n)``; a rich progress bar when enabled."""
+    if not enabled:
+        yield lambda description, total=None: (lambda n=1: None)
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=False) as bar:
+
+        def task(description: str, total: Optional[int] = None) -> Callable[[int], None]:
+            task_id = bar.add_task(description, total=total)
+            return lambda n=1: bar.advance(task_id, n)
+
+        yield task
+
+
+def _check_output_dir(output_dir: Path) -> None:
+    if output_dir.exists() and not output_dir.is_dir():
+        raise ValueError(f"output_dir {output_dir} is a file; pass a folder path (it is created if missing)")
+    if output_dir.is_dir() and any(output_dir.iterdir()) and not (output_dir / MANIFEST_NAME).is_file():
+        raise ValueError(
+            f"output_dir {output_dir} is a non-empty folder that is not a previous instance export; "
+            "choose a new or empty folder (it would be replaced)"
+        )
+
+
+def _move_into_place(staging: Path, output_dir: Path) -> None:
+    if output_dir.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.old.", dir=output_dir.parent))
+        old.rmdir()
+        output_dir.rename(old)
+        try:
+            staging.rename(output_dir)
+        except BaseException:
+            old.rename(output_dir)
+            raise
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        staging.rename(output_dir)
+
+
+def export_instances(
+    model_or_params,
+    output_dir: Union[str, Path],
+    level: Union[int, str, None] = None,
+    remove: Optional[Sequence[int]] = None,
+    views: Optional[Sequence[View]] = None,
+    rasterize_fn: Optional[Callable[..., tuple]] = None,
+    level_names: Optional[Sequence[str]] = None,
+    sh_degree: Optional[int] = None,
+    min_cluster_size: Optional[int] = None,
+    min_samples: Optional[int] = None,
+    max_points: int = DEFAULT_MAX_POINTS,
+    noise: Literal["nearest", "drop"] = "nearest",
+    noise_radius: Optional[float] = None,
+    cluster_selection_epsilon: float = 0.0,
+    seed: int = 0,
+    coarse_to_fine: bool = True,
+    render_device: Union[str, torch.device, None] = None,
+    progress: bool = True,
+    source: Optional[str] = None,
+) -> Dict[str, object]:
+    """Cluster the votes of every level and write the export folder described in the module doc.
+
+    model_or_params: a VoteSplat model (reads ``gauss_params``, ``config.vote_levels`` and
+    ``config.sh_degree``) or a mapping with splatfacto's raw gauss_params plus ``vote_offsets``
+    [N, L, 3] and ``vote_support`` [N, L]. ``level`` (name or index, default the first level)
+    selects whose instances get their own PLY; ``remove`` lists instance ids of that level to cut
+    out of the scene. ``views`` and ``rasterize_fn`` (gsplat ``rasterization`` signature) draw
+    instances.png. Returns the manifest written to instances.json.
+    """
+    output_dir = Path(output_dir)
+    _check_output_dir(output_dir)
+    params = _read_params(model_or_params, level_names, sh_degree)
+    n = params.means.shape[0]
+    if n == 0:
+        raise ValueError("the model has no Gaussians to export")
+    names = params.level_names
+    if level is None:
+        level_index = 0
+    elif isinstance(level, str) and level in names:
+        level_index = names.index(level)
+    elif (isinstance(level, int) or (isinstance(level, str) and level.lstrip("-").isdigit())) and -len(names) <= int(level) < len(names):
+        level_index = int(level) % len(names)
+    else:
+        raise ValueError(f"unknown vote level {level!r}; this model has levels {list(names)} (pass a name or an index)")
+    level_name = names[level_index]
+
+    foreground_count = int(((params.vote_support[:, level_index] > 0) & np.isfinite(params.vote_support[:, level_index])).sum())
+    if foreground_count == 0:
+        raise ValueError(
+            f"no foreground Gaussians at vote level {level_name!r}: vote_support is zero everywhere "
+            "(the model never received vote supervision; check the masks and that training ran with the vote loss)"
+        )
+
+    with _progress(progress) as task:
+        advance = task("clustering votes", total=len(names))
+        instance_set = cluster_levels(
+            params.means,
+            params.vote_offsets,
+            params.vote_support,
+            names,
+            min_cluster_size=min_cluster_size,
+            min_samples=min_samples,
+            max_points=max_points,
+            seed=seed,
+            noise=noise,
+            noise_radius=noise_radius,
+            coarse_to_fine=coarse_to_fine,
+            cluster_selection_epsilon=cluster_selection_epsilon,
+            on_level=lambda index, name: advance(1) if index > 0 else None,
+        )
+        advance(1)
+        instance_set.validate()
+        chosen = instance_set.levels[level_index]
+        if not chosen.foreground.any():
+            raise ValueError(
+                f"no foreground Gaussians with finite votes at vote level {level_name!r}: every supervised Gaussian "
+                "has a NaN/Inf mean or vote offset (the checkpoint diverged)"
+            )
+        if chosen.num_instances == 0:
+            used = chosen.clustering
+            raise ValueError(
+                f"every one of the {int(chosen.foreground.sum())} foreground votes at level {level_name!r} was labelled noise "
+                f"(min_cluster_size={used.get('min_cluster_size')}, min_samples={used.get('min_samples')}); "
+                "lower --min-cluster-size / --min-samples or use --noise nearest"
+            )
+        remove_ids = sorted({int(i) for i in (remove or [])})
+        bad = [i for i in remove_ids if not 0 <= i < chosen.num_instances]
+        if bad:
+            raise ValueError(f"cannot remove instances {bad}: level {level_name!r} has instances 0..{chosen.num_instances - 1}")
+
+        output_dir.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.partial.", dir=output_dir.parent))
+        try:
+            manifest = _write_export(params, instance_set, level_index, remove_ids, staging, views, rasterize_fn, render_device, task, source)
+            _move_into_place(staging, output_dir)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+    return manifest
+
+
+def _write_export(
+    params: _Params,
+    instance_set: InstanceSet,
+    level_index: int,
+    remove_ids: List[int],
+    folder: Path,
+    views: Optional[Sequence[View]],
+    rasterize_fn,
+    render_device,
+    task,
+    source: Optional[str],
+) -> Dict[str, object]:
+    chosen = instance_set.levels[level_index]
+    ids = chosen.ids
+    table = gaussian_vertex_table(params.means, params.sh_dc, params.sh_rest, params.opacity_logits, params.log_scales, params.quats)
+    width = max(4, len(str(chosen.num_instances - 1)))
+    (folder / "instances").mkdir()
+    advance = task("writing PLY files", total=chosen.num_instances + 2 + bool(remove_ids))
+
+    written = write_gaussian_table(folder / "scene.ply", table)
+    write_instance_id_file(folder / "scene_instance_ids.npy", ids[written])
+    advance(1)
+    files: Dict[str, object] = {"scene": "scene.ply", "scene_instance_ids": "scene_instance_ids.npy"}
+    counts: Dict[str, int] = {"scene": int(written.size)}
+
+    background = write_gaussian_table(folder / "background.ply", table, select=ids < 0)
+    files["background"] = "background.ply"
+    counts["background"] = int(background.size)
+    advance(1)
+
+    per_instance: Dict[int, Dict[str, object]] = {}
+    for instance_id, members in chosen.members().items():
+        name = f"instances/instance_{instance_id:0{width}d}.ply"
+        kept = write_gaussian_table(folder / name, table, select=members)
+        per_instance[instance_id] = {"file": name, "ply_count": int(kept.size)}
+        advance(1)
+
+    removal = None
+    if remove_ids:
+        name = "scene_without_" + "_".join(str(i) for i in remove_ids) + ".ply"
+        kept = write_gaussian_table(folder / name, table, select=~np.isin(ids, remove_ids))
+        removal = {"ids": remove_ids, "file": name, "ply_count": int(kept.size)}
+        advance(1)
+
+    picture = None
+    if views and rasterize_fn is not None:
+        picture = _write_picture(params, ids, views, rasterize_fn, render_device, folder / "instances.png", task)
+
+    extra = {
+        "export": {
+            "level": chosen.name,
+            "level_index": level_index,
+            "files": files,
+            "ply_counts": counts,
+            "removed": removal,
+            "picture": picture,
+            "source": source,
+            "ply_filter": "vertices with NaN/Inf or opacity logit < -5.5373 are not written (as ns-export gaussian-splat)",
+        }
+    }
+    return instance_set.save(folder, instance_extra={chosen.name: per_instance}, extra=extra)
+
+
+def _write_picture(params: _Params, ids: np.ndarray, views: Sequence[View], rasterize_fn, device, path: Path, task) -> str:
+    device = torch.device(device) if device is not None else torch.device("cpu")
+    finite = np.isfinite(params.means).all(1) & np.isfinite(params.log_scales).all(1) & np.isfinite(params.quats).all(1)
+    finite &= np.isfinite(params.opacity_logits)
+    tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a[finite]), dtype=torch.float32, device=device)  # noqa: E731
+    means, quats = tensor(params.means), tensor(params.quats)
+    scales, opacities = torch.exp(tensor(params.log_scales)), torch.sigmoid(tensor(params.opacity_logits))
+    instance_ids = torch.as_tensor(ids[finite], device=device)
+    advance = task("rendering instance views", total=len(views))
+    maps, images = [], []
+    for view in views:
+        id_map = render_instance_ids(
+            rasterize_fn, means, quats, scales, opacities, instance_ids, view.viewmat.to(device), view.K.to(device), int(view.width), int(view.height)
+        )
+        maps.append(id_map.cpu().numpy())
+        images.append(view.image)
+        advance(1)
+    have_images = all(image is not None for image in images)
+    save_instance_picture(path, maps, images if have_images else None)
+    return path.name
+
+
+# ----------------------------------------------------------------------------- nerfstudio glue
+
+
+def viewmat_from_camera_to_world(camera_to_world: torch.Tensor) -> torch.Tensor:
+    """nerfstudio camera-to-world [3, 4] (OpenGL axes) -> gsplat world-to-camera [4, 4] (OpenCV).
+
+    The same conversion as splatfacto's ``get_viewmat``.
+    """
+    rotation = camera_to_world[:3, :3] * torch.tensor([1.0, -1.0, -1.0], dtype=camera_to_world.dtype, device=camera_to_world.device)
+    translation = camera_to_world[:3, 3:4]
+    viewmat = torch.eye(4, dtype=camera_to_world.dtype, device=camera_to_world.device)
+    viewmat[:3, :3] = rotation.T
+    viewmat[:3, 3:4] = -rotation.T @ translation
+    return viewmat
+
+
+def training_views(pipeline, num_views: int, max_width: int = 320) -> List[View]:
+    """Up to ``num_views`` evenly spaced training cameras (and images), at most ``max_width`` wide."""
+    if num_views <= 0:
+        return []
+    dataset = pipeline.datamanager.train_dataset
+    cameras = dataset.cameras
+    count = len(cameras)
+    picks = sorted({int(round(x)) for x in np.linspace(0, count - 1, min(num_views, count))})
+    views = []
+    for index in picks:
+        camera = cameras[index : index + 1]
+        width, height = int(camera.width.item()), int(camera.height.item())
+        scale = min(1.0, max_width / width)
+        K = camera.get_intrinsics_matrices()[0].float().clone()
+        K[:2] *= scale
+        out_w, out_h = max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+        image = None
+        with contextlib.suppress(Exception):  # the picture still works without the photo row
+            image = dataset[index]["image"][..., :3].float()
+            image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(out_h, out_w), mode="area")[0].permute(1, 2, 0)
+        views.append(View(viewmat_from_camera_to_world(camera.camera_to_worlds[0].float()), K, out_w, out_h, image))
+    return views
+
+
+def default_rasterizer() -> Optional[Callable[..., tuple]]:
+    """The plugin's rasteriser entry point (gsplat on CUDA tensors, pure torch on CPU tensors)."""
+    try:
+        from votesplat_ns.rasterizer import rasterize
+    except ImportError:
+        return None
+    return rasterize
+
+
+@dataclass
+class ExportVoteSplatInstances:
+    """Cluster a VoteSplat model's 3D votes into instances and export one 3DGS PLY per instance,
+    the background, the whole scene with per-vertex instance ids, optional object removal and an
+    instances.json manifest."""
+
+    load_config: Path
+    """Path to the config YAML file."""
+    output_dir: Path
+    """Path to the output directory (created; replaced only if empty or a previous instance export)."""
+    level: Optional[str] = None
+    """Vote level whose instances get one PLY each, by name or index (default: the first level)."""
+    remove: Tuple[int, ...] = ()
+    """Instance ids of that level to remove from the scene (writes scene_without_<ids>.ply)."""
+    min_cluster_size: Optional[int] = None
+    """Smallest instance, in Gaussians (default: 0.05 percent of the foreground Gaussians, at least 10)."""
+    min_samples: Optional[int] = None
+    """HDBSCAN min_samples, in clustered (subsampled) votes (default: min(10, scaled min_cluster_size))."""
+    max_points: int = DEFAULT_MAX_POINTS
+    """Most votes HDBSCAN clusters; the others take the label of their nearest clustered vote."""
+    noise: Literal["nearest", "drop"] = "nearest"
+    """Noise votes: 'nearest' joins them to the nearest instance within noise-radius, 'drop' keeps them out."""
+    noise_radius: Optional[float] = None
+    """Distance for the 'nearest' noise rule, in scene units (default: 2 percent of the vote spread)."""
+    cluster_selection_epsilon: float = 0.0
+    """HDBSCAN cluster_selection_epsilon: merge clusters closer than this (scene units)."""
+    seed: int = 0
+    """Seed of the clustering subsample (same seed, same instances)."""
+    num_views: int = 4
+    """Training views drawn in instances.png (0: no picture)."""
+    picture_width: int = 320
+    """Width in pixels of each view in instances.png."""
+
+    def main(self) -> None:
+        from nerfstudio.utils.eval_utils import eval_setup
+        from nerfstudio.utils.rich_utils import CONSOLE
+
+        try:
+            if self.output_dir.exists() and not self.output_dir.is_dir():
+                raise ValueError(f"output_dir {self.output_dir} is a file; pass a folder path (it is created if missing)")
+            _, pipeline, _, _ = eval_setup(self.load_config, test_mode="inference")
+            model = pipeline.model
+            device = next(iter(model.gauss_params.values())).device if hasattr(model, "gauss_params") else torch.device("cpu")
+            views: List[View] = []
+            rasterize_fn = default_rasterizer() if self.num_views > 0 else None
+            if rasterize_fn is None and self.num_views > 0:
+                CONSOLE.print("[yellow]No rasterizer available on this device; instances.png is skipped.")
+            elif rasterize_fn is not None:
+                try:
+                    views = training_views(pipeline, self.num_views, self.picture_width)
+                except Exception as err:  # a missing dataset must not stop the PLY export
+                    CONSOLE.print(f"[yellow]Training cameras unavailable ({type(err).__name__}: {err}); instances.png is skipped.")
+            manifest = export_instances(
+                model,
+                self.output_dir,
+                level=self.level,
+                remove=list(self.remove),
+                views=views,
+                rasterize_fn=rasterize_fn,
+                min_cluster_size=self.min_cluster_size,
+                min_samples=self.min_samples,
+                max_points=self.max_points,
+                noise=self.noise,
+                noise_radius=self.noise_radius,
+                cluster_selection_epsilon=self.cluster_selection_epsilon,
+                seed=self.seed,
+                render_device=device,
+                source=str(self.load_config),
+            )
+        except ValueError as err:
+            CONSOLE.print(f"[bold red]Error:[/bold red] {err}")
+            raise SystemExit(1) from None
+        export = manifest["export"]
+        chosen = next(level for level in manifest["levels"] if level["name"] == export["level"])
+        CONSOLE.print(
+            f"[bold green]Exported {chosen['num_instances']} instances of level {export['level']!r} "
+            f"({export['ply_counts']['scene']} Gaussians) to {self.output_dir}"
+        )
+
+
+def entrypoint() -> None:
+    """Console script ``votesplat-export``."""
+    tyro.extras.set_accent_color("bright_yellow")
+    tyro.cli(tyro.conf.FlagConversionOff[ExportVoteSplatInstances]).main()
+
+
+# ----------------------------------------------------------------------------- ns-export hook
+
+
+def _extend_commands(exporter) -> bool:
+    """Rebind exporter.Commands to nerfstudio's union plus our subcommand. False if not defined yet."""
+    commands = exporter.__dict__.get("Commands")
+    if commands is None:
+        return False
+    if getattr(exporter, "_votesplat_instances_hooked", False):
+        return True
+    markers: tuple = ()
+    inner = commands
+    if typing.get_origin(commands) is Annotated:
+        inner, *rest = typing.get_args(commands)
+        markers = tuple(rest)
+    members = typing.get_args(inner) if typing.get_origin(inner) is Union else (inner,)
+    ours = Annotated[ExportVoteSplatInstances, tyro.conf.subcommand(name=SUBCOMMAND_NAME)]
+    extended = Union[tuple(members) + (ours,)]  # type: ignore[valid-type]
+    exporter.Commands = Annotated[(extended, *markers)] if markers else extended
+    exporter._votesplat_instances_hooked = True
+    return True
+
+
+class _ExporterBeingImported(types.ModuleType):
+    """Module class swapped onto a half-imported exporter: extends Commands on first outside use.
+
+    When the hook runs during nerfstudio's method discovery, ns-export is still executing
+    exporter.py (Commands is defined further down). Module-level assignments go straight to the
+    module dict, so we wait for the first attribute read from outside (the console script's
+    ``from nerfstudio.scripts.exporter import entrypoint``), which happens after the import ends.
+    """
+
+    def __getattribute__(self, name: str):
+        namespace = types.ModuleType.__getattribute__(self, "__dict__")
+        if not name.startswith("__") and "Commands" in namespace:
+            object.__setattr__(self, "__class__", types.ModuleType)
+            _extend_commands(self)
+        return types.ModuleType.__getattribute__(self, name)
+
+
+class _PatchingLoader(importlib.abc.Loader):
+    def __init__(self, inner):
+        self._inner = inner
+
+    def create_module(self, spec):
+        return self._inner.create_module(spec)
+
+    def exec_module(self, module) -> None:
+        self._inner.exec_module(module)
+        _extend_commands(module)
+
+    def __getattr__(self, name: str):
+        return getattr(self._inner, name)
+
+
+class _ExporterFinder(importlib.abc.MetaPathFinder):
+    """Wraps the loader of the exporter module so Commands is extended right after it executes."""
+
+    def __init__(self, module_name: str):
+        self.module_name = module_name
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.module_name:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(fullname, path, target)
+            if spec is not None and spec.loader is not None:
+                spec.loader = _PatchingLoader(spec.loader)
+                return spec
+        return None
+
+
+def install_ns_export_hook(module_name: str = EXPORTER_MODULE) -> None:
+    """Make ``ns-export votesplat-instances`` available (nerfstudio 1.1.5 has no exporter plugins).
+
+    Cheap and idempotent; call it from the plugin's method entry point module. ns-export imports
+    nerfstudio.scripts.exporter, whose import of eval_utils -> method_configs discovers (imports)
+    every method entry point *before* exporter.py defines Commands, so three cases are handled:
+    exporter fully imported (extend now), half imported (extend on its first use from outside,
+    see ``_ExporterBeingImported``), not imported yet (a meta-path finder extends it right after
+    it executes; nothing heavy is imported here, so ns-train does not pay for open3d).
+    ``module_name`` exists for tests.
+    """
+    exporter = sys.modules.get(module_name)
+    if exporter is not None:
+        if not _extend_commands(exporter) and type(exporter) is types.ModuleType:
+            exporter.__class__ = _ExporterBeingImported
+        return
+    if not any(isinstance(f, _ExporterFinder) and f.module_name == module_name for f in sys.meta_path):
+        sys.meta_path.insert(0, _ExporterFinder(module_name))

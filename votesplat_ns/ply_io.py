@@ -1,0 +1,321 @@
+"""Standard 3D Gaussian Splatting PLY files, written and read in one vectorised step.
+
+The vertex layout is exactly what nerfstudio 1.1.5's ``ns-export gaussian-splat`` writes in its
+default ``sh_coeffs`` colour mode (``ExportGaussianSplat`` in nerfstudio/scripts/exporter.py), so
+files open in every 3DGS viewer that reads nerfstudio or INRIA exports:
+
+    x y z nx ny nz f_dc_0..2 [f_rest_0..f_rest_{3K-1}] opacity scale_0..2 rot_0..3
+
+all ``float`` (float32), binary little endian, where
+  * nx, ny, nz are zeros,
+  * f_rest is channel-major (all R coefficients, then G, then B): nerfstudio stores
+    features_rest as [N, K, 3] and transposes it to [N, 3, K] before flattening, to match INRIA,
+  * opacity is the logit, scale_* the log scales, rot_* the raw (not normalised) w,x,y,z quaternion.
+
+nerfstudio's writer loops over vertices in Python (minutes for a million Gaussians); here the
+whole vertex table is one float32 array viewed as a structured array and written with one call.
+
+Which Gaussians are written follows nerfstudio: any vertex with a non-finite value is dropped, and
+so is any vertex whose opacity logit is below -5.5373 (= logit(1/255); the rasteriser skips them).
+One deliberate difference: nerfstudio tests finiteness of the 1-D x/y/z/nx/ny/nz columns with
+``.all(axis=-1)``, which collapses to a single flag and drops *every* vertex when one position is
+NaN; we drop only the offending vertices.
+
+Only numpy is needed here (no nerfstudio import).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Dict, Iterator, Optional, Sequence, Union
+
+import numpy as np
+
+PathLike = Union[str, os.PathLike]
+
+# nerfstudio's threshold, copied literally so both exporters keep exactly the same Gaussians.
+MIN_OPACITY_LOGIT = -5.5373
+SH_C0 = 0.28209479177387814
+
+_PLY_TO_NUMPY = {
+    "char": "i1", "int8": "i1",
+    "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4",
+    "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4",
+    "double": "f8", "float64": "f8",
+}
+_NUMPY_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
+
+
+@contextlib.contextmanager
+def atomic_write(path: PathLike, mode: str = "wb") -> Iterator:
+    """Open a temporary file next to ``path``; on success it replaces ``path`` in one rename.
+
+    Readers never see a half-written file, and a crash leaves the previous file (if any) intact.
+    """
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_name, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_name)
+        raise
+
+
+def gaussian_property_names(num_rest_coeffs: int) -> list:
+    """Vertex property names in file order; ``num_rest_coeffs`` is K of features_rest [N, K, 3]."""
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(3 * num_rest_coeffs)]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    return names
+
+
+def _as_numpy(array) -> np.ndarray:
+    if hasattr(array, "detach"):  # torch tensor, without importing torch here
+        array = array.detach().cpu().numpy()
+    return np.asarray(array)
+
+
+def gaussian_vertex_table(
+    means,
+    features_dc,
+    features_rest,
+    opacity_logits,
+    log_scales,
+    quats,
+) -> np.ndarray:
+    """All vertex properties as one float32 array [N, P] in the order of ``gaussian_property_names``.
+
+    features_dc [N, 3] (or [N, 1, 3]) are SH DC coefficients; features_rest [N, K, 3] (K may be 0, or None for
+    degree 0); opacity_logits [N] or [N, 1]; log_scales [N, 3]; quats [N, 4] as w, x, y, z.
+    """
+    means = _as_numpy(means)
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must have shape [N, 3], got {list(means.shape)}")
+    n = means.shape[0]
+    features_dc = _as_numpy(features_dc)
+    if features_dc.ndim == 3 and features_dc.shape[1] == 1:  # [N, 1, 3] as in SH-stacked colours
+        features_dc = features_dc[:, 0]
+    if features_dc.shape != (n, 3):
+        raise ValueError(f"features_dc must have shape [N, 3] (N={n}), got {list(features_dc.shape)}")
+    if features_rest is None:
+        features_rest = np.zeros((n, 0, 3), dtype=np.float32)
+    features_rest = _as_numpy(features_rest)
+    if features_rest.ndim != 3 or features_rest.shape[0] != n or features_rest.shape[2] != 3:
+        raise ValueError(f"features_rest must have shape [N, K, 3] (N={n}), got {list(features_rest.shape)}")
+    opacity_logits = _as_numpy(opacity_logits).reshape(-1)
+    log_scales = _as_numpy(log_scales)
+    quats = _as_numpy(quats)
+    for name, value, shape in (("opacity_logits", opacity_logits, (n,)), ("log_scales", log_scales, (n, 3)), ("quats", quats, (n, 4))):
+        if value.shape != shape:
+            raise ValueError(f"{name} must have shape {list(shape)} to match means, got {list(value.shape)}")
+
+    k = features_rest.shape[1]
+    table = np.empty((n, 9 + 3 * k + 8), dtype=np.float32)
+    table[:, 0:3] = means
+    table[:, 3:6] = 0.0
+    table[:, 6:9] = features_dc
+    # [N, K, 3] -> [N, 3, K]: INRIA's channel-major order, as nerfstudio's transpose(1, 2)
+    table[:, 9 : 9 + 3 * k] = features_rest.transpose(0, 2, 1).reshape(n, 3 * k)
+    o = 9 + 3 * k
+    table[:, o] = opacity_logits
+    table[:, o + 1 : o + 4] = log_scales
+    table[:, o + 4 : o + 8] = quats
+    return table
+
+
+def exportable_mask(table: np.ndarray) -> np.ndarray:
+    """Rows nerfstudio's exporter keeps: every value finite and opacity logit >= logit(1/255)."""
+    opacity_column = table.shape[1] - 8
+    keep = np.isfinite(table).all(axis=1)
+    keep &= ~(table[:, opacity_column] < MIN_OPACITY_LOGIT)
+    return keep
+
+
+def _header(names: Sequence[str], types: Sequence[str], count: int, comments: Sequence[str]) -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {c}" for c in comments]
+    lines.append(f"element vertex {count}")
+    lines += [f"property {t} {n}" for n, t in zip(names, types)]
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def write_vertex_ply(path: PathLike, columns: Dict[str, np.ndarray], comments: Sequence[str] = ()) -> int:
+    """Write a PLY with one vertex element whose properties are ``columns`` (in dict order), atomically.
+
+    Each column is 1-D of the same length; its numpy dtype picks the PLY type (float32 -> float,
+    int32 -> int, uint8 -> uchar, ...). Returns the vertex count.
+    """
+    if not columns:
+        raise ValueError("write_vertex_ply needs at least one column")
+    arrays = {name: np.ascontiguousarray(np.asarray(col).reshape(-1)) for name, col in columns.items()}
+    counts = {a.shape[0] for a in arrays.values()}
+    if len(counts) != 1:
+        raise ValueError(f"all PLY columns must have the same length, got {sorted(counts)}")
+    count = counts.pop()
+    dtype = []
+    for name, array in arrays.items():
+        code = array.dtype.str.lstrip("<>|=")
+        if code not in _NUMPY_TO_PLY:
+            raise ValueError(f"column {name!r} has dtype {array.dtype}; use float32/float64/int8-32/uint8-32")
+        dtype.append((name, "<" + code if code[1] != "1" else code))
+    record = np.empty(count, dtype=np.dtype(dtype))
+    for name, array in arrays.items():
+        record[name] = array
+    header = _header(list(arrays), [_NUMPY_TO_PLY[np.dtype(t).str.lstrip("<>|=")] for _, t in dtype], count, comments)
+    with atomic_write(path) as handle:
+        handle.write(header)
+        handle.write(record.tobytes())
+    return count
+
+
+def write_gaussian_table(
+    path: PathLike,
+    table: np.ndarray,
+    select: Optional[np.ndarray] = None,
+    filter_invalid: bool = True,
+    comments: Sequence[str] = ("Generated by votesplat_ns", "Vertical Axis: z"),
+) -> np.ndarray:
+    """Write rows of a ``gaussian_vertex_table`` as a standard 3DGS PLY, atomically.
+
+    Build the table once and call this per subset (instances, background, ...). ``select``
+    ([N] bool or integer indices) picks the rows to consider; with ``filter_invalid`` the
+    non-finite and too-transparent ones are then dropped as nerfstudio does. Returns the indices
+    (into the table) of the written vertices, in file order, so per-vertex side files (instance
+    ids) can be aligned with the PLY.
+    """
+    if table.ndim != 2 or table.dtype != np.float32 or (table.shape[1] - 17) % 3:
+        raise ValueError("table must be a float32 [N, 17 + 3K] array from gaussian_vertex_table")
+    if select is None:
+        indices = np.arange(table.shape[0])
+    else:
+        select = np.asarray(select)
+        indices = np.flatnonzero(select) if select.dtype == bool else select.astype(np.int64).reshape(-1)
+    rows = table[indices]
+    if filter_invalid:
+        keep = exportable_mask(rows)
+        if not keep.all():
+            indices, rows = indices[keep], rows[keep]
+    names = gaussian_property_names((table.shape[1] - 17) // 3)
+    record_dtype = np.dtype([(name, "<f4") for name in names])
+    header = _header(names, ["float"] * len(names), rows.shape[0], comments)
+    with atomic_write(path) as handle:
+        handle.write(header)
+        handle.write(np.ascontiguousarray(rows).view(record_dtype).data)
+    return indices
+
+
+def write_gaussian_ply(
+    path: PathLike,
+    means,
+    features_dc,
+    features_rest,
+    opacity_logits,
+    log_scales,
+    quats,
+    select: Optional[np.ndarray] = None,
+    filter_invalid: bool = True,
+    comments: Sequence[str] = ("Generated by votesplat_ns", "Vertical Axis: z"),
+) -> np.ndarray:
+    """Write a standard 3DGS PLY (nerfstudio ``gaussian-splat`` layout) atomically.
+
+    Arguments as ``gaussian_vertex_table``; ``select``/``filter_invalid`` and the returned
+    indices as ``write_gaussian_table``.
+    """
+    table = gaussian_vertex_table(means, features_dc, features_rest, opacity_logits, log_scales, quats)
+    return write_gaussian_table(path, table, select=select, filter_invalid=filter_invalid, comments=comments)
+
+
+def read_ply_header(path: PathLike):
+    """Parse a PLY header: returns (format, vertex_count, [(name, numpy dtype str)], comments, data offset)."""
+    with open(path, "rb") as handle:
+        if handle.readline().strip() != b"ply":
+            raise ValueError(f"{path} is not a PLY file (missing 'ply' magic line)")
+        fmt, count, props, comments, element = None, None, [], [], None
+        while True:
+            line = handle.readline()
+            if not line:
+                raise ValueError(f"{path}: PLY header has no end_header line")
+            words = line.decode("ascii", errors="replace").split()
+            if not words:
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "comment":
+                comments.append(line.decode("ascii", errors="replace")[len("comment ") :].rstrip("\r\n"))
+            elif words[0] == "element":
+                element = words[1]
+                if element == "vertex":
+                    count = int(words[2])
+                elif int(words[2]) != 0:
+                    raise ValueError(f"{path}: only vertex-only PLY files are supported, found element {element!r}")
+            elif words[0] == "property" and element == "vertex":
+                if words[1] == "list":
+                    raise ValueError(f"{path}: list properties are not supported in Gaussian PLY files")
+                if words[1] not in _PLY_TO_NUMPY:
+                    raise ValueError(f"{path}: unknown PLY property type {words[1]!r}")
+                props.append((words[2], _PLY_TO_NUMPY[words[1]]))
+        offset = handle.tell()
+    if fmt != "binary_little_endian":
+        raise ValueError(f"{path}: PLY format {fmt!r} is not supported, only binary_little_endian")
+    if count is None:
+        raise ValueError(f"{path}: PLY header declares no vertex element")
+    return fmt, count, props, comments, offset
+
+
+def read_vertex_ply(path: PathLike) -> Dict[str, np.ndarray]:
+    """Every vertex property of a binary little-endian PLY as a dict of 1-D arrays (file order)."""
+    _, count, props, _, offset = read_ply_header(path)
+    dtype = np.dtype([(name, "<" + code if code[1] != "1" else code) for name, code in props])
+    data = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    if data.shape[0] != count:
+        raise ValueError(f"{path}: file is truncated ({data.shape[0]} of {count} vertices)")
+    return {name: data[name].copy() for name, _ in props}
+
+
+def read_gaussian_ply(path: PathLike) -> Dict[str, np.ndarray]:
+    """Read a standard 3DGS PLY back into arrays shaped like splatfacto's parameters.
+
+    Returns means [N,3], features_dc [N,3], features_rest [N,K,3] (back in nerfstudio's
+    coefficient-major order), opacity_logits [N], log_scales [N,3], quats [N,4] (all float32).
+    """
+    columns = read_vertex_ply(path)
+    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+    missing = [name for name in required if name not in columns]
+    if missing:
+        raise ValueError(f"{path} is not a 3D Gaussian Splatting PLY: missing properties {missing}")
+    num_rest = sum(1 for name in columns if name.startswith("f_rest_"))
+    if num_rest % 3:
+        raise ValueError(f"{path}: {num_rest} f_rest_* properties is not a multiple of 3")
+    n = columns["x"].shape[0]
+    stack = lambda names: np.stack([columns[k].astype(np.float32) for k in names], axis=1) if names else np.zeros((n, 0), np.float32)  # noqa: E731
+    rest = stack([f"f_rest_{i}" for i in range(num_rest)]).reshape(n, 3, num_rest // 3).transpose(0, 2, 1)
+    return {
+        "means": stack(["x", "y", "z"]),
+        "features_dc": stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
+        "features_rest": np.ascontiguousarray(rest),
+        "opacity_logits": columns["opacity"].astype(np.float32),
+        "log_scales": stack([f"scale_{i}" for i in range(3)]),
+        "quats": stack([f"rot_{i}" for i in range(4)]),
+    }
+
+
+def write_instance_id_file(path: PathLike, instance_ids: np.ndarray) -> None:
+    """Save per-vertex instance ids (int32, -1 = none) as a .npy beside a PLY, atomically."""
+    ids = np.asarray(instance_ids).astype(np.int32).reshape(-1)
+    with atomic_write(path) as handle:
+        np.save(handle, ids)
