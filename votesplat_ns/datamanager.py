@@ -253,11 +253,22 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         camera, data = super().next_train(step)
         assert camera.metadata is not None
         index = int(camera.metadata["cam_idx"])
-        height, width = int(data["image"].shape[0]), int(data["image"].shape[1])
-        vote_maps = self.vote_maps_for_train_view(index, height, width)
-        data["vote_labels"] = torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32)).to(self.device)
-        data["vote_centroids"] = torch.from_numpy(vote_maps.padded_centroids()).to(self.device)
+        data.update(self.vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
         return camera, data
+
+    def vote_batch(self, index: int, height: Optional[int] = None, width: Optional[int] = None) -> Dict[str, torch.Tensor]:
+        """``vote_labels`` [L,H,W] and ``vote_centroids`` [L,K+1,2] of train view ``index``.
+
+        At the training image's resolution unless ``height``/``width`` are given.
+        """
+        if height is None or width is None:
+            camera = self.train_dataset.cameras[index]
+            height, width = int(camera.height.item()), int(camera.width.item())
+        vote_maps = self.vote_maps_for_train_view(index, height, width)
+        return {
+            "vote_labels": torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32)).to(self.device),
+            "vote_centroids": torch.from_numpy(vote_maps.padded_centroids()).to(self.device),
+        }
 
 
 def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:

@@ -1,0 +1,98 @@
+"""The ``votesplat`` method, registered through the ``nerfstudio.method_configs`` entry point.
+
+Importing this module (nerfstudio does so at start-up of every ``ns-*`` command) also
+applies the plugin's compatibility fixes: checkpoint loading under torch >= 2.6 and the
+``ns-export votesplat-instances`` subcommand.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from votesplat_ns.compat import register_checkpoint_safe_globals
+from votesplat_ns.datamanager import VoteDataManagerConfig
+from votesplat_ns.model import VoteSplatModelConfig
+
+register_checkpoint_safe_globals()
+
+
+def _install_export_hook() -> None:
+    """Add ``ns-export votesplat-instances``; a failure here must not break every ns-* command."""
+    try:
+        from votesplat_ns.export import install_ns_export_hook
+
+        install_ns_export_hook()
+    except Exception as err:  # pragma: no cover - reported, not fatal
+        warnings.warn(f"votesplat: ns-export votesplat-instances unavailable ({err}); use votesplat-export", RuntimeWarning)
+
+
+def splatfacto_optimizers(max_steps: int = 30000) -> dict:
+    """splatfacto's optimizer settings (nerfstudio 1.1.5 method_configs), plus the vote groups."""
+    return {
+        "means": {
+            "optimizer": AdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps),
+        },
+        "features_dc": {"optimizer": AdamOptimizerConfig(lr=0.0025, eps=1e-15), "scheduler": None},
+        "features_rest": {"optimizer": AdamOptimizerConfig(lr=0.0025 / 20, eps=1e-15), "scheduler": None},
+        "opacities": {"optimizer": AdamOptimizerConfig(lr=0.05, eps=1e-15), "scheduler": None},
+        "scales": {"optimizer": AdamOptimizerConfig(lr=0.005, eps=1e-15), "scheduler": None},
+        "quats": {"optimizer": AdamOptimizerConfig(lr=0.001, eps=1e-15), "scheduler": None},
+        "camera_opt": {
+            "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(
+                lr_final=5e-7, max_steps=max_steps, warmup_steps=1000, lr_pre_warmup=0
+            ),
+        },
+        "bilateral_grid": {
+            "optimizer": AdamOptimizerConfig(lr=2e-3, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(
+                lr_final=1e-4, max_steps=max_steps, warmup_steps=1000, lr_pre_warmup=0
+            ),
+        },
+        # Offsets are in scene units; Adam makes the step size independent of the loss weight.
+        "vote_offsets": {
+            "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps),
+        },
+        # Bookkeeping only: never receives a gradient, so its optimizer never moves it.
+        "vote_support": {"optimizer": AdamOptimizerConfig(lr=0.0), "scheduler": None},
+    }
+
+
+def votesplat_trainer_config() -> TrainerConfig:
+    return TrainerConfig(
+        method_name="votesplat",
+        steps_per_eval_image=100,
+        steps_per_eval_batch=0,
+        steps_per_save=2000,
+        steps_per_eval_all_images=1000,
+        max_num_iterations=30000,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=VoteDataManagerConfig(
+                dataparser=NerfstudioDataParserConfig(load_3D_points=True),
+                cache_images_type="uint8",
+            ),
+            model=VoteSplatModelConfig(),
+        ),
+        optimizers=splatfacto_optimizers(),
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer",
+    )
+
+
+votesplat_method = MethodSpecification(
+    config=votesplat_trainer_config(),
+    description="VoteSplat: splatfacto + Hough-voting offsets for 3D instances and open-vocabulary selection.",
+)
+
+_install_export_hook()

@@ -1,0 +1,327 @@
+"""VoteSplat model: splatfacto + per-Gaussian vote offsets + the RVD loss (paper Eq. 13).
+
+Thin nerfstudio glue. The maths lives in :mod:`votesplat_ns.vote_render` (vote pass and
+losses); this module only
+- adds ``gauss_params["vote_offsets"]`` [N, L, 3] and ``gauss_params["vote_support"]`` [N, L]
+  so splatfacto's densify/prune strategy carries them,
+- runs splatfacto's own ``get_outputs`` (on CPU through our torch rasteriser), and
+- in ``get_loss_dict`` samples pixels that carry a 2D vote and adds the vote and distortion
+  losses, reusing the projection and tile lists of the RGB pass (no second projection).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+
+import torch
+from torch.nn import Parameter
+
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
+
+from votesplat_ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
+from votesplat_ns.rasterizer import install_in_splatfacto, project_for_votes
+from votesplat_ns.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
+
+VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
+SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+
+
+def latest_checkpoint(path: Path) -> Path:
+    """``path`` itself if it is a file, else the newest step-*.ckpt under it (or its nerfstudio_models/)."""
+    path = Path(path)
+    if path.suffix == ".ckpt" and path.is_file():
+        return path
+    if path.name == "config.yml":
+        path = path.parent
+    candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
+    if not candidates:
+        raise ValueError(f"no checkpoint found at {path}: give a step-*.ckpt file or a run folder with nerfstudio_models/")
+    return candidates[-1]
+
+
+def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
+    """splatfacto's Gaussian parameters from a nerfstudio checkpoint (splatfacto or votesplat)."""
+    state = torch.load(checkpoint, map_location="cpu")
+    pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
+    missing = [name for name in SPLAT_PARAM_NAMES if f"_model.gauss_params.{name}" not in pipeline_state]
+    if missing:
+        raise ValueError(
+            f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
+            "retrofit needs one written by ns-train splatfacto or votesplat"
+        )
+    return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in SPLAT_PARAM_NAMES}
+
+
+def _pixels_and_targets(
+    pixel_index: torch.Tensor, width: int, flat_labels: torch.Tensor, centroids: torch.Tensor, scale: float
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Pixel centres and their 2D votes in the continuous frame, scaled to the render resolution."""
+    rows = torch.div(pixel_index, width, rounding_mode="floor")
+    cols = pixel_index - rows * width
+    pixel_xy = (torch.stack([cols, rows], dim=-1).float() + 0.5) * scale
+    target_xy = (centroids[flat_labels[pixel_index].long()] + 0.5) * scale
+    return pixel_xy, target_xy
+
+
+@dataclass
+class VoteSplatModelConfig(SplatfactoModelConfig):
+    """splatfacto plus VoteSplat's vote offsets and RVD loss."""
+
+    _target: Type = field(default_factory=lambda: VoteSplatModel)
+    vote_levels: Optional[Tuple[str, ...]] = None
+    """Names of the mask levels, one 3D offset per Gaussian per level. Default: the datamanager's levels."""
+    vote_loss_weight: float = 1.0
+    """lambda_vote: weight of the L1 vote loss (in pixels)."""
+    distortion_loss_weight: float = 0.1
+    """lambda_d: weight of the unweighted pairwise depth distortion of the votes (scene units)."""
+    vote_start_step: int = 500
+    """Step at which the vote losses start (geometry settles first)."""
+    vote_pixels_per_level: int = 4096
+    """Pixels carrying a vote sampled per level and step; the loss is a mean over masked pixels, so a sample gives the same expected gradient."""
+    vote_transmittance: float = 0.01
+    """Voting transmittance threshold: a Gaussian votes while the transmittance in front of it stays above this."""
+    vote_weighting: Literal["uniform", "alpha_t"] = "uniform"
+    """Ablation: 'alpha_t' blends votes with alpha*T weights instead of the paper's uniform mean."""
+    vote_blend_space: Literal["3d", "2d"] = "3d"
+    """Ablation: '2d' projects each Gaussian's vote first, then blends (the paper blends in 3D)."""
+    vote_distortion: Literal["l1", "squared", "none"] = "l1"
+    """Depth distortion of the votes: the paper's pairwise L1, its squared form, or none (ablation)."""
+    votes_move_geometry: bool = False
+    """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
+    retrofit_from: Optional[Path] = None
+    """Add instances to an already trained splatfacto (or votesplat) scene: take its Gaussians from this
+    checkpoint (a .ckpt file, or a run folder holding nerfstudio_models/), freeze geometry and appearance, and
+    train only the vote offsets. No colour pass and no densification run: this is also the fast vote-only path."""
+
+    def vote_render_options(self) -> VoteRenderOptions:
+        return VoteRenderOptions(
+            weighting=self.vote_weighting,
+            blend_space=self.vote_blend_space,
+            distortion=self.vote_distortion,
+            vote_transmittance=self.vote_transmittance,
+            detach_geometry=not self.votes_move_geometry,
+        )
+
+
+class VoteSplatModel(SplatfactoModel):
+    config: VoteSplatModelConfig
+
+    def populate_modules(self):
+        if self.config.vote_loss_weight < 0 or self.config.distortion_loss_weight < 0:
+            raise ValueError(
+                "vote_loss_weight and distortion_loss_weight must be >= 0 "
+                f"(got {self.config.vote_loss_weight}, {self.config.distortion_loss_weight})"
+            )
+        self.config.vote_levels = self._resolve_vote_levels()
+        install_in_splatfacto()
+        with offline_lpips(), cuda_calls_stay_on_cpu():
+            super().populate_modules()
+        self.retrofitted = False
+        if self.config.retrofit_from is not None:
+            self._load_retrofit_source()
+        num_points = self.gauss_params["means"].shape[0]
+        num_levels = len(self.config.vote_levels)
+        device = self.gauss_params["means"].device
+        self.gauss_params["vote_offsets"] = Parameter(torch.zeros(num_points, num_levels, 3, device=device))
+        # Not optimised (its optimizer never sees a gradient); it lives in gauss_params only so
+        # that densification copies a parent's support to its children and pruning drops it.
+        self.gauss_params["vote_support"] = Parameter(torch.zeros(num_points, num_levels, device=device))
+        self.vote_options = self.config.vote_render_options()
+
+    @property
+    def vote_only(self) -> bool:
+        """Train only the offsets on a frozen scene (retrofit)."""
+        return self.config.retrofit_from is not None
+
+    def _load_retrofit_source(self) -> None:
+        source = Path(self.config.retrofit_from)
+        if not source.exists():
+            # Fine when a trained retrofit run is being loaded (its own checkpoint follows);
+            # ns-train stops in get_training_callbacks with a clear message.
+            return
+        gaussians = load_gaussians(latest_checkpoint(source))
+        expected_rest = self.gauss_params["features_rest"].shape[1:]
+        if gaussians["features_rest"].shape[1:] != expected_rest:
+            raise ValueError(
+                f"{source} has SH features of shape {tuple(gaussians['features_rest'].shape[1:])}, the model expects "
+                f"{tuple(expected_rest)}: pass the --pipeline.model.sh-degree it was trained with"
+            )
+        for name in SPLAT_PARAM_NAMES:
+            self.gauss_params[name] = Parameter(gaussians[name].to(self.gauss_params[name].device), requires_grad=False)
+        self.retrofitted = True
+
+    def get_training_callbacks(self, training_callback_attributes):
+        if self.vote_only and not self.retrofitted:
+            raise ValueError(
+                f"--pipeline.model.retrofit-from {self.config.retrofit_from} does not exist: "
+                "give the trained splatfacto run folder or its step-*.ckpt"
+            )
+        return super().get_training_callbacks(training_callback_attributes)
+
+    def _resolve_vote_levels(self) -> Tuple[str, ...]:
+        data_levels = (self.kwargs.get("metadata") or {}).get("vote_levels")
+        levels = self.config.vote_levels or data_levels
+        if not levels:
+            raise ValueError("no vote levels: set --pipeline.model.vote-levels (e.g. instance part) or use the votesplat datamanager")
+        if data_levels is not None and tuple(levels) != tuple(data_levels):
+            raise ValueError(
+                f"--pipeline.model.vote-levels {' '.join(levels)} does not match the datamanager's mask levels "
+                f"{' '.join(data_levels)}; drop the flag to use the datamanager's levels"
+            )
+        return tuple(levels)
+
+    @property
+    def num_vote_levels(self) -> int:
+        return len(self.config.vote_levels)
+
+    def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = super().get_gaussian_param_groups()
+        for name in VOTE_PARAM_NAMES:
+            groups[name] = [self.gauss_params[name]]
+        return groups
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
+        if self.training and self.vote_only:
+            return self._project_for_votes(camera)
+        with cuda_calls_stay_on_cpu():
+            return super().get_outputs(camera)
+
+    def _project_for_votes(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
+        """Vote-only training step: project the frozen Gaussians, no colour pass."""
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        K = camera.get_intrinsics_matrices()[0].to(self.device)
+        width, height = int(camera.width.item()), int(camera.height.item())
+        camera.rescale_output_resolution(scale)
+        viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
+        self.info = project_for_votes(
+            self.means,
+            self.quats,
+            torch.exp(self.scales),
+            torch.sigmoid(self.opacities).squeeze(-1),
+            viewmat,
+            K,
+            width,
+            height,
+        )
+        return {}
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        if self.training and self.vote_only:
+            return {"gaussian_count": self.num_points}
+        return super().get_metrics_dict(outputs, batch)
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        metrics, images = super().get_image_metrics_and_images(outputs, batch)
+        if isinstance(self.lpips, UnavailableMetric):
+            metrics.pop("lpips", None)
+        return metrics, images
+
+    # ----------------------------------------------------------------- vote losses
+    def votes_active(self) -> bool:
+        return self.training and (self.vote_only or self.step >= self.config.vote_start_step)
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        if self.training and self.vote_only:
+            loss_dict: Dict[str, torch.Tensor] = {}
+        else:
+            loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.votes_active() and "vote_labels" in batch:
+            vote_loss, distortion = self.vote_loss_terms(batch)
+            loss_dict["vote_loss"] = self.config.vote_loss_weight * vote_loss
+            if self.config.vote_distortion != "none":
+                loss_dict["vote_distortion"] = self.config.distortion_loss_weight * distortion
+        return loss_dict
+
+    def vote_loss_terms(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Vote L1 and distortion, summed over levels, on pixels sampled from the vote maps."""
+        labels, centroids = self._vote_maps(batch)
+        # splatfacto renders at 1/d of the image resolution early in training; positions in the
+        # continuous pixel frame (pixel centre = index + 0.5) scale by exactly 1/d.
+        scale = 1.0 / self._get_downscale_factor()
+        width = labels.shape[-1]
+        # zero but connected to the offsets, so a view without masks still gives a valid backward
+        total_vote = self.gauss_params["vote_offsets"].sum() * 0.0
+        total_distortion = total_vote
+        for level in range(labels.shape[0]):
+            flat_labels = labels[level].reshape(-1)
+            carries_vote = flat_labels > 0
+            if not bool(carries_vote.any()):  # a view with no masks: no vote supervision here
+                continue
+            pixel_index = torch.multinomial(carries_vote.float(), self.config.vote_pixels_per_level, replacement=True)
+            pixel_xy, target_xy = _pixels_and_targets(pixel_index, width, flat_labels, centroids[level], scale)
+            render = self.render_level_votes(level, pixel_xy)
+            losses = vote_losses(render, target_xy, torch.ones_like(pixel_index, dtype=torch.bool), self.vote_options)
+            total_vote = total_vote + losses["vote"]
+            total_distortion = total_distortion + losses["distortion"]
+        return total_vote, total_distortion
+
+    def render_level_votes(self, level: int, pixel_xy: torch.Tensor) -> VoteRender:
+        """The vote pass for one level at ``pixel_xy``, on the projection of the last get_outputs call."""
+        info = self.info
+        means = self.gauss_params["means"]
+        if not self.config.votes_move_geometry:
+            means = means.detach()
+        return render_votes_tiled(
+            info["means2d"][0],
+            info["conics"][0],
+            info["opacities"][0],
+            info["depths"][0],
+            means + self.gauss_params["vote_offsets"][:, level],
+            info["viewmats"][0],
+            info["Ks"][0],
+            pixel_xy,
+            info["isect_offsets"][0],
+            info["flatten_ids"],
+            info["tile_size"],
+            self.vote_options,
+        )
+
+    @torch.no_grad()
+    def vote_pixel_error(self, camera: Cameras, batch: Dict[str, torch.Tensor]) -> torch.Tensor:
+        """Mean L1 distance in pixels between rendered and 2D votes, per level, over every pixel with a vote.
+
+        Rendered at the camera's full resolution; pixels whose voting set is empty are left out.
+        Levels without any vote in this view give NaN.
+        """
+        labels, centroids = self._vote_maps(batch)
+        self.get_outputs(camera.to(self.device))
+        errors = []
+        for level in range(labels.shape[0]):
+            flat_labels = labels[level].reshape(-1)
+            pixel_index = torch.nonzero(flat_labels > 0).squeeze(-1)
+            pixel_xy, target_xy = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids[level], 1.0)
+            render = self.render_level_votes(level, pixel_xy)
+            voted = render.count > 0
+            error = (render.projected_vote[voted] - target_xy[voted]).abs().sum(-1)
+            errors.append(error.mean() if voted.any() else error.new_tensor(float("nan")))
+        return torch.stack(errors)
+
+    def _vote_maps(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
+        labels = batch["vote_labels"].to(self.device)  # [L, H, W] at the datamanager's image resolution
+        centroids = batch["vote_centroids"].to(self.device)  # [L, K+1, 2] pixel-index coordinates
+        if labels.shape[0] != self.num_vote_levels:
+            raise ValueError(
+                f"the vote maps have {labels.shape[0]} levels but the model has vote_levels={self.config.vote_levels}; "
+                "make --pipeline.model.vote-levels match the datamanager's mask levels"
+            )
+        return labels, centroids
+
+    @torch.no_grad()
+    def record_vote_support(self) -> None:
+        """Count, per Gaussian and level, the steps in which its offset received a vote gradient.
+
+        A Gaussian gets a vote gradient exactly when it is in the voting set M of a sampled
+        pixel that carries a 2D vote, so support > 0 marks the foreground for clustering.
+        """
+        grad = self.gauss_params["vote_offsets"].grad
+        if grad is not None:
+            self.gauss_params["vote_support"].add_((grad.abs().sum(dim=-1) > 0).float())
+
+    def step_post_backward(self, step):
+        self.record_vote_support()
+        if not self.vote_only:  # a retrofit keeps the trained scene as it is: no densify/prune
+            super().step_post_backward(step)
