@@ -1,0 +1,453 @@
+#!/usr/bin/env bash
+# The one entry for the lent GPU machine (no internet there; see scripts/gpu/README.md):
+#
+#   bash scripts/gpu/run.sh STAGE [STAGE ...]        e.g.  setup tests bench-vote
+#
+# Stages (expected wall time on one H100; every stage after `setup` runs `setup` first if this
+# machine has not been set up, so each call can stand alone on a fresh machine):
+#   setup             ~30 s with .gpu/gsplat_build.tar.gz carried, ~240 s without (gsplat's
+#                     CUDA JIT build, ~200 s; the fresh build comes back as $OUT/gsplat_build.tar.gz)
+#   tests             ~60 s   pytest of $GPU_TESTS (CUDA-only tests run here, skipped on CPU)
+#   bench-vote        ~60-120 s  benchmarks/bench_vote_render.py at 500k@1440x1080 and 100k@720x540
+#   train-fox         per method at STEPS=7000: splatfacto ~215 s (measured 214 s), votesplat
+#                     ~250-400 s (not measured yet), + ~30 s ns-eval each. BOTH in one call may
+#                     pass the 600 s limit: run METHODS=splatfacto and METHODS=votesplat as two
+#                     calls and merge them with `compare` (here, no GPU). STEPS=100 smoke: ~90 s.
+#   train-synthetic [DATA]  the same comparison on a synthetic scene (default .gpu/synthetic,
+#                     masks from its transforms.json); time depends on the scene
+#   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
+#                     with votesplat/splatfacto ratios; prints it
+#
+# A call never runs past CALL_BUDGET_S (default 570 s from its start): a training run gets the
+# time left minus an eval reserve, and one cut short is reported as "timeout" (what it wrote
+# still comes back). Outputs, at most 8 files in $OUT per call:
+#   setup.log, gsplat_build.tar.gz (fresh builds only), tests.log, bench_vote.log,
+#   train_fox.json + train_fox.log, train_synthetic.json + train_synthetic.log
+#
+# Environment: STEPS (7000), METHODS ("splatfacto votesplat"), CALL_BUDGET_S (570),
+# GPU_TESTS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods).
+set -uo pipefail
+cd "$(dirname "$0")/../.." || exit 2
+
+# --- votesplat's CLI flags (owned by votesplat_ns/datamanager.py and model.py; update here if
+# --- they are renamed) --------------------------------------------------------------------
+VOTE_MASK_SOURCE_FLAG=--pipeline.datamanager.mask-source
+VOTE_MASK_FOLDER_FLAG=--pipeline.datamanager.mask-folder
+VOTE_MASK_LEVELS_FLAG=--pipeline.datamanager.mask-levels
+VOTE_CACHE_DIR_FLAG=--pipeline.datamanager.cache-dir
+MODEL_VOTE_LEVELS_FLAG=--pipeline.model.vote-levels
+FOX_MASK_LEVELS=(coarse fine)          # sub-folders written by scripts/gpu/prepare_fox.py
+SYNTH_MASK_LEVELS=(instance part)      # <level>_mask_path keys of the synthetic scenes
+
+STEPS=${STEPS:-7000}
+METHODS=${METHODS:-"splatfacto votesplat"}
+CALL_BUDGET_S=${CALL_BUDGET_S:-570}
+EVAL_RESERVE_S=${EVAL_RESERVE_S:-45}
+GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_rasterize_torch.py"}
+SYNTH_DOWNSCALE=${SYNTH_DOWNSCALE:-1}
+FOX=${FOX:-.gpu/fox}
+PY=${PY:-python3}
+EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-}
+SITE=${SITE:-/tmp/site}                                  # carried wheels are installed here
+RUNS=/tmp/votesplat_runs
+OUT=${OUT:-/tmp/votesplat_gpu_out}
+mkdir -p "$OUT" "$RUNS"
+
+export PYTHONPATH="$PWD:$SITE${PYTHONPATH:+:$PYTHONPATH}"   # working tree first: it wins over the carried wheel
+export PATH="$SITE/bin:$PATH"
+export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+export TORCH_EXTENSIONS_DIR=/tmp/torch_extensions           # gsplat's JIT build lands in $TORCH_EXTENSIONS_DIR/gsplat_cuda
+export MAX_JOBS=${MAX_JOBS:-$(nproc)}
+export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}    # H100/H200; part of the build's flags, so keep it fixed
+export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1   # as KINDS.md asks
+GSPLAT_BUILD_DIR=$TORCH_EXTENSIONS_DIR/gsplat_cuda
+export GSPLAT_PREBUILT_SO=$GSPLAT_BUILD_DIR/gsplat_cuda.so   # read by scripts/gpu/gsplat_prebuilt_csrc.py
+CARRIED_BUILD=.gpu/gsplat_build.tar.gz
+
+log() { printf '[run.sh %4ds] %s\n' "$SECONDS" "$*"; }
+seconds_left() { echo $((CALL_BUDGET_S - SECONDS)); }
+# a limit for `timeout`: the seconds left, but at least $1 (default 10) so a late step still starts
+limit_s() { local left; left=$(seconds_left); [ "$left" -gt "${1:-10}" ] && echo "$left" || echo "${1:-10}"; }
+
+# ns-train / ns-eval in-process, with two additions that are the same for both methods:
+# LPIPS never downloads AlexNet (the machine has no internet; it is NaN unless the weights are
+# in torch's hub cache), and peak torch GPU memory + wall time go to $VOTESPLAT_RUN_STATS.
+write_launcher() {
+  cat >/tmp/ns_launch.py.tmp <<'PY'
+import atexit, json, os, sys, time
+
+start = time.time()
+
+
+def _write_stats():
+    path = os.environ.get("VOTESPLAT_RUN_STATS")
+    if not path:
+        return
+    stats = {"wall_s": round(time.time() - start, 2)}
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+        stats["torch_max_allocated_mib"] = round(torch.cuda.max_memory_allocated() / 2**20, 1)
+        stats["torch_max_reserved_mib"] = round(torch.cuda.max_memory_reserved() / 2**20, 1)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as handle:
+        json.dump(stats, handle)
+    os.replace(tmp, path)
+
+
+atexit.register(_write_stats)
+command = sys.argv[1]
+sys.argv = [f"ns-{command}"] + sys.argv[2:]
+from votesplat_ns.compat import offline_lpips
+
+if command == "train":
+    from nerfstudio.scripts.train import entrypoint
+elif command == "eval":
+    from nerfstudio.scripts.eval import entrypoint
+else:
+    sys.exit(f"ns_launch.py: unknown command {command!r} (train or eval)")
+with offline_lpips():
+    entrypoint()
+PY
+  mv /tmp/ns_launch.py.tmp /tmp/ns_launch.py
+}
+
+# ------------------------------------------------------------------------------------ setup
+wheelhouse_stamp() { find .whl -maxdepth 1 -type f -name '*.whl' -printf '%s %f\n' 2>/dev/null | sort | sha256sum | cut -c1-16; }
+
+stage_setup() {
+  setup_body 2>&1 | tee -a "$OUT/setup.log"
+  return "${PIPESTATUS[0]}"
+}
+
+setup_body() {
+  log "setup: python $($PY -c 'import sys; print(sys.version.split()[0], sys.executable)')"
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || log "nvidia-smi failed"
+  nvcc --version | tail -1 || log "nvcc not found: gsplat cannot JIT-build"
+  if ! ls .whl/*.whl >/dev/null 2>&1; then
+    log "ERROR: no wheels in .whl/; run scripts/gpu/build_wheelhouse.sh here and carry .whl"
+    return 1
+  fi
+  local stamp; stamp=$(wheelhouse_stamp)
+  if [ "$(cat "$SITE/.wheelhouse-stamp" 2>/dev/null)" != "$stamp" ]; then
+    log "installing $(find .whl -maxdepth 1 -type f -name '*.whl' | wc -l) wheels into $SITE"
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" .whl/*.whl || return 1
+    # The carried votesplat_ns wheel is there for its entry points (dist-info) only: the code
+    # comes from the working tree, so no stale copy may shadow it.
+    rm -rf "$SITE/votesplat_ns"
+    echo "$stamp" >"$SITE/.wheelhouse-stamp"
+  else
+    log "wheels already installed in $SITE"
+  fi
+  # Sources older than a carried build let ninja reuse it instead of rebuilding (~200 s).
+  find "$SITE/gsplat" -exec touch -h -d 2020-01-01 {} +
+  write_launcher
+
+  log "module probe (MISSING ones need a wheel: FALLBACKS=1 scripts/gpu/build_wheelhouse.sh, or add it there)"
+  local probe_rc=0
+  "$PY" - <<'PY' || probe_rc=1
+import importlib, importlib.metadata as md
+# ns-train's measured import closure for splatfacto, plus hdbscan's and our plugin's
+mods = ["torch", "numpy", "scipy", "sklearn", "joblib", "PIL", "rich", "yaml", "matplotlib", "imageio", "cv2",
+        "jaxtyping", "torchmetrics", "tensorboard", "tqdm", "requests", "packaging", "typing_extensions",
+        "nerfstudio", "gsplat", "nerfacc", "viser", "tyro", "typeguard", "hdbscan", "plyfile", "fpsample", "rawpy",
+        "splines", "pyquaternion", "pytorch_msssim", "tensorly", "pathos", "websockets", "msgspec", "votesplat_ns"]
+missing = []
+for name in mods:
+    try:
+        module = importlib.import_module(name)
+        print(f"  {name:16s} {getattr(module, '__version__', '')} {getattr(module, '__file__', '')}")
+    except Exception as error:
+        missing.append(name)
+        print(f"  {name:16s} MISSING ({type(error).__name__}: {error})")
+import torch
+print("torch", torch.__version__, "cuda", torch.version.cuda, "gpu", torch.cuda.get_device_name(0) if torch.cuda.is_available() else None)
+from nerfstudio.plugins.registry import discover_methods
+methods = discover_methods()[0]
+print("ns-train methods include votesplat:", "votesplat" in methods, "| splatfacto:", "splatfacto" in methods)
+print("missing modules:", " ".join(missing) if missing else "none")
+if missing or "votesplat" not in methods:
+    raise SystemExit("setup incomplete: a module is missing or votesplat is not registered (see above)")
+PY
+
+  local had_build=0 so_before=""
+  if [ -f "$GSPLAT_BUILD_DIR/gsplat_cuda.so" ]; then
+    had_build=1
+  elif [ -f "$CARRIED_BUILD" ]; then
+    log "restoring gsplat build from $CARRIED_BUILD"
+    mkdir -p "$TORCH_EXTENSIONS_DIR" && tar -xzf "$CARRIED_BUILD" -C "$TORCH_EXTENSIONS_DIR" && had_build=1
+  fi
+  [ -f "$GSPLAT_BUILD_DIR/gsplat_cuda.so" ] && so_before=$(stat -c %Y "$GSPLAT_BUILD_DIR/gsplat_cuda.so")
+  if [ "$had_build" = 1 ]; then
+    # ninja's reuse of a restored build is not reliable (it rebuilt in one try); gsplat first
+    # tries `from gsplat import csrc`, so a tiny module that loads the built .so skips the JIT.
+    cp scripts/gpu/gsplat_prebuilt_csrc.py "$SITE/gsplat/csrc.py"
+    log "gsplat will load the prebuilt $GSPLAT_BUILD_DIR/gsplat_cuda.so"
+  fi
+  log "loading gsplat's CUDA code (JIT build if needed, MAX_JOBS=$MAX_JOBS, arch $TORCH_CUDA_ARCH_LIST)"
+  "$PY" - <<'PY' || return 1
+import time, torch
+t = time.time()
+from gsplat.cuda._backend import _C
+from gsplat import rasterization
+if _C is None:
+    raise SystemExit("gsplat's CUDA extension did not load (see the build output above)")
+print(f"gsplat CUDA extension ready in {time.time() - t:.1f} s")
+device = torch.device("cuda")
+n = 64
+means = torch.randn(n, 3, device=device) * 0.3 + torch.tensor([0.0, 0.0, 3.0], device=device)
+quats = torch.randn(n, 4, device=device)
+scales = torch.full((n, 3), 0.05, device=device)
+opacities = torch.full((n,), 0.8, device=device)
+colors = torch.rand(n, 3, device=device)
+K = torch.tensor([[[40.0, 0, 32], [0, 40.0, 24], [0, 0, 1]]], device=device)
+image, alpha, _ = rasterization(means, quats, scales, opacities, colors, torch.eye(4, device=device)[None], K, 64, 48)
+torch.cuda.synchronize()
+print("tiny rasterization ok:", tuple(image.shape), "mean alpha", round(float(alpha.mean()), 4))
+PY
+  local so_after; so_after=$(stat -c %Y "$GSPLAT_BUILD_DIR/gsplat_cuda.so" 2>/dev/null || true)
+  if [ "$had_build" = 0 ] || [ "$so_before" != "$so_after" ]; then
+    tar -czf "$OUT/gsplat_build.tar.gz" -C "$TORCH_EXTENSIONS_DIR" gsplat_cuda
+    log "fresh gsplat build saved: \$OUT/gsplat_build.tar.gz ($(du -h "$OUT/gsplat_build.tar.gz" | cut -f1)); copy it to $CARRIED_BUILD to skip the build next time"
+  else
+    log "reused the carried gsplat build"
+  fi
+  if [ "$probe_rc" != 0 ]; then
+    log "setup FAILED: see the module probe above"
+    return 1
+  fi
+  touch "$SITE/.setup-done"
+  log "setup done"
+}
+
+ensure_setup() {
+  if [ -f "$SITE/.setup-done" ] && [ "$(cat "$SITE/.wheelhouse-stamp" 2>/dev/null)" = "$(wheelhouse_stamp)" ]; then
+    write_launcher
+    return 0
+  fi
+  stage_setup
+}
+
+# ------------------------------------------------------------------------------------ tests
+stage_tests() {
+  ensure_setup || return 1
+  local files=() f
+  for f in $GPU_TESTS; do
+    if [ -e "$f" ]; then files+=("$f"); else log "skipping $f: not in this tree" | tee -a "$OUT/tests.log"; fi
+  done
+  [ "${#files[@]}" -gt 0 ] || { log "no test files to run" | tee -a "$OUT/tests.log"; return 1; }
+  log "pytest ${files[*]}" | tee -a "$OUT/tests.log"
+  timeout "$(limit_s)" "$PY" -m pytest -q -rs -p no:cacheprovider "${files[@]}" 2>&1 | tee -a "$OUT/tests.log"
+  return "${PIPESTATUS[0]}"
+}
+
+# ------------------------------------------------------------------------------- bench-vote
+stage_bench_vote() {
+  ensure_setup || return 1
+  local rc=0 config dims
+  for config in "500000 1440 1080" "100000 720 540"; do
+    read -r -a dims <<<"$config"
+    set -- "${dims[@]}"
+    log "bench_vote_render --num-gaussians $1 --width $2 --height $3" | tee -a "$OUT/bench_vote.log"
+    timeout "$(limit_s)" "$PY" benchmarks/bench_vote_render.py --num-gaussians "$1" --width "$2" --height "$3" \
+      2>&1 | tee -a "$OUT/bench_vote.log"
+    [ "${PIPESTATUS[0]}" = 0 ] || rc=1
+  done
+  return "$rc"
+}
+
+# ----------------------------------------------------------------------------------- training
+# train_one EXPERIMENT METHOD DATA DOWNSCALE LOG [votesplat args...]: trains, evaluates and
+# writes $RUNS/result_<experiment>_<method>.json.
+train_one() {
+  local experiment=$1 method=$2 data=$3 downscale=$4 log_file=$5
+  shift 5
+  local run_dir=$RUNS/$experiment/$method/run
+  local result=$RUNS/result_${experiment}_${method}.json
+  local stats=$RUNS/stats_${experiment}_${method}.json eval_json=$RUNS/eval_${experiment}_${method}.json
+  local gpu_log=$RUNS/gpu_${experiment}_${method}.csv
+  rm -rf "$run_dir" "$result" "$stats" "$eval_json" "$gpu_log" "$gpu_log.meta"
+  local train_limit=$(( $(seconds_left) - EVAL_RESERVE_S ))
+  local status=ok eval_status="not run" rc=0 wall=0
+  if [ "$train_limit" -lt 30 ]; then
+    status="skipped: $(seconds_left) s left of CALL_BUDGET_S=$CALL_BUDGET_S"
+    log "$experiment/$method $status" | tee -a "$log_file"
+  else
+    local baseline_mib
+    baseline_mib=$(nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits | head -1)
+    nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader,nounits -lms 500 >"$gpu_log" 2>/dev/null &
+    local logger_pid=$!
+    log "ns-train $method on $data: $STEPS steps, time limit ${train_limit} s" | tee -a "$log_file"
+    local t0; t0=$(date +%s.%N)
+    # shellcheck disable=SC2086
+    VOTESPLAT_RUN_STATS=$stats timeout --signal=INT --kill-after=20 "$train_limit" \
+      "$PY" /tmp/ns_launch.py train "$method" --data "$data" --max-num-iterations "$STEPS" \
+      --vis tensorboard --viewer.quit-on-train-completion True \
+      --output-dir "$RUNS" --experiment-name "$experiment" --timestamp run \
+      "$@" $EXTRA_TRAIN_ARGS nerfstudio-data --downscale-factor "$downscale" >>"$log_file" 2>&1
+    rc=$?
+    wall=$(awk -v a="$(date +%s.%N)" -v b="$t0" 'BEGIN { printf "%.1f", a - b }')
+    kill "$logger_pid" 2>/dev/null; wait "$logger_pid" 2>/dev/null
+    echo "$baseline_mib" >"$gpu_log.meta"
+    if [ "$rc" = 124 ] || [ "$rc" = 137 ]; then status="timeout after ${train_limit} s"; elif [ "$rc" != 0 ]; then status="failed (exit $rc)"; fi
+    log "$experiment/$method: $status, ${wall} s wall" | tee -a "$log_file"
+    if [ -f "$run_dir/config.yml" ] && ls "$run_dir"/nerfstudio_models/*.ckpt >/dev/null 2>&1; then
+      log "ns-eval $experiment/$method" | tee -a "$log_file"
+      timeout "$(limit_s 20)" \
+        "$PY" /tmp/ns_launch.py eval --load-config "$run_dir/config.yml" --output-path "$eval_json" >>"$log_file" 2>&1
+      rc=$?
+      case "$rc" in 0) eval_status=ok ;; 124|137) eval_status="timeout" ;; *) eval_status="failed (exit $rc)" ;; esac
+      log "ns-eval $experiment/$method: $eval_status" | tee -a "$log_file"
+    fi
+  fi
+  "$PY" - "$result" "$experiment" "$method" "$data" "$STEPS" "$status" "$wall" "$run_dir" "$stats" "$eval_json" "$gpu_log" "$eval_status" <<'PY'
+import glob, json, os, re, sys
+result, experiment, method, data, steps, status, wall, run_dir, stats, eval_json, gpu_log, eval_status = sys.argv[1:]
+entry = {"method": method, "data": data, "steps": int(steps), "status": status, "eval_status": eval_status,
+         "wall_s": round(float(wall or 0), 1)}
+try:
+    import subprocess
+    entry["gpu"] = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                                  capture_output=True, text=True, timeout=20).stdout.strip().splitlines()[0]
+except Exception:
+    entry["gpu"] = None
+if os.path.exists(stats):
+    entry["process"] = json.load(open(stats))
+if os.path.exists(gpu_log):
+    rows = [line.split(",") for line in open(gpu_log) if re.match(r"^\s*\d", line)]
+    if rows:
+        used = [float(r[0]) for r in rows]
+        util = [float(r[1]) for r in rows]
+        baseline = None
+        if os.path.exists(gpu_log + ".meta"):
+            baseline = float(open(gpu_log + ".meta").read().strip() or "nan")
+        entry["gpu_peak_memory_used_mib"] = max(used)
+        entry["gpu_baseline_memory_used_mib"] = baseline
+        entry["gpu_util_mean_pct"] = round(sum(util) / len(util), 1)
+checkpoints = sorted(glob.glob(os.path.join(run_dir, "nerfstudio_models", "step-*.ckpt")))
+if checkpoints:
+    import torch
+    state = torch.load(checkpoints[-1], map_location="cpu", weights_only=False)
+    means = [v for k, v in state["pipeline"].items() if k.endswith("gauss_params.means")]
+    entry["checkpoint_step"] = int(state.get("step", -1))
+    entry["num_gaussians"] = int(means[0].shape[0]) if means else None
+if os.path.exists(eval_json):
+    entry["eval"] = json.load(open(eval_json)).get("results")
+tmp = result + ".tmp"
+json.dump(entry, open(tmp, "w"), indent=2)
+os.replace(tmp, result)
+PY
+}
+
+# summarize OUT_JSON RESULT_JSON...: one JSON with each method and votesplat/splatfacto ratios.
+summarize() {
+  "$PY" - "$@" <<'PY'
+import json, math, os, sys
+out, inputs = sys.argv[1], sys.argv[2:]
+methods = {}
+header = {}
+for path in inputs:
+    data = json.load(open(path))
+    if "methods" in data:  # a summary from an earlier call
+        methods.update(data["methods"])
+        header.setdefault("runs", []).append({k: v for k, v in data.items() if k not in ("methods", "ratios_votesplat_over_splatfacto")})
+    else:
+        methods[data["method"]] = data
+summary = dict(header)
+summary["gpu"] = sorted({m.get("gpu") for m in methods.values() if m.get("gpu")})
+if len(summary["gpu"]) > 1:
+    print("warning: the methods ran on different GPUs; their ratios compare unlike machines", file=sys.stderr)
+summary["methods"] = methods
+
+
+def pick(entry, key):
+    value = entry.get(key)
+    if key in ("psnr", "ssim", "lpips"):
+        value = (entry.get("eval") or {}).get(key)
+    if key == "torch_max_allocated_mib":
+        value = (entry.get("process") or {}).get(key)
+    return value
+
+
+both_ok = all(methods.get(m, {}).get("status") == "ok" for m in ("splatfacto", "votesplat"))
+if "splatfacto" in methods and "votesplat" in methods and not both_ok:
+    summary["ratios_votesplat_over_splatfacto"] = None
+    summary["ratios_note"] = "not computed: a method did not finish (see its status)"
+elif both_ok:
+    ratios = {}
+    for key in ("wall_s", "gpu_peak_memory_used_mib", "torch_max_allocated_mib", "num_gaussians", "psnr", "ssim", "lpips"):
+        a, b = pick(methods["votesplat"], key), pick(methods["splatfacto"], key)
+        try:
+            ratio = float(a) / float(b)
+        except (TypeError, ValueError, ZeroDivisionError):
+            ratio = float("nan")
+        ratios[key] = round(ratio, 3) if math.isfinite(ratio) else None
+    summary["ratios_votesplat_over_splatfacto"] = ratios
+text = json.dumps(summary, indent=2)
+if out == "-":
+    print(text)
+else:
+    with open(out + ".tmp", "w") as handle:
+        handle.write(text + "\n")
+    os.replace(out + ".tmp", out)
+    print(text)
+PY
+}
+
+set_vote_args() {  # EXPERIMENT DATA -> VOTE_ARGS, votesplat's extra flags
+  local levels
+  if [ "$1" = fox ]; then
+    levels=("${FOX_MASK_LEVELS[@]}")
+    VOTE_ARGS=("$VOTE_MASK_SOURCE_FLAG" folder "$VOTE_MASK_FOLDER_FLAG" "$2/votesplat_masks")
+  else
+    levels=("${SYNTH_MASK_LEVELS[@]}")
+    VOTE_ARGS=("$VOTE_MASK_SOURCE_FLAG" dataset)
+  fi
+  VOTE_ARGS+=("$VOTE_MASK_LEVELS_FLAG" "${levels[@]}" "$MODEL_VOTE_LEVELS_FLAG" "${levels[@]}"
+              "$VOTE_CACHE_DIR_FLAG" "$RUNS/votesplat_cache_$1")
+}
+
+train_compare() {  # EXPERIMENT DATA DOWNSCALE
+  local experiment=$1 data=$2 downscale=$3
+  local log_file=$OUT/train_${experiment}.log results=() method
+  ensure_setup || return 1
+  if [ ! -f "$data/transforms.json" ]; then
+    log "ERROR: $data/transforms.json not found (carry .gpu; for the fox run scripts/gpu/prepare_fox.py here first)" | tee -a "$log_file"
+    return 1
+  fi
+  for method in $METHODS; do
+    case "$method" in
+      splatfacto) train_one "$experiment" splatfacto "$data" "$downscale" "$log_file" ;;
+      votesplat) set_vote_args "$experiment" "$data"
+                 # a fresh vote cache each run: its one-time build is part of votesplat's wall time
+                 rm -rf "$RUNS/votesplat_cache_$experiment"
+                 train_one "$experiment" votesplat "$data" "$downscale" "$log_file" "${VOTE_ARGS[@]}" ;;
+      *) log "unknown method $method (splatfacto or votesplat)" | tee -a "$log_file"; return 1 ;;
+    esac
+    results+=("$RUNS/result_${experiment}_${method}.json")
+  done
+  summarize "$OUT/train_${experiment}.json" "${results[@]}" || return 1
+  # a method that did not train or evaluate makes the stage fail
+  ! grep -L -E '"status": "ok"' "${results[@]}" | grep -q . && ! grep -l -E '"eval_status": "(failed|timeout)' "${results[@]}" | grep -q .
+}
+
+# ------------------------------------------------------------------------------------- main
+[ "$#" -gt 0 ] || { sed -n '2,/^set -uo/p' "$0" | sed '$d'; exit 2; }
+rc=0
+while [ "$#" -gt 0 ]; do
+  stage=$1; shift
+  log "== $stage" >&2
+  case "$stage" in
+    setup) stage_setup || rc=1 ;;
+    tests) stage_tests || rc=1 ;;
+    bench-vote) stage_bench_vote || rc=1 ;;
+    train-fox) train_compare fox "$FOX" 2 || rc=1 ;;
+    train-synthetic)
+      data=.gpu/synthetic
+      if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
+      train_compare synthetic "$data" "$SYNTH_DOWNSCALE" || rc=1 ;;
+    compare) summarize - "$@" || rc=1; shift "$#" ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, train-fox, train-synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
+  esac
+done
+log "done (exit $rc)" >&2
+exit "$rc"
