@@ -1,0 +1,54 @@
+"""Retrofit: add instances to a trained scene by training only the offsets (the vote-only path)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from nerfstudio.utils.eval_utils import eval_setup
+
+from conftest import DEMO_SCENE, train_votesplat
+from votesplat_ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
+
+
+@pytest.fixture(scope="module")
+def splatfacto_checkpoint(trained_demo, tmp_path_factory):
+    """A checkpoint with splatfacto's structure: the demo run's, minus everything VoteSplat added."""
+    state = torch.load(latest_checkpoint(trained_demo.parent), map_location="cpu")
+    state["pipeline"] = {k: v for k, v in state["pipeline"].items() if "vote_" not in k}
+    path = tmp_path_factory.mktemp("splatfacto") / "step-000000100.ckpt"
+    torch.save(state, path)
+    return path
+
+
+def test_retrofit_trains_only_the_offsets(splatfacto_checkpoint, tmp_path):
+    config_path = train_votesplat(
+        DEMO_SCENE, tmp_path, steps=60, vote_start=0, retrofit_from=splatfacto_checkpoint, vote_pixels_per_level=1024
+    )
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="val")
+    model = pipeline.model
+    source = load_gaussians(splatfacto_checkpoint)
+    for name in SPLAT_PARAM_NAMES:  # geometry and appearance untouched, no densification
+        assert torch.equal(model.gauss_params[name].data.cpu(), source[name]), name
+    offsets = model.gauss_params["vote_offsets"].data
+    support = model.gauss_params["vote_support"].data
+    assert (support > 0).any(dim=0).all(), "every level must have received vote supervision"
+    for level in range(offsets.shape[1]):
+        assert offsets[support[:, level] > 0, level].abs().sum() > 0
+        assert offsets[support[:, level] == 0, level].abs().max() == 0
+
+    datamanager = pipeline.datamanager
+    camera = datamanager.train_dataset.cameras[0:1]
+    batch = datamanager.vote_batch(0)
+    trained = model.vote_pixel_error(camera, batch)
+    model.gauss_params["vote_offsets"].data.zero_()
+    untrained = model.vote_pixel_error(camera, batch)
+    assert torch.all(trained < untrained), (trained, untrained)
+
+
+def test_retrofit_from_a_checkpoint_of_the_wrong_structure_is_a_clear_error(tmp_path):
+    bad = tmp_path / "step-000000001.ckpt"
+    torch.save({"step": 1, "pipeline": {"_model.field.weight": torch.zeros(3)}}, bad)
+    with pytest.raises(ValueError, match="not a splatfacto checkpoint"):
+        load_gaussians(bad)
+    with pytest.raises(ValueError, match="no checkpoint found"):
+        latest_checkpoint(tmp_path / "empty_run")
