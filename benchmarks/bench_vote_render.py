@@ -1,14 +1,22 @@
-"""Cost of the vote pass next to the RGB pass it rides on (GPU only).
+"""Cost of the vote pass next to the RGB pass it rides on.
 
 Times, on random Gaussians seen by one camera:
   * RGB: gsplat 1.4 ``rasterization`` forward + backward of a full image
     (what splatfacto pays per step);
   * vote: ``render_votes_tiled`` + ``vote_losses`` forward + backward on S
     sampled pixels, reusing the projection and tile lists of a rasterization
-    (as the model does: geometry comes from the RGB pass's info).
-Prints a markdown table of median milliseconds and peak extra GPU memory.
+    (as the model does: geometry comes from the RGB pass's info), for L mask
+    levels: L = 1 with [N, 3] votes, L > 1 with [N, L, 3] votes in one call
+    (one walk, every level blended over it) and, for comparison, as L
+    separate single-level calls.
+Prints a markdown table of median milliseconds, peak extra GPU memory, and
+per step the host reads (device-to-host syncs) and torch calls made from
+Python in the forward pass (each call is one or more kernel launches).
 
     python benchmarks/bench_vote_render.py --num-gaussians 500000 --width 1440 --height 1080 --pixels 4096 16384
+
+``--device cpu`` runs the same passes with the pure-torch rasteriser, to
+check the script (and count calls) without a GPU; use small sizes there.
 """
 
 from __future__ import annotations
@@ -17,12 +25,18 @@ import argparse
 import math
 import statistics
 import sys
+import time
 from pathlib import Path
-from typing import Callable, List, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import torch
+from torch.overrides import TorchFunctionMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def chunk_arg(value: str) -> Optional[int]:
+    return None if value == "auto" else int(value)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -33,12 +47,22 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--pixels", type=int, nargs="+", default=[4096, 16384], help="sampled pixels S for the vote pass"
     )
-    parser.add_argument("--chunks", type=int, nargs="+", default=[128], help="render_votes_tiled chunk sizes to time")
+    parser.add_argument(
+        "--chunks",
+        type=chunk_arg,
+        nargs="+",
+        default=[None],
+        help="render_votes_tiled chunk sizes to time ('auto' = the default, chunk=None)",
+    )
+    parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 4], help="mask levels L of the vote pass")
     parser.add_argument("--sh-degree", type=int, default=3)
     parser.add_argument("--tile-size", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--device", choices=["cuda", "cpu"], default="cuda", help="cpu: pure-torch rasteriser, for checking the script"
+    )
     return parser.parse_args(argv)
 
 
@@ -60,36 +84,69 @@ def random_gaussians(n: int, width: int, height: int, sh_degree: int, device: to
     return dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmat=viewmat, K=K)
 
 
-def measure(step: Callable[[], None], warmup: int, repeats: int) -> Tuple[float, float]:
-    """Median milliseconds and peak GPU memory above the starting allocation (MiB)."""
+def measure(step: Callable[[], None], warmup: int, repeats: int, device: torch.device) -> Tuple[float, Optional[float]]:
+    """Median milliseconds and, on CUDA, peak memory above the starting allocation (MiB)."""
+    cuda = device.type == "cuda"
     for _ in range(warmup):
         step()
-    torch.cuda.synchronize()
-    base = torch.cuda.memory_allocated()
-    torch.cuda.reset_peak_memory_stats()
+    if cuda:
+        torch.cuda.synchronize()
+        base = torch.cuda.memory_allocated()
+        torch.cuda.reset_peak_memory_stats()
     times: List[float] = []
     for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        step()
-        end.record()
-        torch.cuda.synchronize()
-        times.append(start.elapsed_time(end))
-    peak = (torch.cuda.max_memory_allocated() - base) / 2**20
+        if cuda:
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            step()
+            end.record()
+            torch.cuda.synchronize()
+            times.append(start.elapsed_time(end))
+        else:
+            start_s = time.perf_counter()
+            step()
+            times.append((time.perf_counter() - start_s) * 1e3)
+    peak = (torch.cuda.max_memory_allocated() - base) / 2**20 if cuda else None
     return statistics.median(times), peak
+
+
+class CallCounter(TorchFunctionMode):
+    """Torch calls made from Python, and those among them that read device values on the host."""
+
+    HOST_READS = {"tolist", "item", "__bool__", "__int__", "__float__", "__index__", "cpu", "numpy", "nonzero"}
+
+    def __init__(self):
+        super().__init__()
+        self.calls = 0
+        self.host_reads = 0
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = getattr(func, "__name__", "")
+        self.calls += 1
+        if name in self.HOST_READS:
+            self.host_reads += 1
+        elif name in ("__getitem__", "__setitem__"):
+            index = args[1] if isinstance(args[1], tuple) else (args[1],)
+            self.host_reads += any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in index)
+        return func(*args, **kwargs)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    if not torch.cuda.is_available():
-        sys.exit(
-            "bench_vote_render.py needs a CUDA GPU (gsplat's rasterizer is CUDA-only); none is visible, nothing was timed."
-        )
-    from gsplat import rasterization
+    device = torch.device(args.device)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            sys.exit(
+                "bench_vote_render.py needs a CUDA GPU (gsplat's rasterizer is CUDA-only); none is visible, "
+                "nothing was timed. --device cpu checks the script with the pure-torch rasteriser."
+            )
+        from gsplat import rasterization
+    else:
+        from votesplat_ns.rasterize_torch import rasterize_torch as rasterization
 
     from votesplat_ns.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
 
-    device = torch.device("cuda")
     scene = random_gaussians(args.num_gaussians, args.width, args.height, args.sh_degree, device, args.seed)
     params = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
     viewmat, K = scene["viewmat"], scene["K"]
@@ -115,64 +172,106 @@ def main(argv=None) -> int:
         image, _, _ = rasterize()
         (image[0] - target_image).abs().mean().backward()
 
-    rgb_ms, rgb_mib = measure(rgb_step, args.warmup, args.repeats)
+    rgb_ms, rgb_mib = measure(rgb_step, args.warmup, args.repeats, device)
 
     with torch.no_grad():
         _, _, info = rasterize()
-    offsets = torch.zeros(args.num_gaussians, 3, device=device, requires_grad=True)
+    max_levels = max(args.levels)
+    offsets = torch.zeros(args.num_gaussians, max_levels, 3, device=device, requires_grad=True)
     options = VoteRenderOptions()
     rows = []
     for pixels in args.pixels:
         g = torch.Generator(device=device).manual_seed(args.seed + 1)
         flat = torch.randint(0, args.width * args.height, (pixels,), generator=g, device=device)
         pixel_xy = torch.stack([flat % args.width, flat // args.width], dim=1).float() + 0.5
-        target_xy = pixel_xy + 20.0 * torch.randn(pixels, 2, generator=g, device=device)
-        valid = torch.ones(pixels, dtype=torch.bool, device=device)
+        target_xy = pixel_xy[:, None, :] + 20.0 * torch.randn(pixels, max_levels, 2, generator=g, device=device)
+        # a pixel carries a 2D vote at some levels and not others, as with nested SAM masks
+        valid = torch.rand(pixels, max_levels, generator=g, device=device) < 0.8
         for chunk in args.chunks:
-
-            def vote_forward():
-                votes = params["means"].detach() + offsets
-                return render_votes_tiled(
-                    info["means2d"][0],
-                    info["conics"][0],
-                    info["opacities"][0],
-                    info["depths"][0],
-                    votes,
-                    viewmat,
-                    K,
-                    pixel_xy,
-                    info["isect_offsets"][0],
-                    info["flatten_ids"],
-                    info["tile_size"],
-                    options,
-                    chunk=chunk,
-                )
-
-            def vote_step():
-                losses = vote_losses(vote_forward(), target_xy, valid, options)
-                (losses["vote"] + 0.1 * losses["distortion"]).backward()
-
-            vote_ms, vote_mib = measure(vote_step, args.warmup, args.repeats)
             with torch.no_grad():
-                count = vote_forward().count.float()
-            rows.append((pixels, chunk, vote_ms, vote_mib, count.mean().item(), int(count.max().item())))
+                count = render_votes_tiled(
+                    info["means2d"][0], info["conics"][0], info["opacities"][0], info["depths"][0],
+                    params["means"], viewmat, K, pixel_xy, info["isect_offsets"][0], info["flatten_ids"],
+                    info["tile_size"], options, chunk=chunk,
+                ).count.float()
+            count_stats = (count.mean().item(), int(count.max().item()))
+            for levels in args.levels:
+
+                def vote_forward(votes: torch.Tensor):
+                    return render_votes_tiled(
+                        info["means2d"][0],
+                        info["conics"][0],
+                        info["opacities"][0],
+                        info["depths"][0],
+                        votes,
+                        viewmat,
+                        K,
+                        pixel_xy,
+                        info["isect_offsets"][0],
+                        info["flatten_ids"],
+                        info["tile_size"],
+                        options,
+                        chunk=chunk,
+                    )
+
+                def one_call_step(levels=levels):
+                    if levels == 1:
+                        votes, target, mask = params["means"].detach() + offsets[:, 0], target_xy[:, 0], valid[:, 0]
+                    else:
+                        votes = params["means"].detach()[:, None, :] + offsets[:, :levels]
+                        target, mask = target_xy[:, :levels], valid[:, :levels]
+                    losses = vote_losses(vote_forward(votes), target, mask, options)
+                    (losses["vote"].sum() + 0.1 * losses["distortion"].sum()).backward()
+
+                def separate_calls_step(levels=levels):
+                    total = 0.0
+                    for level in range(levels):
+                        votes = params["means"].detach() + offsets[:, level]
+                        losses = vote_losses(vote_forward(votes), target_xy[:, level], valid[:, level], options)
+                        total = total + losses["vote"] + 0.1 * losses["distortion"]
+                    total.backward()
+
+                if levels == 1:
+                    variants = [("votes [N,3]", one_call_step)]
+                else:
+                    variants = [
+                        ("votes [N,L,3], one call", one_call_step),
+                        ("votes [N,3], one call per level", separate_calls_step),
+                    ]
+                for label, step in variants:
+                    ms, mib = measure(step, args.warmup, args.repeats, device)
+                    with CallCounter() as counter:
+                        step()
+                    counts = (counter.host_reads, counter.calls)
+                    rows.append((label, levels, pixels, chunk, ms, mib) + counts + count_stats)
 
     run_starts = info["isect_offsets"][0].reshape(-1).long()
     runs = torch.diff(torch.cat([run_starts, run_starts.new_tensor([info["flatten_ids"].numel()])])).float()
+    device_name = torch.cuda.get_device_name() if device.type == "cuda" else "CPU"
     print(
-        f"\n{torch.cuda.get_device_name()}, torch {torch.__version__}; {args.num_gaussians} Gaussians at "
+        f"\n{device_name}, torch {torch.__version__}; {args.num_gaussians} Gaussians at "
         f"{args.width}x{args.height}, SH degree {args.sh_degree}, tile {args.tile_size}; "
         f"{int((info['radii'][0] > 0).sum())} in view, tile runs mean {runs.mean():.0f} / max {runs.max():.0f}; "
         f"median of {args.repeats}\n"
     )
-    print("| pass | pixels | chunk | fwd+bwd ms | peak extra MiB | mean \\|M\\| | max \\|M\\| |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    print(f"| RGB rasterization (gsplat) | {args.width * args.height} | - | {rgb_ms:.2f} | {rgb_mib:.0f} | - | - |")
-    for pixels, chunk, ms, mib, mean_count, max_count in rows:
+    print(
+        "| pass | levels | pixels | chunk | fwd+bwd ms | peak extra MiB | host reads | torch calls (fwd) "
+        "| mean \\|M\\| | max \\|M\\| |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print(
+        f"| RGB rasterization | - | {args.width * args.height} | - | {rgb_ms:.2f} | {_mib(rgb_mib)} | - | - | - | - |"
+    )
+    for label, levels, pixels, chunk, ms, mib, reads, calls, mean_count, max_count in rows:
         print(
-            f"| votes (render_votes_tiled) | {pixels} | {chunk} | {ms:.2f} | {mib:.0f} | {mean_count:.1f} | {max_count} |"
+            f"| {label} | {levels} | {pixels} | {'auto' if chunk is None else chunk} | {ms:.2f} | {_mib(mib)} "
+            f"| {reads} | {calls} | {mean_count:.1f} | {max_count} |"
         )
     return 0
+
+
+def _mib(value: Optional[float]) -> str:
+    return "-" if value is None else f"{value:.0f}"
 
 
 if __name__ == "__main__":

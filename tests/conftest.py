@@ -36,7 +36,7 @@ def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, *
     # so fewer samples keep its expected gradient.
     model.num_downscales = 1
     model.resolution_schedule = 100 * steps
-    model.vote_pixels_per_level = 1024
+    model.vote_pixels_per_step = 1024
     for name, value in model_overrides.items():
         setattr(model, name, value)
     config.set_timestamp()

@@ -22,7 +22,7 @@ def splatfacto_checkpoint(trained_demo, tmp_path_factory):
 
 def test_retrofit_trains_only_the_offsets(splatfacto_checkpoint, tmp_path):
     config_path = train_votesplat(
-        DEMO_SCENE, tmp_path, steps=60, vote_start=0, retrofit_from=splatfacto_checkpoint, vote_pixels_per_level=1024
+        DEMO_SCENE, tmp_path, steps=60, vote_start=0, retrofit_from=splatfacto_checkpoint, vote_pixels_per_step=1024
     )
     _, pipeline, _, _ = eval_setup(config_path, test_mode="val")
     model = pipeline.model

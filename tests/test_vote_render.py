@@ -14,6 +14,9 @@ from gsplat.cuda._torch_impl import (
     _quat_scale_to_covar_preci,
 )
 
+from torch.overrides import TorchFunctionMode
+
+from votesplat_ns import vote_render
 from votesplat_ns.vote_render import (
     ALPHA_MIN,
     COLOUR_STOP_T,
@@ -490,6 +493,234 @@ def test_tiled_pixels_outside_the_grid_are_empty(tiled_scene):
     assert (out.count == 0).all() and not out.projected_vote.any()
 
 
+def test_tiled_default_chunk_matches_reference(tiled_scene):
+    """chunk=None sizes the steps from the pixel count and the runs; same values and gradients."""
+    scene, pixel_xy, tile_size, lists = tiled_scene
+    offsets, flatten_ids = lists["gsplat"]
+    options = VoteRenderOptions(weighting="alpha_t", detach_geometry=False)
+    names = ["votes", "means2d", "conics", "opacities"]
+    expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, names)
+    actual, actual_grads = grads_of(
+        render_votes_tiled, scene, pixel_xy, options, names, isect_offsets=offsets, flatten_ids=flatten_ids,
+        tile_size=tile_size,
+    )
+    assert_render_close(actual, expected)
+    for name, a, e in zip(names, actual_grads, expected_grads):
+        torch.testing.assert_close(a, e, rtol=1e-9, atol=1e-9, msg=name)
+
+
+def opaque_wall(n=60, width=24, height=20, seed=12, dtype=torch.float64):
+    """Wide, nearly opaque Gaussians covering every pixel several times: every walk ends early."""
+    g = torch.Generator().manual_seed(seed)
+    means2d = torch.rand(n, 2, generator=g, dtype=dtype) * torch.tensor([width, height], dtype=dtype)
+    return dict(
+        means2d=means2d,
+        conics=torch.tensor([[1 / 200.0, 0.0, 1 / 200.0]], dtype=dtype).repeat(n, 1),
+        opacities=0.9 + 0.1 * torch.rand(n, generator=g, dtype=dtype),
+        depths=1.0 + torch.rand(n, generator=g, dtype=dtype),
+        votes=torch.randn(n, 3, generator=g, dtype=dtype) + torch.tensor([0.0, 0.0, 4.0], dtype=dtype),
+        viewmat=torch.eye(4, dtype=dtype),
+        K=intrinsics(20.0, width, height, dtype),
+    )
+
+
+@pytest.mark.parametrize("vote_transmittance", [0.01, 0.0])
+def test_walk_exit_is_exact(vote_transmittance):
+    """Stopping once no open pixel has entries left gives the same sets as walking every run to its end."""
+    scene, pixel_xy = opaque_wall(), sample_pixels(24, 20, seed=13)
+    offsets, flatten_ids = tile_lists_everything(scene, 24, 20, 8)
+    options = VoteRenderOptions(vote_transmittance=vote_transmittance)
+    run_start, run_end = vote_render._pixel_runs(pixel_xy, offsets.reshape(-1).long(), 3, 3, 8, len(flatten_ids))
+    geometry = vote_render._geometry_table(scene["means2d"], scene["conics"], scene["opacities"], options)
+    args = (geometry, pixel_xy, run_start, run_end, flatten_ids, 4, 60, vote_render._vote_threshold(options))
+    with HostSyncCounter() as syncs:
+        ids, count = vote_render._tiled_members(*args, options.alpha_max)
+    ids_to_end, count_to_end = vote_render._tiled_members(*args, options.alpha_max, early_exit=False)
+    assert torch.equal(count, count_to_end) and torch.equal(ids, ids_to_end)
+    assert ids.shape == (len(pixel_xy), int(count.max())) and count.min() >= 1
+    assert syncs.count < 15 // 2  # 15 steps to the end of the runs; the exit came well before
+    reference = call(render_votes_reference, scene, pixel_xy, options)
+    assert torch.equal(reference.count, count)
+
+
+# ---------------------------------------------------------------------------
+# Mask levels: one walk, one vote per level
+
+
+LEVELS = 3
+
+LEVEL_OPTIONS = [
+    VoteRenderOptions(),
+    VoteRenderOptions(vote_transmittance=0.0, distortion="squared"),
+    VoteRenderOptions(weighting="alpha_t", blend_space="2d", distortion="l1"),
+    VoteRenderOptions(blend_space="2d", distortion="none"),
+    VoteRenderOptions(weighting="alpha_t", distortion="squared", detach_geometry=False),
+    VoteRenderOptions(distortion="l1", detach_geometry=False, vote_transmittance=0.0),
+]
+
+
+def with_level_votes(scene, levels=LEVELS, seed=11):
+    g = torch.Generator().manual_seed(seed)
+    votes = scene["votes"][:, None, :] + 0.3 * torch.randn(
+        scene["votes"].shape[0], levels, 3, generator=g, dtype=scene["votes"].dtype
+    )
+    return {**scene, "votes": votes}
+
+
+def level_cotangents(render, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    outputs = (render.mean_vote, render.projected_vote, render.distortion)
+    return [torch.randn(t.shape, generator=g, dtype=t.dtype) for t in outputs]
+
+
+@pytest.mark.parametrize("render_fn", ["reference", "tiled"])
+@pytest.mark.parametrize("options", LEVEL_OPTIONS, ids=option_id)
+def test_levels_equal_separate_calls(tiled_scene, render_fn, options):
+    """[N, L, 3] votes give exactly what L calls with [N, 3] votes give, values and gradients."""
+    scene, pixel_xy, tile_size, lists = tiled_scene
+    scene = with_level_votes(scene)
+    if render_fn == "reference":
+        fn, kwargs = render_votes_reference, {}
+    else:
+        offsets, flatten_ids = lists["gsplat"]
+        fn, kwargs = render_votes_tiled, dict(isect_offsets=offsets, flatten_ids=flatten_ids, tile_size=tile_size)
+    names = ["votes"] if options.detach_geometry else ["votes", "means2d", "conics", "opacities", "viewmat", "K"]
+
+    leaves = {k: v.clone().requires_grad_(k in names) for k, v in scene.items()}
+    joint = call(fn, leaves, pixel_xy, options, **kwargs)
+    assert joint.mean_vote.shape == (len(pixel_xy), LEVELS, 3)
+    assert joint.projected_vote.shape == (len(pixel_xy), LEVELS, 2)
+    assert joint.distortion.shape == (len(pixel_xy), LEVELS) and joint.count.shape == (len(pixel_xy),)
+    cotangents = level_cotangents(joint)
+    loss = sum((t * c).sum() for t, c in zip((joint.mean_vote, joint.projected_vote, joint.distortion), cotangents))
+    joint_grads = torch.autograd.grad(loss, [leaves[k] for k in names], allow_unused=True)
+
+    separate_leaves = {k: v.clone().requires_grad_(k in names) for k, v in scene.items()}
+    loss = 0.0
+    for level in range(LEVELS):
+        one = call(fn, {**separate_leaves, "votes": separate_leaves["votes"][:, level]}, pixel_xy, options, **kwargs)
+        assert torch.equal(one.count, joint.count)
+        assert one.mean_vote.shape == (len(pixel_xy), 3)
+        torch.testing.assert_close(one.mean_vote, joint.mean_vote[:, level], rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(one.projected_vote, joint.projected_vote[:, level], rtol=1e-12, atol=1e-10)
+        torch.testing.assert_close(one.distortion, joint.distortion[:, level], rtol=1e-12, atol=1e-12)
+        loss = loss + sum(
+            (t * c[:, level]).sum() for t, c in zip((one.mean_vote, one.projected_vote, one.distortion), cotangents)
+        )
+    separate_grads = torch.autograd.grad(loss, [separate_leaves[k] for k in names], allow_unused=True)
+    for name, a, e in zip(names, joint_grads, separate_grads):
+        assert (a is None) == (e is None), name
+        if a is not None:
+            torch.testing.assert_close(a, e, rtol=1e-10, atol=1e-10, msg=name)
+    assert joint_grads[0].abs().sum() > 0
+    assert joint.count.max() >= 3 and (joint.count == 0).any()
+
+
+def test_levels_tiled_match_reference(tiled_scene):
+    scene, pixel_xy, tile_size, lists = tiled_scene
+    scene = with_level_votes(scene)
+    offsets, flatten_ids = lists["gsplat"]
+    options = VoteRenderOptions(weighting="alpha_t", blend_space="2d", detach_geometry=False)
+    names = ["votes", "means2d", "opacities"]
+    expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, names)
+    actual, actual_grads = grads_of(
+        render_votes_tiled, scene, pixel_xy, options, names, isect_offsets=offsets, flatten_ids=flatten_ids,
+        tile_size=tile_size, chunk=5,
+    )
+    assert_render_close(actual, expected)
+    for name, a, e in zip(names, actual_grads, expected_grads):
+        torch.testing.assert_close(a, e, rtol=1e-9, atol=1e-9, msg=name)
+
+
+@pytest.mark.parametrize("render_fn", ["reference", "tiled"])
+def test_levels_with_nothing_to_vote(small_scene, render_fn):
+    """Level-shaped zeros, still in the graph, for an empty pixel set and for pixels outside the lists."""
+    scene, _ = small_scene
+    scene = with_level_votes(scene, levels=2)
+    votes = scene["votes"].clone().requires_grad_()
+    offsets, ids = tile_lists_everything(scene, 24, 20, 8)
+    outside = torch.tensor([[-3.5, 2.5], [30.5, 2.5]], dtype=torch.float64)
+    for pixel_xy in (torch.zeros(0, 2, dtype=torch.float64), outside):
+        if render_fn == "reference" and len(pixel_xy):
+            continue  # the dense reference has no tile grid to fall outside of
+        if render_fn == "reference":
+            out = call(render_votes_reference, {**scene, "votes": votes}, pixel_xy, None)
+        else:
+            out = call(
+                render_votes_tiled, {**scene, "votes": votes}, pixel_xy, None, isect_offsets=offsets,
+                flatten_ids=ids, tile_size=8,
+            )
+        p = len(pixel_xy)
+        assert out.mean_vote.shape == (p, 2, 3) and out.projected_vote.shape == (p, 2, 2)
+        assert out.distortion.shape == (p, 2) and out.count.shape == (p,) and not out.count.any()
+        losses = vote_losses(out, torch.zeros(p, 2, 2, dtype=torch.float64), torch.ones(p, 2, dtype=torch.bool))
+        for value in losses.values():
+            assert value.shape == (2,) and not value.any() and value.requires_grad
+        votes.grad = None
+        (losses["vote"].sum() + losses["distortion"].sum()).backward()
+        assert votes.grad is not None and not votes.grad.any()
+
+
+# ---------------------------------------------------------------------------
+# Host synchronisations (each one stalls the training step until the GPU catches up)
+
+
+SYNCING_CALLS = {"tolist", "item", "__bool__", "__int__", "__float__", "__index__", "cpu", "numpy"}
+DATA_DEPENDENT_SHAPES = {"nonzero", "argwhere", "masked_select", "unique", "unique_consecutive"}
+
+
+class HostSyncCounter(TorchFunctionMode):
+    """Counts the torch calls made from Python that read device values on the host: item(), bool(),
+    int(), tolist(), nonzero-like calls, boolean-mask indexing and repeat_interleave without
+    output_size (data-dependent shapes). On CUDA each one waits for the GPU to catch up.
+    (A TorchDispatchMode would also see autograd's C++ calls, but its first use imports dynamo: ~5 s.)"""
+
+    def __init__(self):
+        super().__init__()
+        self.what = []
+
+    @property
+    def count(self):
+        return len(self.what)
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = getattr(func, "__name__", "")
+        if name in ("__getitem__", "__setitem__"):
+            index = args[1] if isinstance(args[1], tuple) else (args[1],)
+            if any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in index):
+                self.what.append(f"{name}[bool]")
+        elif name == "repeat_interleave" and kwargs.get("output_size") is None:
+            self.what.append(name)
+        elif name in SYNCING_CALLS or name in DATA_DEPENDENT_SHAPES:
+            self.what.append(name)
+        return func(*args, **kwargs)
+
+
+def test_host_syncs_per_training_step(tiled_scene):
+    """All levels' vote pass, forward and backward, with a one-step walk (the default width on a GPU):
+    three host reads, however many levels."""
+    scene, pixel_xy, tile_size, lists = tiled_scene
+    offsets, flatten_ids = lists["gsplat"]
+    for levels in (1, 4):
+        leveled = with_level_votes(scene, levels=levels) if levels > 1 else scene
+        votes = leveled["votes"].clone().requires_grad_()
+        target = pixel_xy[:, None, :].expand(-1, levels, -1) + 3.0
+        valid = torch.ones(len(pixel_xy), levels, dtype=torch.bool)
+        if levels == 1:
+            target, valid = target[:, 0], valid[:, 0]
+        with HostSyncCounter() as syncs:
+            out = call(
+                render_votes_tiled, {**leveled, "votes": votes}, pixel_xy, VoteRenderOptions(),
+                isect_offsets=offsets, flatten_ids=flatten_ids, tile_size=tile_size, chunk=10_000,
+            )
+            losses = vote_losses(out, target, valid)
+            (losses["vote"].sum() + losses["distortion"].sum()).backward()
+        # input checks + walk length; table width; loss input checks
+        assert syncs.count == 3, syncs.what
+        assert votes.grad.abs().sum() > 0
+
+
 # ---------------------------------------------------------------------------
 # The membership rule on hand-made pixels
 
@@ -575,6 +806,52 @@ def test_vote_losses_values():
     losses["vote"].backward()
     assert projected.grad.tolist() == [[-0.5, -0.5], [0.0, 0.5], [0.0, 0.0], [0.0, 0.0]]
     assert vote_losses(render, target, valid, VoteRenderOptions(distortion="none"))["distortion"].item() == 0.0
+
+
+def test_vote_losses_per_level():
+    """[P, L] renders: one loss per level, over that level's valid pixels with votes."""
+    projected = torch.tensor(
+        [[[1.0, 2.0], [0.0, 0.0]], [[5.0, 5.0], [1.0, 1.0]], [[0.0, 0.0], [0.0, 0.0]], [[9.0, 9.0], [4.0, 4.0]]],
+        dtype=torch.float64,
+        requires_grad=True,
+    )
+    render = VoteRender(
+        mean_vote=torch.zeros(4, 2, 3, dtype=torch.float64),
+        projected_vote=projected,
+        count=torch.tensor([2, 1, 0, 3]),
+        distortion=torch.tensor([[0.5, 1.0], [0.0, 2.0], [0.0, 0.0], [7.0, 3.0]], dtype=torch.float64),
+    )
+    nan = float("nan")
+    target = torch.tensor(
+        [[[2.0, 4.0], [nan, nan]], [[5.0, 4.0], [1.0, 3.0]], [[3.0, 3.0], [3.0, 3.0]], [[nan, 0.0], [4.0, 5.0]]],
+        dtype=torch.float64,
+    )
+    valid = torch.tensor([[True, False], [True, True], [True, True], [False, True]])
+    losses = vote_losses(render, target, valid)
+    # level 0 uses pixels 0 and 1, level 1 pixels 1 and 3 (pixel 2 has an empty voting set)
+    assert losses["vote"].tolist() == pytest.approx([(3.0 + 1.0) / 2, (2.0 + 1.0) / 2])
+    assert losses["distortion"].tolist() == pytest.approx([0.25, 2.5])
+    losses["vote"].sum().backward()
+    assert projected.grad.tolist() == [
+        [[-0.5, -0.5], [0.0, 0.0]],
+        [[0.0, 0.5], [0.0, -0.5]],
+        [[0.0, 0.0], [0.0, 0.0]],
+        [[0.0, 0.0], [0.0, -0.5]],
+    ]
+    for level in range(2):
+        one = vote_losses(
+            VoteRender(render.mean_vote[:, level], projected[:, level], render.count, render.distortion[:, level]),
+            target[:, level],
+            valid[:, level],
+        )
+        assert one["vote"].shape == () and one["vote"].item() == pytest.approx(losses["vote"][level].item())
+        assert one["distortion"].item() == pytest.approx(losses["distortion"][level].item())
+    none = vote_losses(render, target, valid, VoteRenderOptions(distortion="none"))["distortion"]
+    assert none.shape == (2,) and not none.any()
+    with pytest.raises(ValueError, match="target_xy must have shape"):
+        vote_losses(render, target[:, 0], valid)
+    with pytest.raises(ValueError, match="valid must be a bool tensor of shape"):
+        vote_losses(render, target, valid[:, 0])
 
 
 def assert_zero_connected_losses(losses, leaf):
@@ -675,6 +952,10 @@ def test_bad_inputs_are_rejected(small_scene):
         VoteRenderOptions(vote_transmittance=1.0)
     with pytest.raises(ValueError, match="means2d must have shape"):
         call(render_votes_reference, {**scene, "means2d": scene["means2d"][:-1]}, pixel_xy, None)
+    with pytest.raises(ValueError, match="votes must have shape"):
+        call(render_votes_reference, {**scene, "votes": scene["votes"][:, None, :2]}, pixel_xy, None)
+    with pytest.raises(ValueError, match="at least one level"):
+        call(render_votes_reference, {**scene, "votes": scene["votes"][:, None][:, :0]}, pixel_xy, None)
     offsets, ids = tile_lists_everything(scene, 24, 20, 8)
     with pytest.raises(ValueError, match="flatten_ids must index"):
         call(render_votes_tiled, scene, pixel_xy, None, isect_offsets=offsets, flatten_ids=ids + 60, tile_size=8)

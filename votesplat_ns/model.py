@@ -23,6 +23,7 @@ from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig,
 
 from votesplat_ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
 from votesplat_ns.rasterizer import install_in_splatfacto, project_for_votes
+from votesplat_ns.viewer import VoteSplatViewerState
 from votesplat_ns.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
@@ -57,13 +58,19 @@ def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
 
 def _pixels_and_targets(
     pixel_index: torch.Tensor, width: int, flat_labels: torch.Tensor, centroids: torch.Tensor, scale: float
-) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Pixel centres and their 2D votes in the continuous frame, scaled to the render resolution."""
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pixel centres [P,2], their 2D votes per level [P,L,2] (continuous frame, scaled to the
+    render resolution) and whether each level carries a vote there [P,L].
+
+    flat_labels [L, H*W] mask labels (0 = no vote), centroids [L, K+1, 2] pixel-index centroids.
+    """
     rows = torch.div(pixel_index, width, rounding_mode="floor")
     cols = pixel_index - rows * width
     pixel_xy = (torch.stack([cols, rows], dim=-1).float() + 0.5) * scale
-    target_xy = (centroids[flat_labels[pixel_index].long()] + 0.5) * scale
-    return pixel_xy, target_xy
+    pixel_labels = flat_labels[:, pixel_index].long()  # [L, P]
+    level_index = torch.arange(flat_labels.shape[0], device=pixel_index.device)[:, None]
+    target_xy = (centroids[level_index, pixel_labels] + 0.5) * scale  # [L, P, 2]
+    return pixel_xy, target_xy.transpose(0, 1), (pixel_labels > 0).transpose(0, 1)
 
 
 @dataclass
@@ -79,8 +86,9 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """lambda_d: weight of the unweighted pairwise depth distortion of the votes (scene units)."""
     vote_start_step: int = 500
     """Step at which the vote losses start (geometry settles first)."""
-    vote_pixels_per_level: int = 4096
-    """Pixels carrying a vote sampled per level and step; the loss is a mean over masked pixels, so a sample gives the same expected gradient."""
+    vote_pixels_per_step: int = 4096
+    """Pixels sampled per step among those carrying a vote at any level; every level is evaluated on them in
+    one walk. The loss is a mean over masked pixels, so a sample gives the same expected gradient."""
     vote_transmittance: float = 0.01
     """Voting transmittance threshold: a Gaussian votes while the transmittance in front of it stays above this."""
     vote_weighting: Literal["uniform", "alpha_t"] = "uniform"
@@ -95,6 +103,10 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Add instances to an already trained splatfacto (or votesplat) scene: take its Gaussians from this
     checkpoint (a .ckpt file, or a run folder holding nerfstudio_models/), freeze geometry and appearance, and
     train only the vote offsets. No colour pass and no densification run: this is also the fast vote-only path."""
+    clip_model_name: str = "ViT-B-16"
+    """open_clip model name used by the viewer's text query box."""
+    clip_checkpoint: Optional[Path] = None
+    """open_clip weights file for the viewer's text query box (never downloaded); unset disables the box."""
 
     def vote_render_options(self) -> VoteRenderOptions:
         return VoteRenderOptions(
@@ -130,6 +142,7 @@ class VoteSplatModel(SplatfactoModel):
         # that densification copies a parent's support to its children and pruning drops it.
         self.gauss_params["vote_support"] = Parameter(torch.zeros(num_points, num_levels, device=device))
         self.vote_options = self.config.vote_render_options()
+        self.viewer_state = VoteSplatViewerState(self)
 
     @property
     def vote_only(self) -> bool:
@@ -187,7 +200,10 @@ class VoteSplatModel(SplatfactoModel):
         if self.training and self.vote_only:
             return self._project_for_votes(camera)
         with cuda_calls_stay_on_cpu():
-            return super().get_outputs(camera)
+            outputs = super().get_outputs(camera)
+        if not self.training:  # ns-viewer's overlay, votes picture and selection (no-op for other callers)
+            outputs.update(self.viewer_state.extra_outputs(camera, outputs))
+        return outputs
 
     def _project_for_votes(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
         """Vote-only training step: project the frozen Gaussians, no colour pass."""
@@ -242,25 +258,20 @@ class VoteSplatModel(SplatfactoModel):
         # splatfacto renders at 1/d of the image resolution early in training; positions in the
         # continuous pixel frame (pixel centre = index + 0.5) scale by exactly 1/d.
         scale = 1.0 / self._get_downscale_factor()
-        width = labels.shape[-1]
-        # zero but connected to the offsets, so a view without masks still gives a valid backward
-        total_vote = self.gauss_params["vote_offsets"].sum() * 0.0
-        total_distortion = total_vote
-        for level in range(labels.shape[0]):
-            flat_labels = labels[level].reshape(-1)
-            carries_vote = flat_labels > 0
-            if not bool(carries_vote.any()):  # a view with no masks: no vote supervision here
-                continue
-            pixel_index = torch.multinomial(carries_vote.float(), self.config.vote_pixels_per_level, replacement=True)
-            pixel_xy, target_xy = _pixels_and_targets(pixel_index, width, flat_labels, centroids[level], scale)
-            render = self.render_level_votes(level, pixel_xy)
-            losses = vote_losses(render, target_xy, torch.ones_like(pixel_index, dtype=torch.bool), self.vote_options)
-            total_vote = total_vote + losses["vote"]
-            total_distortion = total_distortion + losses["distortion"]
-        return total_vote, total_distortion
+        flat_labels = labels.reshape(labels.shape[0], -1)
+        carries_vote = (flat_labels > 0).any(dim=0)
+        if not bool(carries_vote.any()):  # a view with no masks: no vote supervision here
+            # zero but connected to the offsets, so the backward stays valid
+            zero = self.gauss_params["vote_offsets"].sum() * 0.0
+            return zero, zero
+        # one pixel sample and one walk for all levels: membership depends only on geometry
+        pixel_index = torch.multinomial(carries_vote.float(), self.config.vote_pixels_per_step, replacement=True)
+        pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, scale)
+        losses = vote_losses(self.render_votes(pixel_xy), target_xy, valid, self.vote_options)
+        return losses["vote"].sum(), losses["distortion"].sum()
 
-    def render_level_votes(self, level: int, pixel_xy: torch.Tensor) -> VoteRender:
-        """The vote pass for one level at ``pixel_xy``, on the projection of the last get_outputs call."""
+    def render_votes(self, pixel_xy: torch.Tensor) -> VoteRender:
+        """The vote pass of every level at ``pixel_xy`` [P,2], on the projection of the last get_outputs call."""
         info = self.info
         means = self.gauss_params["means"]
         if not self.config.votes_move_geometry:
@@ -270,7 +281,7 @@ class VoteSplatModel(SplatfactoModel):
             info["conics"][0],
             info["opacities"][0],
             info["depths"][0],
-            means + self.gauss_params["vote_offsets"][:, level],
+            means[:, None, :] + self.gauss_params["vote_offsets"],
             info["viewmats"][0],
             info["Ks"][0],
             pixel_xy,
@@ -289,15 +300,13 @@ class VoteSplatModel(SplatfactoModel):
         """
         labels, centroids = self._vote_maps(batch)
         self.get_outputs(camera.to(self.device))
-        errors = []
-        for level in range(labels.shape[0]):
-            flat_labels = labels[level].reshape(-1)
-            pixel_index = torch.nonzero(flat_labels > 0).squeeze(-1)
-            pixel_xy, target_xy = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids[level], 1.0)
-            render = self.render_level_votes(level, pixel_xy)
-            voted = render.count > 0
-            error = (render.projected_vote[voted] - target_xy[voted]).abs().sum(-1)
-            errors.append(error.mean() if voted.any() else error.new_tensor(float("nan")))
+        flat_labels = labels.reshape(labels.shape[0], -1)
+        pixel_index = torch.nonzero((flat_labels > 0).any(dim=0)).squeeze(-1)
+        pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, 1.0)
+        render = self.render_votes(pixel_xy)
+        used = valid & (render.count > 0)[:, None]  # [P, L]
+        error = (render.projected_vote - target_xy).abs().sum(-1)  # [P, L]
+        errors = [error[used[:, level], level].mean() for level in range(labels.shape[0])]  # NaN when empty
         return torch.stack(errors)
 
     def _vote_maps(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:

@@ -24,15 +24,24 @@ Membership rule for M (decided by the project lead):
     count as having reached it, so that 1 - 0.99, which equals the default
     threshold in exact arithmetic, ends M in float32 and float64 alike.
 
+Mask levels: VoteSplat trains one offset per Gaussian per SAM mask level, so
+``votes`` may be [N, L, 3] (one vote per level) instead of [N, 3]. The voting
+set depends on the geometry only, never on the votes, so it is found once and
+every level's votes are blended over it: the outputs gain a level axis after
+the pixel axis, ``count`` stays [P], and one call costs little more than a
+single level.
+
 Everything here is pure torch (no nerfstudio import) and runs on any device.
 Two implementations share the alpha, walk and reduction helpers:
 
 * ``render_votes_reference``: dense [pixels, Gaussians], readable; the CPU
   path for small scenes and the oracle for tests.
 * ``render_votes_tiled``: the training path. Walks gsplat's per-tile
-  depth-sorted intersection lists in fixed-size chunks without autograd to
-  find each pixel's voting set, then blends the members' votes with
-  autograd on a compact [pixels, max |M|] table.
+  depth-sorted intersection lists in wide steps without autograd to find
+  each pixel's voting set, then blends the members' votes with autograd on a
+  compact [pixels, max |M|] table. A training step is bound by kernel
+  launches and host synchronisations rather than arithmetic, so this path
+  reads device values on the host as rarely as it can (see its docstring).
 
 Conventions (shared by the whole project): OpenCV world-to-camera ``viewmat``
 [4,4], intrinsics ``K`` [3,3], continuous pixel frame in which the centre of
@@ -52,6 +61,16 @@ ALPHA_MIN = 1.0 / 255.0
 COLOUR_STOP_T = 1e-4
 # Relative slack on the voting threshold; see the module docstring.
 VOTE_THRESHOLD_RTOL = 1e-5
+# Width of a step of the tiled walk when ``chunk`` is None: about this many
+# pixel-Gaussian pairs per step, at least AUTO_MIN_CHUNK Gaussians per pixel.
+# On a GPU a step costs ~40 kernel launches and a host read; 2M pairs of
+# unfused elementwise work is an estimate of what an H100 gets through in that
+# launch time (not measured), so most walks take one step. On CPU there is
+# nothing to amortise and narrow blocks stay in cache (measured, 100k
+# Gaussians, 4096 pixels, one thread: 280 ms fwd+bwd at 32 wide, 330 at 512).
+AUTO_PAIRS_PER_STEP = 1 << 21
+AUTO_PAIRS_PER_STEP_CPU = 1 << 17
+AUTO_MIN_CHUNK = 32
 
 _WEIGHTINGS = ("uniform", "alpha_t")
 _BLEND_SPACES = ("3d", "2d")
@@ -120,16 +139,16 @@ class VoteRenderOptions:
 
 
 class VoteRender(NamedTuple):
-    """Per-pixel result of vote splatting for P pixels.
+    """Per-pixel result of vote splatting for P pixels (and L levels for [N, L, 3] votes).
 
     Pixels with an empty voting set (count == 0) hold zeros in every field;
     mask them with ``count > 0`` (``vote_losses`` does).
     """
 
-    mean_vote: Tensor  # [P, 3] blended 3D vote, world space
-    projected_vote: Tensor  # [P, 2] in the continuous pixel frame
-    count: Tensor  # [P] int64, |M|
-    distortion: Tensor  # [P] pairwise vote-depth spread over M (per options.distortion)
+    mean_vote: Tensor  # [P, 3] or [P, L, 3]: blended 3D vote, world space
+    projected_vote: Tensor  # [P, 2] or [P, L, 2]: in the continuous pixel frame
+    count: Tensor  # [P] int64, |M| (shared by the levels)
+    distortion: Tensor  # [P] or [P, L]: pairwise vote-depth spread over M (per options.distortion)
 
 
 def project_to_pixels(points: Tensor, viewmat: Tensor, K: Tensor, near_plane: float = 0.01) -> Tensor:
@@ -161,7 +180,9 @@ def render_votes_reference(
             projected to one camera, as gsplat computes them. All N are used,
             so they must be finite (drop culled Gaussians first). Ties in
             depth keep the input order.
-        votes [N,3]: world-space votes p_i + dp_i.
+        votes [N,3] or [N,L,3]: world-space votes p_i + dp_i, optionally one
+            per mask level; with a level axis every output but ``count`` gets
+            one too.
         viewmat [4,4], K [3,3]: the camera.
         pixel_xy [P,2]: continuous positions to evaluate (pixel centre of
             column x is x + 0.5).
@@ -170,25 +191,27 @@ def render_votes_reference(
             pixel-Gaussian pairs per block.
     """
     options = options or VoteRenderOptions()
-    n, p = _validate_inputs(means2d, conics, opacities, depths, votes, viewmat, K, pixel_xy)
+    n, p, levels = _validate_inputs(means2d, conics, opacities, depths, votes, viewmat, K, pixel_xy)
+    finite = _finiteness_checks(votes, pixel_xy)
     for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities), ("depths", depths)):
-        if not bool(torch.isfinite(t).all()):
-            raise ValueError(
-                f"{name} contains NaN or inf; the dense reference uses every Gaussian, so drop culled ones "
-                f"(radii == 0) before calling it"
-            )
+        finite[
+            f"{name} contains NaN or inf; the dense reference uses every Gaussian, so drop culled ones "
+            f"(radii == 0) before calling it"
+        ] = _all_finite(t)
+    _raise_unless(_read_host(finite))
     if n == 0 or p == 0:
         return _empty_render(p, votes, viewmat, K, options)
     if pixel_chunk is None:
-        pixel_chunk = max(1, (1 << 22) // n)
+        pixel_chunk = max(1, (1 << 22) // (n * levels))
     if pixel_chunk < 1:
         raise ValueError(f"pixel_chunk must be >= 1, got {pixel_chunk}")
 
     order = torch.argsort(depths.detach(), stable=True)
     geometry = _geometry_table(means2d, conics, opacities, options)[order]
     viewmat_, K_ = _camera(viewmat, K, options)
-    vote_values, vote_z = _vote_table(votes, viewmat_, K_, options)
-    vote_values, vote_z = vote_values[order], vote_z[order]
+    vote_table = _vote_table(votes.reshape(n, levels, 3), viewmat_, K_, options)[order]
+    blend_values = vote_table[..., :-1].reshape(n, -1)
+    vote_z = vote_table[..., -1]
     threshold = _vote_threshold(options)
 
     parts = []
@@ -197,23 +220,16 @@ def render_votes_reference(
         rows = geometry.unsqueeze(0)
         alpha, visible = _alpha(rows[..., 0:2], rows[..., 2:5], rows[..., 5], xy[:, None, :], options.alpha_max)
         t_front = torch.ones(xy.shape[0], dtype=alpha.dtype, device=alpha.device)
-        member, t_before, _, _ = _walk(alpha, visible, t_front, threshold)
+        member, t_before, _ = _walk(alpha, visible, t_front, threshold)
         weights = _weights(member, alpha, t_before, options)
         count = member.sum(dim=1)
-        weight_sum = weights.sum(dim=1)
-        value_sum = weights @ vote_values
-        z = vote_z.unsqueeze(0).expand_as(alpha)
-        if options.distortion == "l1":
-            distortion = _pairwise_l1(z, member)
-        elif options.distortion == "squared":
-            n_m, _, m2 = _chunk_depth_stats(z, member)
-            distortion = n_m * m2
-        else:
-            distortion = value_sum[:, 0] * 0.0
-        parts.append((count, weight_sum, value_sum, distortion))
+        value_sum = (weights @ blend_values).view(xy.shape[0], levels, -1)
+        z = vote_z.unsqueeze(0).expand(xy.shape[0], n, levels)
+        distortion = _distortion(z, member, count, value_sum, options)
+        parts.append((count, weights.sum(dim=1), value_sum, distortion))
 
     count, weight_sum, value_sum, distortion = (torch.cat(x, dim=0) for x in zip(*parts))
-    return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options)
+    return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options, votes.ndim == 2)
 
 
 def render_votes_tiled(
@@ -229,16 +245,16 @@ def render_votes_tiled(
     flatten_ids: Tensor,
     tile_size: int,
     options: Optional[VoteRenderOptions] = None,
-    chunk: int = 128,
+    chunk: Optional[int] = None,
 ) -> VoteRender:
     """Vote splatting over gsplat 1.4's tile intersection lists (the fast path).
 
     Args:
         means2d, conics, opacities, depths, votes, viewmat, K, pixel_xy: as in
-            ``render_votes_reference``. ``depths`` is only shape-checked: the
-            order comes from the lists. Entries of Gaussians absent from the
-            lists (culled, radii == 0) are never read, so they may hold
-            anything.
+            ``render_votes_reference`` (``votes`` [N,3] or [N,L,3]).
+            ``depths`` is only shape-checked: the order comes from the lists.
+            Entries of Gaussians absent from the lists (culled, radii == 0)
+            are never read, so they may hold anything.
         isect_offsets [tile_height, tile_width] (or [1, th, tw]) int: start of
             each tile's run in ``flatten_ids`` (gsplat ``isect_offset_encode``
             for ONE camera); the last tile's run ends at len(flatten_ids).
@@ -246,7 +262,11 @@ def render_votes_tiled(
             (gsplat ``isect_tiles`` with C = 1, packed = False, so ids are in
             [0, N)).
         tile_size: pixels per tile side of the grid the lists were built for.
-        chunk: Gaussians gathered per pixel per step of the walk.
+        chunk: Gaussians gathered per pixel per step of the walk. None (the
+            default): about ``AUTO_PAIRS_PER_STEP`` pixel-Gaussian pairs per
+            step (``AUTO_PAIRS_PER_STEP_CPU`` on CPU), at least
+            ``AUTO_MIN_CHUNK``. Never wider than the longest run among the
+            pixels' tiles.
 
     A pixel at continuous position (x, y) reads tile (floor(x / tile_size),
     floor(y / tile_size)); positions outside the tile grid get count 0.
@@ -254,130 +274,154 @@ def render_votes_tiled(
     Design: two passes.
     1. Membership, without autograd: all pixels advance through their tile's
        run together, one gathered [P, chunk] block per step, carrying the
-       transmittance; each step's members are scattered into a [P, max |M|]
+       transmittance; each step's members are scattered into a [P, capacity]
        table of Gaussian ids (slot = |M| so far + rank within the step). A
-       pixel is finished once its transmittance is at or below the voting
-       threshold, the colour walk has stopped or its run is exhausted; the
-       walk ends when every pixel is finished (one host sync per step).
-    2. Blending, with autograd: gather the members' votes [P, max |M|, 3]
-       and reduce them; the pairwise L1 depth term is exact via the sorted
-       identity sum_k z_(k) (2k - m - 1). The members of a pixel are exactly
-       the visible Gaussians of its walk up to the last member (transmittance
-       only falls, so none is skipped before it), so the transmittance in
-       front of a member is the product of (1 - alpha) over the earlier
-       members: the alpha_t weights are recomputed there, differentiably
-       when ``detach_geometry`` is False.
+       pixel can gain members only while the transmittance in front of it is
+       above both the voting threshold and the colour stop and its run has
+       entries left, so the walk is exact once the longest run among the
+       still-open pixels has been walked.
+    2. Blending, with autograd: gather the members' votes (all levels at
+       once) [P, max |M|, L, ...] and reduce them; the pairwise L1 depth term
+       is exact via the sorted identity sum_k z_(k) (2k - m - 1). The members
+       of a pixel are exactly the visible Gaussians of its walk up to the
+       last member (transmittance only falls, so none is skipped before it),
+       so the transmittance in front of a member is the product of
+       (1 - alpha) over the earlier members: the alpha_t weights are
+       recomputed there, differentiably when ``detach_geometry`` is False.
     Autograd thus sees a handful of ops on [P, max |M|] however long the
     runs are. Values and gradients match ``render_votes_reference`` whenever
     each tile's run holds every Gaussian whose alpha can reach 1/255 in it.
+
+    Host synchronisations: one read for the input checks and the longest run
+    among the pixels' tiles (which fixes the number of steps), one read per
+    step but the last for the termination test (with the default ``chunk``
+    on a GPU a walk usually takes one step), and one for the table width
+    max |M| (none when a termination read already gave it).
+    Unused table slots hold real Gaussian ids from the pixel's own run with
+    zero weight, so the gathers have fixed shapes (no nonzero) and their
+    backward (an atomic index_add) does not pile the padding onto one row.
     """
     options = options or VoteRenderOptions()
-    n, p = _validate_inputs(means2d, conics, opacities, depths, votes, viewmat, K, pixel_xy)
-    offsets, tiles_high, tiles_wide = _validate_tiles(isect_offsets, flatten_ids, tile_size, chunk, n, votes.device)
-    if n == 0 or p == 0:
+    n, p, levels = _validate_inputs(means2d, conics, opacities, depths, votes, viewmat, K, pixel_xy)
+    offsets, tiles_high, tiles_wide = _validate_tiles(isect_offsets, flatten_ids, tile_size, chunk, votes.device)
+    n_isects = flatten_ids.numel()
+    run_start, run_end = _pixel_runs(pixel_xy.detach(), offsets, tiles_high, tiles_wide, tile_size, n_isects)
+
+    checks = _finiteness_checks(votes, pixel_xy)
+    values = {}
+    if n_isects > 0:
+        values["ids_low"], values["ids_high"] = torch.aminmax(flatten_ids)
+    if offsets.numel() > 0:
+        values["offsets_low"], values["offsets_high"] = torch.aminmax(offsets)
+    if p > 0:
+        values["longest"] = (run_end - run_start).max()
+    host = _read_host({**checks, **values})
+    _raise_unless({message: host[message] for message in checks})
+    if n_isects > 0 and (host["ids_low"] < 0 or host["ids_high"] >= n):
+        raise ValueError(
+            f"flatten_ids must index the N = {n} Gaussians of one camera, got ids in "
+            f"[{host['ids_low']}, {host['ids_high']}]; build the lists with C = 1 and packed = False"
+        )
+    if offsets.numel() > 0 and (host["offsets_low"] < 0 or host["offsets_high"] > n_isects):
+        raise ValueError("isect_offsets point outside flatten_ids; pass the offsets and ids of the same camera")
+    longest = host.get("longest", 0)
+    if n == 0 or longest <= 0:
         return _empty_render(p, votes, viewmat, K, options)
 
+    if chunk is None:
+        pairs = AUTO_PAIRS_PER_STEP_CPU if votes.device.type == "cpu" else AUTO_PAIRS_PER_STEP
+        chunk = max(AUTO_MIN_CHUNK, pairs // p)
     geometry = _geometry_table(means2d, conics, opacities, options)
     threshold = _vote_threshold(options)
     with torch.no_grad():
         member_ids, count = _tiled_members(
-            geometry.detach(), pixel_xy.detach(), offsets, tiles_high, tiles_wide, flatten_ids, tile_size, chunk,
+            geometry.detach(), pixel_xy.detach(), run_start, run_end, flatten_ids, min(chunk, longest), longest,
             threshold, options.alpha_max,
         )
-    if member_ids.shape[1] == 0:
+    capacity = member_ids.shape[1]
+    if capacity == 0:
         return _empty_render(p, votes, viewmat, K, options)
     viewmat_, K_ = _camera(viewmat, K, options)
-    filled = torch.arange(member_ids.shape[1], device=votes.device)[None, :] < count[:, None]
-    slots = torch.nonzero(filled, as_tuple=True)
+    vote_table = _vote_table(votes.reshape(n, levels, 3), viewmat_, K_, options)
+    flat_ids = member_ids.reshape(-1)
+    member_votes = vote_table.index_select(0, flat_ids).view(p, capacity, levels, -1)
+    filled = torch.arange(capacity, device=count.device) < count[:, None]
     if options.weighting == "alpha_t":
-        rows = _gather_padded(geometry, member_ids, slots)
+        rows = geometry.index_select(0, flat_ids).view(p, capacity, -1)
         alpha, _ = _alpha(rows[..., 0:2], rows[..., 2:5], rows[..., 5], pixel_xy[:, None, :], options.alpha_max)
-        alpha = torch.where(filled, alpha, torch.zeros_like(alpha))
-        t_before, _ = _transmittance(alpha, torch.ones(p, dtype=alpha.dtype, device=alpha.device))
-        weights = _weights(filled, alpha, t_before, options)
+        alpha = torch.where(filled, alpha, 0.0)
+        weights = alpha * _transmittance_in_front(alpha)
+        weight_sum = weights.sum(dim=1)
     else:
         weights = filled.to(votes.dtype)
-    member_votes = _gather_padded(votes, member_ids, slots)
-    cam = _to_camera(member_votes, viewmat_)
-    if options.blend_space == "2d":
-        values = torch.cat([member_votes, _camera_to_pixels(cam, K_, options.vote_near_plane)], dim=2)
-    else:
-        values = member_votes
-    weight_sum = weights.sum(dim=1)
-    value_sum = torch.einsum("pm,pmd->pd", weights, values)
-    z = cam[..., 2]
-    if options.distortion == "l1":
-        distortion = _pairwise_l1(z, filled)
-    elif options.distortion == "squared":
-        n_m, _, m2 = _chunk_depth_stats(z, filled)
-        distortion = n_m * m2
-    else:
-        distortion = value_sum[:, 0] * 0.0
-    return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options)
-
-
-def _gather_padded(table: Tensor, member_ids: Tensor, slots: Tuple[Tensor, Tensor]) -> Tensor:
-    """table[member_ids] for the filled slots, zeros elsewhere.
-
-    Padding is never gathered: with plain advanced indexing every empty slot
-    would read row 0, and CUDA's deterministic index backward serialises
-    duplicate indices (measured: 114 ms of a 125 ms step at 16k pixels).
-    index_select's backward is an atomic index_add over the real members only.
-    """
-    rows = table.index_select(0, member_ids[slots])
-    padded = rows.new_zeros(member_ids.shape + table.shape[1:])
-    return padded.index_put(slots, rows)
+        weight_sum = count.to(votes.dtype)
+    value_sum = (weights[:, :, None, None] * member_votes[..., :-1]).sum(dim=1)
+    distortion = _distortion(member_votes[..., -1], filled, count, value_sum, options)
+    return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options, votes.ndim == 2)
 
 
 def _tiled_members(
     geometry: Tensor,
     pixel_xy: Tensor,
-    offsets: Tensor,
-    tiles_high: int,
-    tiles_wide: int,
+    run_start: Tensor,
+    run_end: Tensor,
     flatten_ids: Tensor,
-    tile_size: int,
-    chunk: int,
+    width: int,
+    longest: int,
     threshold: float,
     alpha_max: float,
+    early_exit: bool = True,
 ) -> Tuple[Tensor, Tensor]:
-    """Voting sets from the tile lists: ([P, max |M|] Gaussian ids, zero-padded; [P] |M|)."""
-    p, device = pixel_xy.shape[0], pixel_xy.device
-    n_isects = flatten_ids.numel()
-    tile_xy = torch.floor(pixel_xy / tile_size).long()
-    in_grid = (tile_xy[:, 0] >= 0) & (tile_xy[:, 0] < tiles_wide) & (tile_xy[:, 1] >= 0) & (tile_xy[:, 1] < tiles_high)
-    tile_id = torch.where(in_grid, tile_xy[:, 1] * tiles_wide + tile_xy[:, 0], torch.zeros_like(tile_xy[:, 0]))
-    run_start = offsets[tile_id]
-    run_end = torch.where(in_grid, torch.cat([offsets[1:], offsets.new_tensor([n_isects])])[tile_id], run_start)
+    """Voting sets from the tile lists: ([P, max |M|] Gaussian ids, [P] |M|).
 
+    Walks ``width`` entries of every pixel's run per step, at most
+    ceil(longest / width) steps. With ``early_exit`` the walk stops as soon as
+    no open pixel has entries left (one host read per step but the last);
+    without, it always takes every step (no read until the end), which gives
+    the same result. Slots past a pixel's |M| hold ids from its own run.
+    """
+    p, device = pixel_xy.shape[0], pixel_xy.device
+    last_entry = flatten_ids.numel() - 1
+    steps = -(-longest // width)
+    # Below either transmittance no later Gaussian can join M (T only falls).
+    open_above = max(threshold, COLOUR_STOP_T)
+    run_length = run_end - run_start
+    first_position = run_start[:, None] + torch.arange(width, device=device)
     count = torch.zeros(p, dtype=torch.long, device=device)
     t_front = torch.ones(p, dtype=geometry.dtype, device=device)
-    finished = run_end <= run_start
-    # Column `capacity` of the id table is a sink for the scatter of non-members.
-    capacity = 0
-    table = torch.zeros(p, 1, dtype=torch.long, device=device)
-    steps = torch.arange(chunk, device=device)
-    longest, all_finished = torch.stack([(run_end - run_start).max(), finished.all().long()]).tolist()
-    step = 0
-    while not all_finished and step * chunk < longest:
-        position = run_start[:, None] + step * chunk + steps
-        in_run = position < run_end[:, None]
-        ids = flatten_ids[position.clamp(max=n_isects - 1)].long()
-        rows = geometry[ids]
+    capacity = width
+    table = _run_entries(run_start, flatten_ids, 0, capacity + 1)  # the last column takes non-members
+    bound = 0  # an upper bound on max |M|, exact after each read
+    read = False
+    for step in range(steps):
+        bound += width
+        if bound > capacity:
+            grown = max(bound, 2 * capacity)
+            table = torch.cat([table[:, :capacity], _run_entries(run_start, flatten_ids, capacity, grown + 1)], dim=1)
+            capacity = grown
+        position = first_position + step * width
+        ids = flatten_ids[position.clamp(max=last_entry)]
+        rows = geometry.index_select(0, ids.view(-1)).view(p, width, -1)
         alpha, visible = _alpha(rows[..., 0:2], rows[..., 2:5], rows[..., 5], pixel_xy[:, None, :], alpha_max)
-        visible = visible & in_run & ~finished[:, None]
-        member, _, stopped, t_front = _walk(alpha, visible, t_front, threshold)
-        slot = count[:, None] + torch.cumsum(member.long(), dim=1) - 1
-        count = count + member.sum(dim=1)
-        finished = finished | stopped | (t_front <= threshold) | ~in_run[:, -1]
-        needed, all_finished = torch.stack([count.max(), finished.all().long()]).tolist()
-        if needed > capacity:
-            grown = torch.zeros(p, needed + 1, dtype=torch.long, device=device)
-            grown[:, :capacity] = table[:, :capacity]
-            table, capacity = grown, needed
-        table.scatter_(1, torch.where(member, slot, torch.full_like(slot, capacity)), ids)
-        step += 1
-    return table[:, :capacity], count
+        member, _, t_front = _walk(alpha, visible & (position < run_end[:, None]), t_front, threshold)
+        rank = torch.cumsum(member, dim=1)
+        table.scatter_(1, torch.where(member, rank + (count - 1)[:, None], capacity), ids)
+        count = count + rank[:, -1]
+        read = early_exit and step + 1 < steps
+        if read:
+            open_run = torch.where(t_front > open_above, run_length, 0).max()
+            bound, open_longest = torch.stack([count.max(), open_run]).tolist()
+            if open_longest <= (step + 1) * width:
+                break
+    if not read:
+        bound = int(count.max())
+    return table[:, :bound], count
+
+
+def _run_entries(run_start: Tensor, flatten_ids: Tensor, begin: int, end: int) -> Tensor:
+    """Ids at positions begin..end-1 of each pixel's run (clamped to the list): valid filler for unused slots."""
+    position = run_start[:, None] + torch.arange(begin, end, device=run_start.device)
+    return flatten_ids[position.clamp(max=max(flatten_ids.numel() - 1, 0))]
 
 
 def vote_losses(
@@ -389,41 +433,62 @@ def vote_losses(
     """Vote loss (paper Eq. 10) and depth regulariser (Eq. 12), both unweighted.
 
     Args:
-        render: output of a ``render_votes_*`` call for P pixels.
-        target_xy [P,2]: 2D target votes in the same continuous pixel frame
-            (a mask centroid index c becomes c + 0.5). Entries where ``valid``
-            is False are ignored and may hold anything, NaN included.
-        valid [P] bool: the pixel carries a 2D vote.
+        render: output of a ``render_votes_*`` call for P pixels (and L levels).
+        target_xy [P,2] (or [P,L,2] for a multi-level render): 2D target votes
+            in the same continuous pixel frame (a mask centroid index c becomes
+            c + 0.5). Entries where ``valid`` is False are ignored and may hold
+            anything, NaN included.
+        valid [P] (or [P,L]) bool: the pixel carries a 2D vote (at that level).
         options: only ``distortion == "none"`` matters here (zero regulariser).
 
     Returns {"vote": mean over used pixels of |dx| + |dy| (the l1 norm),
     "distortion": mean of render.distortion over the same pixels}, where the
-    used pixels are ``valid & (render.count > 0)``. With no used pixel (empty
-    pixel set, no valid pixel, nothing in view) both are 0 and still part of
-    the graph, with zero gradient. The caller applies lambda_vote and
-    lambda_d.
+    used pixels are ``valid & (render.count > 0)``: scalars for a single-level
+    render, tensors of shape [L] (one mean per level, over that level's used
+    pixels) for a multi-level one. With no used pixel (empty pixel set, no
+    valid pixel, nothing in view) a loss is 0 and still part of the graph,
+    with zero gradient. The caller applies lambda_vote and lambda_d.
     """
     options = options or VoteRenderOptions()
     projected = render.projected_vote
     p = projected.shape[0]
-    if target_xy.shape != (p, 2):
-        raise ValueError(f"target_xy must have shape [{p}, 2] like render.projected_vote, got {tuple(target_xy.shape)}")
-    if valid.shape != (p,) or valid.dtype != torch.bool:
-        raise ValueError(f"valid must be a bool tensor of shape [{p}], got {valid.dtype} {tuple(valid.shape)}")
-    used = valid & (render.count > 0)
-    target = torch.where(used[:, None], target_xy.to(projected.dtype), torch.zeros_like(projected))
-    if not bool(torch.isfinite(target).all()):
-        raise ValueError("target_xy contains NaN or inf at valid pixels; mark pixels without a 2D vote invalid")
-    if not bool(torch.isfinite(projected).all() & torch.isfinite(render.distortion).all()):
-        raise ValueError("the vote render contains NaN or inf; check the votes and the camera passed to the renderer")
-    denominator = used.sum().clamp_min(1).to(projected.dtype)
-    error = (projected - target).abs().sum(dim=1)
-    vote = torch.where(used, error, torch.zeros_like(error)).sum() / denominator
+    single = projected.ndim == 2
+    levels = 1 if single else projected.shape[1]
+    level_shape = (p,) if single else (p, levels)
+    if tuple(target_xy.shape) != level_shape + (2,):
+        raise ValueError(
+            f"target_xy must have shape {list(level_shape + (2,))} like render.projected_vote, "
+            f"got {list(target_xy.shape)}"
+        )
+    if tuple(valid.shape) != level_shape or valid.dtype != torch.bool:
+        raise ValueError(
+            f"valid must be a bool tensor of shape {list(level_shape)}, got {valid.dtype} {list(valid.shape)}"
+        )
+    projected = projected.reshape(p, levels, 2)
+    distortion = render.distortion.reshape(p, levels)
+    used = valid.reshape(p, levels) & (render.count > 0)[:, None]
+    target = torch.where(used[..., None], target_xy.reshape(p, levels, 2).to(projected.dtype), 0.0)
+    _raise_unless(
+        _read_host(
+            {
+                "target_xy contains NaN or inf at valid pixels; mark pixels without a 2D vote invalid": (
+                    _all_finite(target)
+                ),
+                "the vote render contains NaN or inf; check the votes and the camera passed to the renderer": (
+                    _all_finite(projected, distortion)
+                ),
+            }
+        )
+    )
+    denominator = used.sum(dim=0).clamp_min(1).to(projected.dtype)
+    error = (projected - target).abs().sum(dim=2)
+    vote = torch.where(used, error, 0.0).sum(dim=0) / denominator
     if options.distortion == "none":
         distortion = vote * 0.0
     else:
-        d = render.distortion
-        distortion = torch.where(used, d, torch.zeros_like(d)).sum() / denominator
+        distortion = torch.where(used, distortion, 0.0).sum(dim=0) / denominator
+    if single:
+        vote, distortion = vote[0], distortion[0]
     return {"vote": vote, "distortion": distortion}
 
 
@@ -440,10 +505,14 @@ def _validate_inputs(
     viewmat: Tensor,
     K: Tensor,
     pixel_xy: Tensor,
-) -> Tuple[int, int]:
-    if votes.ndim != 2 or votes.shape[1] != 3:
-        raise ValueError(f"votes must have shape [N, 3], got {tuple(votes.shape)}")
+) -> Tuple[int, int, int]:
+    """Shapes, dtypes and devices (no host read); returns (N, P, L), L = 1 for [N, 3] votes."""
+    if votes.ndim not in (2, 3) or votes.shape[-1] != 3:
+        raise ValueError(f"votes must have shape [N, 3] or [N, L, 3] (one vote per level), got {list(votes.shape)}")
     n = votes.shape[0]
+    levels = 1 if votes.ndim == 2 else votes.shape[1]
+    if levels < 1:
+        raise ValueError(f"votes must have at least one level, got shape {list(votes.shape)}")
     expected = {"means2d": (n, 2), "conics": (n, 3), "opacities": (n,), "depths": (n,)}
     for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities), ("depths", depths)):
         if tuple(t.shape) != expected[name]:
@@ -464,18 +533,44 @@ def _validate_inputs(
         raise ValueError("means2d, conics, opacities, depths, votes, viewmat, K and pixel_xy must share one dtype")
     if len({t.device for t in tensors}) != 1:
         raise ValueError("all inputs of the vote renderer must be on the same device")
-    if not bool(torch.isfinite(votes).all()):
-        raise ValueError(
-            "votes contain NaN or inf; the vote offsets have diverged (lower the learning rate or check the loss)"
-        )
-    if not bool(torch.isfinite(pixel_xy).all()):
-        raise ValueError("pixel_xy contains NaN or inf; pass finite continuous pixel positions")
-    return n, pixel_xy.shape[0]
+    return n, pixel_xy.shape[0], levels
+
+
+def _finiteness_checks(votes: Tensor, pixel_xy: Tensor) -> Dict[str, Tensor]:
+    """{error message: 0-d bool tensor that must be True}, to be read with one host sync."""
+    return {
+        "votes contain NaN or inf; the vote offsets have diverged (lower the learning rate or check the loss)": (
+            _all_finite(votes)
+        ),
+        "pixel_xy contains NaN or inf; pass finite continuous pixel positions": _all_finite(pixel_xy),
+    }
+
+
+def _all_finite(*tensors: Tensor) -> Tensor:
+    """0-d bool: every entry is finite (t * 0 is 0 for finite t, else NaN: 3 kernels, isfinite().all() takes 5)."""
+    total = (tensors[0] * 0.0).sum()
+    for t in tensors[1:]:
+        total = total + (t * 0.0).sum()
+    return total == 0.0
+
+
+def _read_host(values: Dict[str, Tensor]) -> Dict[str, int]:
+    """Several 0-d device values (bool or int) in one device-to-host copy: each separate read would be a sync."""
+    if not values:
+        return {}
+    return dict(zip(values, torch.stack(list(values.values())).tolist()))
+
+
+def _raise_unless(checks: Dict[str, int]) -> None:
+    for message, ok in checks.items():
+        if not ok:
+            raise ValueError(message)
 
 
 def _validate_tiles(
-    isect_offsets: Tensor, flatten_ids: Tensor, tile_size: int, chunk: int, n: int, device: torch.device
+    isect_offsets: Tensor, flatten_ids: Tensor, tile_size: int, chunk: Optional[int], device: torch.device
 ) -> Tuple[Tensor, int, int]:
+    """Shapes, dtypes and devices of the tile lists (their values are checked with the host read)."""
     if isect_offsets.ndim == 3 and isect_offsets.shape[0] == 1:
         isect_offsets = isect_offsets[0]
     if isect_offsets.ndim != 2:
@@ -486,21 +581,26 @@ def _validate_tiles(
         raise ValueError("isect_offsets and flatten_ids must be integer tensors; flatten_ids must be 1-D")
     if isect_offsets.device != device or flatten_ids.device != device:
         raise ValueError("isect_offsets and flatten_ids must be on the same device as the Gaussians")
-    if int(tile_size) != tile_size or tile_size < 1 or int(chunk) != chunk or chunk < 1:
+    if int(tile_size) != tile_size or tile_size < 1 or (chunk is not None and (int(chunk) != chunk or chunk < 1)):
         raise ValueError(f"tile_size and chunk must be positive integers, got {tile_size!r} and {chunk!r}")
-    n_isects = flatten_ids.numel()
-    if n_isects > 0:
-        bounds = torch.stack([flatten_ids.min(), flatten_ids.max()]).tolist()
-        if bounds[0] < 0 or bounds[1] >= n:
-            raise ValueError(
-                f"flatten_ids must index the N = {n} Gaussians of one camera, got ids in [{bounds[0]}, {bounds[1]}]; "
-                f"build the lists with C = 1 and packed = False"
-            )
     tiles_high, tiles_wide = isect_offsets.shape
-    offsets = isect_offsets.reshape(-1).long()
-    if offsets.numel() > 0 and (int(offsets.min()) < 0 or int(offsets.max()) > n_isects):
-        raise ValueError("isect_offsets point outside flatten_ids; pass the offsets and ids of the same camera")
-    return offsets, tiles_high, tiles_wide
+    return isect_offsets.reshape(-1).long(), tiles_high, tiles_wide
+
+
+def _pixel_runs(
+    pixel_xy: Tensor, offsets: Tensor, tiles_high: int, tiles_wide: int, tile_size: int, n_isects: int
+) -> Tuple[Tensor, Tensor]:
+    """[P] start and end of each pixel's tile run in flatten_ids; empty outside the tile grid."""
+    if offsets.numel() == 0:
+        empty = torch.zeros(pixel_xy.shape[0], dtype=torch.long, device=pixel_xy.device)
+        return empty, empty
+    tile_xy = torch.floor(pixel_xy / tile_size).long()
+    # Compared with Python ints: a tensor built from host values would cost a host-to-device copy and a sync.
+    in_grid = (tile_xy >= 0).all(dim=1) & (tile_xy[:, 0] < tiles_wide) & (tile_xy[:, 1] < tiles_high)
+    tile_id = torch.where(in_grid, tile_xy[:, 1] * tiles_wide + tile_xy[:, 0], 0)
+    run_start = offsets[tile_id]
+    ends = torch.cat([offsets[1:], offsets.new_full((1,), n_isects)])
+    return run_start, torch.where(in_grid, ends[tile_id], run_start)
 
 
 def _empty_render(p: int, votes: Tensor, viewmat: Tensor, K: Tensor, options: VoteRenderOptions) -> VoteRender:
@@ -508,12 +608,12 @@ def _empty_render(p: int, votes: Tensor, viewmat: Tensor, K: Tensor, options: Vo
     anchor = votes.sum() * 0.0
     if not options.detach_geometry:
         anchor = anchor + (viewmat.sum() + K.sum()) * 0.0
-    zeros = votes.new_zeros(p)
+    level_shape = (p,) if votes.ndim == 2 else (p, votes.shape[1])
     return VoteRender(
-        mean_vote=votes.new_zeros(p, 3) + anchor,
-        projected_vote=votes.new_zeros(p, 2) + anchor,
+        mean_vote=votes.new_zeros(level_shape + (3,)) + anchor,
+        projected_vote=votes.new_zeros(level_shape + (2,)) + anchor,
         count=torch.zeros(p, dtype=torch.long, device=votes.device),
-        distortion=zeros + anchor,
+        distortion=votes.new_zeros(level_shape) + anchor,
     )
 
 
@@ -538,14 +638,14 @@ def _camera_to_pixels(cam: Tensor, K: Tensor, near_plane: float) -> Tensor:
     return (cam[..., 0:2] / z) @ K[:2, :2].transpose(0, 1) + K[:2, 2]
 
 
-def _vote_table(votes: Tensor, viewmat: Tensor, K: Tensor, options: VoteRenderOptions) -> Tuple[Tensor, Tensor]:
-    """Per-Gaussian values to blend ([N,3] world votes, plus [N,2] projections for 2D blending) and vote depths."""
-    cam = _to_camera(votes, viewmat)
+def _vote_table(votes: Tensor, viewmat: Tensor, K: Tensor, options: VoteRenderOptions) -> Tensor:
+    """[N, L, D] per Gaussian and level: the values to blend (world vote, plus its projection when
+    blending in 2D), then the vote's camera depth last, so one gather fetches everything."""
     if options.blend_space == "2d":
-        values = torch.cat([votes, _camera_to_pixels(cam, K, options.vote_near_plane)], dim=1)
-    else:
-        values = votes
-    return values, cam[:, 2]
+        cam = _to_camera(votes, viewmat)
+        return torch.cat([votes, _camera_to_pixels(cam, K, options.vote_near_plane), cam[..., 2:3]], dim=-1)
+    depth = votes @ viewmat[2, :3] + viewmat[2, 3]
+    return torch.cat([votes, depth[..., None]], dim=-1)
 
 
 def _vote_threshold(options: VoteRenderOptions) -> float:
@@ -558,62 +658,64 @@ def _alpha(
     """gsplat's per-pair alpha and whether the pair is composited at all (sigma >= 0, alpha >= 1/255)."""
     d = means2d - pixel_xy
     dx, dy = d[..., 0], d[..., 1]
-    sigma = 0.5 * (conics[..., 0] * dx * dx + conics[..., 2] * dy * dy) + conics[..., 1] * dx * dy
+    # sigma = 0.5 (a dx^2 + c dy^2) + b dx dy in few kernels (this runs on every pair): conics[..., 0::2] = (a, c).
+    sigma = torch.add(conics[..., 1] * dx * dy, (d * d * conics[..., 0::2]).sum(dim=-1), alpha=0.5)
     # Pairs with sigma < 0 are skipped anyway; clamping keeps exp finite so their zero gradient is not 0 * inf.
     alpha = (opacities * torch.exp(-sigma.clamp_min(0.0))).clamp_max(alpha_max)
     visible = (sigma >= 0) & (alpha >= ALPHA_MIN)
     return alpha, visible
 
 
-def _walk(alpha: Tensor, visible: Tensor, t_front: Tensor, threshold: float) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+def _walk(alpha: Tensor, visible: Tensor, t_front: Tensor, threshold: float) -> Tuple[Tensor, Tensor, Tensor]:
     """Front-to-back walk over a block [p, L] that starts at transmittance t_front [p].
 
-    Returns (member [p,L], T in front of each pair [p,L], stopped [p] = the
-    colour walk ended in this block, T after the block [p]). Transmittance
-    never rises, so "composited" and "member" are plain comparisons: once a
-    pair ends the colour walk (T after it <= 1e-4), every later pair fails
-    the same test, and once T in front is <= threshold it stays so.
+    Returns (member [p,L], T in front of each pair [p,L], T after the block
+    [p]). Transmittance never rises, so "composited" and "member" are plain
+    comparisons: once a pair ends the colour walk (T after it <= 1e-4), every
+    later pair fails the same test, and once T in front is <= threshold it
+    stays so. The pair that ends the colour walk still lowers T here, which
+    is what keeps every later pair out.
     """
-    effective = torch.where(visible, alpha, torch.zeros_like(alpha))
-    t_before, t_end = _transmittance(effective, t_front)
-    composited = visible & (t_before * (1.0 - effective) > COLOUR_STOP_T)
-    member = composited & (t_before > threshold)
-    stopped = (visible & ~composited).any(dim=1)
-    return member, t_before, stopped, t_end
+    effective = torch.where(visible, alpha, 0.0)
+    t_after = t_front[:, None] * torch.cumprod(1.0 - effective, dim=1)
+    t_before = torch.cat([t_front[:, None], t_after[:, :-1]], dim=1)
+    member = visible & (t_after > COLOUR_STOP_T) & (t_before > threshold)
+    return member, t_before, t_after[:, -1]
 
 
-def _transmittance(alpha: Tensor, t_front: Tensor) -> Tuple[Tensor, Tensor]:
-    """Transmittance in front of each entry of [p, L] (starting from t_front [p]), and after the last."""
+def _transmittance_in_front(alpha: Tensor) -> Tensor:
+    """Transmittance in front of each entry of [p, M], starting from 1."""
     running = torch.cumprod(1.0 - alpha, dim=1)
-    t_before = t_front[:, None] * torch.cat([torch.ones_like(running[:, :1]), running[:, :-1]], dim=1)
-    return t_before, t_front * running[:, -1]
+    return torch.cat([torch.ones_like(running[:, :1]), running[:, :-1]], dim=1)
 
 
 def _weights(member: Tensor, alpha: Tensor, t_before: Tensor, options: VoteRenderOptions) -> Tensor:
     if options.weighting == "alpha_t":
-        return torch.where(member, alpha * t_before, torch.zeros_like(alpha))
+        return torch.where(member, alpha * t_before, 0.0)
     return member.to(alpha.dtype)
 
 
-def _chunk_depth_stats(z: Tensor, member: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-    """(count, mean, sum of squared deviations) of the member depths of each row."""
-    mask = member.to(z.dtype)
-    n = mask.sum(dim=1)
-    mean = (mask * z).sum(dim=1) / n.clamp_min(1.0)
-    m2 = (mask * (z - mean[:, None]) ** 2).sum(dim=1)
-    return n, mean, m2
+def _distortion(z: Tensor, member: Tensor, count: Tensor, value_sum: Tensor, options: VoteRenderOptions) -> Tensor:
+    """[p, L] spread of the member vote depths z [p, M, L] (member [p, M], count [p] = its row sums)."""
+    if options.distortion == "l1":
+        return _pairwise_l1(z, member, count)
+    if options.distortion == "squared":
+        # sum over pairs of (z_i - z_j)^2 = n * sum_i (z_i - mean)^2
+        mask = member.to(z.dtype)[..., None]
+        n = count.to(z.dtype)[:, None]
+        mean = (mask * z).sum(dim=1) / n.clamp_min(1.0)
+        return n * (mask * (z - mean[:, None]) ** 2).sum(dim=1)
+    return value_sum[..., 0] * 0.0
 
 
-def _pairwise_l1(z: Tensor, member: Tensor) -> Tensor:
-    """Exact sum over member pairs i<j of |z_i - z_j| per row, via the sorted identity."""
-    m = member.sum(dim=1, keepdim=True)
-    masked = torch.where(member, z, torch.full_like(z, float("inf")))
-    ordered, _ = torch.sort(masked, dim=1)
+def _pairwise_l1(z: Tensor, member: Tensor, count: Tensor) -> Tensor:
+    """Exact sum over member pairs i<j of |z_i - z_j| per row and level, via the sorted identity."""
+    ordered, _ = torch.sort(torch.where(member[..., None], z, float("inf")), dim=1)
     rank = torch.arange(1, z.shape[1] + 1, device=z.device, dtype=z.dtype)
-    in_set = rank[None, :] <= m
-    coefficient = torch.where(in_set, 2.0 * rank[None, :] - m.to(z.dtype) - 1.0, torch.zeros_like(ordered))
-    ordered = torch.where(in_set, ordered, torch.zeros_like(ordered))
-    return (ordered * coefficient).sum(dim=1)
+    m = count.to(z.dtype)[:, None]
+    in_set = rank <= m
+    coefficient = torch.where(in_set, 2.0 * rank - m - 1.0, 0.0)
+    return (torch.where(in_set[..., None], ordered, 0.0) * coefficient[..., None]).sum(dim=1)
 
 
 def _finish(
@@ -624,20 +726,18 @@ def _finish(
     viewmat: Tensor,
     K: Tensor,
     options: VoteRenderOptions,
+    single_level: bool,
 ) -> VoteRender:
+    """Normalise the [P, L, D] sums; empty pixels sum no weight, so their values and distortion are already 0."""
     has_votes = count > 0
-    # Safe denominators: empty pixels divide by 1 and are zeroed, so neither value nor gradient is NaN.
-    denominator = torch.where(has_votes, weight_sum, torch.ones_like(weight_sum))[:, None]
-    blended = value_sum / denominator
-    mean_vote = blended[:, :3]
+    # Safe denominators: empty pixels divide by 1, so neither value nor gradient is NaN.
+    blended = value_sum / torch.where(has_votes, weight_sum, 1.0)[:, None, None]
+    mean_vote = blended[..., :3]
     if options.blend_space == "2d":
-        projected = blended[:, 3:5]
+        projected = blended[..., 3:5]
     else:
         projected = project_to_pixels(mean_vote, viewmat, K, options.vote_near_plane)
-    keep = has_votes[:, None]
-    return VoteRender(
-        mean_vote=torch.where(keep, mean_vote, torch.zeros_like(mean_vote)),
-        projected_vote=torch.where(keep, projected, torch.zeros_like(projected)),
-        count=count,
-        distortion=torch.where(has_votes, distortion, torch.zeros_like(distortion)),
-    )
+        projected = torch.where(has_votes[:, None, None], projected, 0.0)
+    if single_level:
+        mean_vote, projected, distortion = mean_vote[:, 0], projected[:, 0], distortion[:, 0]
+    return VoteRender(mean_vote=mean_vote, projected_vote=projected, count=count, distortion=distortion)
