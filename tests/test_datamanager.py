@@ -138,6 +138,24 @@ def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
     assert "image" in eval_data
 
 
+def test_vote_maps_in_memory_bounds_the_views_kept_and_reuses_them(dataset, tmp_path, monkeypatch):
+    manager = setup_manager(dataset, tmp_path / "cache", vote_maps_in_memory=2)
+    first = {index: manager.vote_batch(index) for index in range(FRAMES)}
+    assert list(manager._in_memory) == [FRAMES - 2, FRAMES - 1]  # least recently used views were dropped
+
+    def no_disk_read(key):
+        raise AssertionError("a view kept in memory was read from the cache again")
+
+    monkeypatch.setattr(manager._vote_cache, "load", no_disk_read)
+    again = manager.vote_batch(FRAMES - 2)
+    assert torch.equal(again["vote_labels"], first[FRAMES - 2]["vote_labels"])
+    monkeypatch.undo()
+    # another resolution is derived again, and an evicted view is read back identically
+    assert manager.vote_batch(FRAMES - 2, HEIGHT // 2, WIDTH // 2)["vote_labels"].shape == (2, HEIGHT // 2, WIDTH // 2)
+    assert torch.equal(manager.vote_batch(0)["vote_labels"], first[0]["vote_labels"])
+    assert len(manager._in_memory) == 2
+
+
 def test_downscaled_images_get_downscaled_vote_maps(dataset, tmp_path):
     manager = setup_manager(dataset, tmp_path / "cache", downscale=2, drop_border_masks=False)
     assert "images_2" in str(manager.train_dataset.image_filenames[0])

@@ -111,9 +111,9 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
     cache_dir: Optional[Path] = None
     """Vote cache folder; default outputs/<dataset folder name>/votesplat_cache (never inside the dataset)."""
     vote_maps_in_memory: int = 128
-    """Views whose resized/undistorted vote maps stay in RAM (the rest are re-derived from the memory-mapped cache).
+    """Views whose vote maps, at training resolution, stay in RAM (the rest are re-derived from the on-disk cache).
     Re-deriving an undistorted view costs ~0.2 s of CPU, so keep every training view when memory allows
-    (L levels x H x W x 2 bytes each: ~4 MB for 2 levels at 960x540)."""
+    (L levels x H x W x 4 bytes each: ~4 MB for 2 levels at 960x540)."""
 
     @property
     def dataset_path(self) -> Path:
@@ -181,7 +181,8 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         self._cameras_as_loaded: Cameras = deepcopy(self.train_dataset.cameras)
         self._vote_cache: Optional[VoteCache] = None
         self._vote_keys: Optional[List[str]] = None
-        self._in_memory: "OrderedDict[int, VoteMaps]" = OrderedDict()
+        # per train view: the batch tensors at the last requested resolution (an LRU of vote_maps_in_memory views)
+        self._in_memory: "OrderedDict[int, Dict[str, torch.Tensor]]" = OrderedDict()
         # the pipeline hands train_dataset.metadata to the model, which sizes its offsets by it
         self.train_dataset.metadata["vote_levels"] = self.config.resolved_levels()
         if test_mode == "val":  # ns-train: make all masks now, before training starts
@@ -220,20 +221,11 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         """The view's vote maps mapped to a training image of ``height`` x ``width`` pixels."""
         self._prepare_votes()
         assert self._vote_cache is not None and self._vote_keys is not None
-        cached = self._in_memory.get(index)
-        if cached is not None and (cached.height, cached.width) == (height, width):
-            self._in_memory.move_to_end(index)
-            return cached
         image_path = Path(self.train_dataset.image_filenames[index])
         stored = self._vote_cache.load(self._vote_keys[index])
         if stored is None:  # entry removed or damaged since start-up
             stored = self._vote_cache.get(index, image_path)
-        vote_maps = self._to_training_frame(stored, index, height, width, image_path)
-        if vote_maps is not stored:
-            self._in_memory[index] = vote_maps
-            while len(self._in_memory) > max(0, self.config.vote_maps_in_memory):
-                self._in_memory.popitem(last=False)
-        return vote_maps
+        return self._to_training_frame(stored, index, height, width, image_path)
 
     def _to_training_frame(self, stored: VoteMaps, index: int, height: int, width: int, image_path: Path) -> VoteMaps:
         camera = self._cameras_as_loaded[index].reshape(())
@@ -266,11 +258,20 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         if height is None or width is None:
             camera = self.train_dataset.cameras[index]
             height, width = int(camera.height.item()), int(camera.width.item())
-        vote_maps = self.vote_maps_for_train_view(index, height, width)
-        return {
-            "vote_labels": torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32)).to(self.device),
-            "vote_centroids": torch.from_numpy(vote_maps.padded_centroids()).to(self.device),
-        }
+        cached = self._in_memory.get(index)
+        if cached is None or tuple(cached["vote_labels"].shape[1:]) != (height, width):
+            # reading, resizing or undistorting a view costs ms to 0.2 s of CPU: keep the result
+            vote_maps = self.vote_maps_for_train_view(index, height, width)
+            cached = {
+                "vote_labels": torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32)),
+                "vote_centroids": torch.from_numpy(vote_maps.padded_centroids()),
+            }
+            self._in_memory[index] = cached
+            while len(self._in_memory) > max(0, self.config.vote_maps_in_memory):
+                self._in_memory.popitem(last=False)
+        else:
+            self._in_memory.move_to_end(index)
+        return {name: tensor.to(self.device) for name, tensor in cached.items()}
 
 
 def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
