@@ -1,0 +1,249 @@
+"""Instance quality of VoteSplat on synthetic scenes: GT masks vs noisy (SAM-like) masks, and ablations.
+
+    python benchmarks/quality.py --scenes votesplat_ns/data/demo build/scenes/forward --steps 800
+    python benchmarks/quality.py --scenes build/scenes/forward --ablation --steps 800
+
+For every scene folder (written by ``votesplat-synth``) and every mask kind in ``--masks``:
+
+* ``gt``: train votesplat with the dataset's exact instance/part masks;
+* ``noisy``: write the GT masks corrupted by ``MaskNoise`` (``--split-rate`` ...) into
+  ``<work-dir>/<scene>/noisy_masks`` and train with ``mask_source=folder`` on them;
+
+then score the run with ``votesplat-eval`` (held-out views, instance level: mIoU, precision and
+recall at IoU 0.5; 3D per-Gaussian purity) and print one markdown table. ``--ablation`` trains the
+paper's Table 3 variants on each scene with GT masks instead: the full model, no depth distortion
+(``vote_distortion=none``), votes blended in 2D (``vote_blend_space=2d``) and alpha*T vote weights
+(``vote_weighting=alpha_t``).
+
+Training runs in this process on CUDA if present, else CPU (``num_downscales=0``: the scenes are
+small). Results go to ``<work-dir>/quality.md`` and ``quality.json`` (atomic writes); every run
+keeps its folder (config.yml, checkpoint, eval/) under ``<work-dir>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+ABLATIONS: Dict[str, Dict[str, str]] = {
+    "full": {},
+    "no distortion": {"vote_distortion": "none"},
+    "2D blending": {"vote_blend_space": "2d"},
+    "alpha*T weights": {"vote_weighting": "alpha_t"},
+}
+
+
+def reset_nerfstudio_writers() -> None:
+    """nerfstudio keeps its event writers in module globals; a new run in the same process must not log into the old ones."""
+    from nerfstudio.utils import writer
+
+    for event_writer in list(writer.EVENT_WRITERS):
+        if hasattr(event_writer, "tb_writer"):
+            event_writer.tb_writer.close()
+    writer.EVENT_WRITERS.clear()
+    writer.EVENT_STORAGE.clear()
+    writer.GLOBAL_BUFFER.clear()
+
+
+def train_votesplat(
+    data: Path,
+    output_dir: Path,
+    steps: int,
+    vote_start: int,
+    device: str,
+    mask_folder: Optional[Path] = None,
+    **model_overrides,
+) -> Path:
+    """Train votesplat in-process (as tests/conftest.py does) and return the run's config.yml."""
+    import torch
+
+    from votesplat_ns.method import votesplat_trainer_config
+
+    config = votesplat_trainer_config()
+    config.machine.device_type = device
+    config.vis = "tensorboard"
+    config.output_dir = output_dir
+    config.timestamp = "run"
+    config.max_num_iterations = steps
+    config.steps_per_eval_image = 10 * steps
+    config.steps_per_eval_all_images = 10 * steps
+    config.steps_per_save = 10 * steps
+    config.data = data
+    config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.cache_dir = output_dir / "vote_cache"
+    if mask_folder is not None:
+        config.pipeline.datamanager.mask_source = "folder"
+        config.pipeline.datamanager.mask_folder = mask_folder
+    model = config.pipeline.model
+    model.vote_start_step = vote_start
+    model.num_downscales = 0
+    for name, value in model_overrides.items():
+        if not hasattr(model, name):
+            raise ValueError(f"votesplat's model config has no field {name!r}")
+        setattr(model, name, value)
+    config.set_timestamp()
+    config.save_config()
+    reset_nerfstudio_writers()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    config_path = config.get_base_dir() / "config.yml"
+    del trainer
+    gc.collect()
+    if device == "cuda":
+        torch.cuda.empty_cache()
+    return config_path
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def markdown_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
+    header = list(first_columns) + ["level", "mIoU", "precision", "recall", "purity", "#GT", "#pred", "Gaussians", "train time"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for row in rows:
+        if "error" in row:
+            lines.append("| " + " | ".join([str(row[c]) for c in first_columns] + [f"failed: {row['error']}"] + [""] * 8) + " |")
+            continue
+        values = [str(row[c]) for c in first_columns] + [
+            row["level"],
+            f"{row['miou']:.3f}",
+            f"{row['precision']:.3f}",
+            f"{row['recall']:.3f}",
+            f"{row['purity']:.3f}",
+            str(row["num_gt"]),
+            str(row["num_pred"]),
+            str(row["num_gaussians"]),
+            f"{row['train_seconds'] / 60:.1f} min",
+        ]
+        lines.append("| " + " | ".join(values) + " |")
+    return "\n".join(lines)
+
+
+def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, **overrides) -> dict:
+    from votesplat_ns.evaluate_cli import evaluate_run
+
+    start = time.time()
+    config_path = train_votesplat(scene, run_dir, args.steps, args.vote_start, args.device, mask_folder, **overrides)
+    train_seconds = time.time() - start
+    start = time.time()
+    result = evaluate_run(config_path, run_dir / "eval", level=args.level, min_weight=args.min_weight)
+    eval_seconds = time.time() - start
+    level = result.metrics["levels"][args.level]
+    return {
+        "level": args.level,
+        "miou": level["miou"],
+        "precision": level["precision"],
+        "recall": level["recall"],
+        "purity": level["purity"],
+        "completeness": level["completeness"],
+        "num_gt": level["scores_2d"]["num_gt"],
+        "num_pred": level["num_predicted_instances"],
+        "num_gaussians": result.metrics["num_gaussians"],
+        "train_seconds": train_seconds,
+        "eval_seconds": eval_seconds,
+        "config": str(config_path),
+        "metrics": str(result.output_dir / "metrics.json"),
+        "summary": result.metrics["summary"],
+    }
+
+
+def parse_args(argv: Optional[List[str]] = None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", nargs="+", type=Path, default=[Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"])
+    parser.add_argument("--masks", nargs="+", choices=["gt", "noisy"], default=["gt", "noisy"])
+    parser.add_argument("--ablation", action="store_true", help="train the Table 3 variants (GT masks) instead of gt/noisy")
+    parser.add_argument("--variants", nargs="+", choices=sorted(ABLATIONS), default=list(ABLATIONS), help="ablation variants to run")
+    parser.add_argument("--steps", type=int, default=800)
+    parser.add_argument("--vote-start", type=int, default=100)
+    parser.add_argument(
+        "--vote-pixels", type=int, default=None, help="vote_pixels_per_step (model default 4096); fewer makes CPU steps cheaper"
+    )
+    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    parser.add_argument("--level", default="instance", help="vote level reported in the table (metrics.json has every level)")
+    parser.add_argument("--min-weight", type=float, default=0.5)
+    parser.add_argument("--work-dir", type=Path, default=Path("build/quality"))
+    parser.add_argument("--split-rate", type=float, default=0.15)
+    parser.add_argument("--merge-rate", type=float, default=0.1)
+    parser.add_argument("--jitter-rate", type=float, default=0.5)
+    parser.add_argument("--drop-rate", type=float, default=0.05)
+    parser.add_argument("--noise-seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    if args.steps <= args.vote_start:
+        parser.error(f"--steps ({args.steps}) must exceed --vote-start ({args.vote_start}) so the votes get trained")
+    for scene in args.scenes:
+        if not (scene / "transforms.json").is_file():
+            parser.error(f"{scene} has no transforms.json; pass folders written by votesplat-synth")
+    return args
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    args = parse_args(argv)
+    import torch
+
+    from votesplat_ns.evaluate_cli import write_noisy_masks
+    from votesplat_ns.mask_noise import MaskNoise
+
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+    rows: List[dict] = []
+    first_columns = ["scene", "variant"] if args.ablation else ["scene", "masks"]
+    suffix = "ablation" if args.ablation else "quality"
+
+    def record(row: dict) -> None:
+        rows.append(row)
+        table = markdown_table(rows, first_columns)
+        settings = (
+            f"steps {args.steps}, vote start {args.vote_start}, vote pixels per level {args.vote_pixels or 'default (4096)'}, "
+            f"device {args.device}, level {args.level}"
+        )
+        atomic_write_text(args.work_dir / f"{suffix}.md", f"{settings}\n\n{table}\n")
+        atomic_write_text(args.work_dir / f"{suffix}.json", json.dumps({"settings": vars(args) | {"scenes": [str(s) for s in args.scenes], "work_dir": str(args.work_dir)}, "rows": rows}, indent=2, default=str) + "\n")
+        print(table, flush=True)
+
+    noise = MaskNoise(split_rate=args.split_rate, merge_rate=args.merge_rate, jitter_rate=args.jitter_rate, drop_rate=args.drop_rate, seed=args.noise_seed)
+    base = {} if args.vote_pixels is None else {"vote_pixels_per_step": args.vote_pixels}
+    for scene in args.scenes:
+        name = scene.resolve().name
+        jobs = []
+        if args.ablation:
+            for variant in args.variants:
+                jobs.append(({"scene": name, "variant": variant}, args.work_dir / name / ("ablation_" + variant.replace(" ", "_").replace("*", "")), None, {**base, **ABLATIONS[variant]}))
+        else:
+            for masks in args.masks:
+                folder = None
+                if masks == "noisy":
+                    folder = write_noisy_masks(scene, args.work_dir / name / "noisy_masks", noise, overwrite=True)
+                jobs.append(({"scene": name, "masks": masks}, args.work_dir / name / masks, folder, dict(base)))
+        for labels, run_dir, folder, overrides in jobs:
+            try:
+                row = run_one(scene, run_dir, args, folder, **overrides)
+            except Exception as err:  # one failed run must not lose the others' rows
+                row = {"error": f"{type(err).__name__}: {err}"}
+            record({**labels, **row})
+    print(f"\nwrote {args.work_dir / (suffix + '.md')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
