@@ -182,6 +182,19 @@ def test_sam_source_end_to_end_with_tiny_random_sam(one_torch_thread):
     assert small.masks_for_image(image, "blocks.png", 0)[0].shape == (12, 16)
 
 
+def test_sam_source_view_without_any_mask_gives_empty_labels(one_torch_thread):
+    # with crops, segment_anything 1.0 itself crashes in its cross-crop NMS when no crop keeps a mask
+    sam = tiny_sam()
+    options = dict(points_per_side=2, pred_iou_thresh=2.0, stability_score_thresh=0.0, crop_n_layers=1, min_mask_region_area=0)
+    source = SamMaskSource(sam_model=sam, device="cpu", levels=("default", "m"), **options)
+    labels = source.masks_for_image(blocks_image(), "blocks.png", 0)
+    assert [level.shape for level in labels] == [(24, 32), (24, 32)]
+    assert all(level.max() == 0 for level in labels)
+    # and with crops and masks kept, the cross-crop NMS still runs
+    kept = SamMaskSource(sam_model=sam, device="cpu", levels=("default",), **{**options, "pred_iou_thresh": 0.0})
+    assert kept.masks_for_image(blocks_image(), "blocks.png", 0)[0].max() > 0
+
+
 def test_missing_sam_checkpoint_error_names_the_expected_file(tmp_path):
     with pytest.raises(ValueError) as error:
         SamMaskSource(checkpoint=tmp_path / "sam_vit_h_4b8939.pth", model_type="vit_h")

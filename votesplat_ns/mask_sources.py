@@ -407,7 +407,9 @@ class SamMaskSource(MaskSource):
                 ) from error
             self._sam_model = model
         self._sam_model.to(self._resolve_device()).eval()
-        generator = SamAutomaticMaskGenerator(self._sam_model, output_mode="uncompressed_rle", **self.generator_kwargs)
+        generator = _empty_safe_generator_class(SamAutomaticMaskGenerator)(
+            self._sam_model, output_mode="uncompressed_rle", **self.generator_kwargs
+        )
         generator.predictor = _OneGranularityPredictor(generator.predictor)
         return generator
 
@@ -430,6 +432,37 @@ class SamMaskSource(MaskSource):
             predictor.output_index = None
             predictor.clear_embeddings()
         return label_images
+
+
+def _empty_safe_generator_class(base: type) -> type:
+    """segment_anything 1.0's generator with crops (crop_n_layers >= 1) crashes in its cross-crop NMS
+    (``box_area`` of an empty 1-D tensor) when no crop yields a mask; a view without masks is valid
+    (no vote supervision there), so this subclass returns no masks instead. Otherwise unchanged."""
+
+    class EmptySafeMaskGenerator(base):
+        def _generate_masks(self, image: np.ndarray):
+            # SamAutomaticMaskGenerator._generate_masks of segment_anything 1.0, plus the empty guard
+            import torch
+            from segment_anything.utils.amg import MaskData, generate_crop_boxes
+            from torchvision.ops.boxes import batched_nms, box_area
+
+            orig_size = image.shape[:2]
+            crop_boxes, layer_idxs = generate_crop_boxes(orig_size, self.crop_n_layers, self.crop_overlap_ratio)
+            data = MaskData()
+            for crop_box, layer_idx in zip(crop_boxes, layer_idxs):
+                data.cat(self._process_crop(image, crop_box, layer_idx, orig_size))
+            if len(crop_boxes) > 1 and len(data["rles"]) > 0:
+                # remove duplicates between crops, preferring masks from smaller crops
+                scores = 1 / box_area(data["crop_boxes"])
+                scores = scores.to(data["boxes"].device)
+                keep_by_nms = batched_nms(
+                    data["boxes"].float(), scores, torch.zeros(len(data["boxes"])), iou_threshold=self.crop_nms_thresh
+                )
+                data.filter(keep_by_nms)
+            data.to_numpy()
+            return data
+
+    return EmptySafeMaskGenerator
 
 
 def _paint_rles(annotations: List[Dict[str, Any]], shape: Tuple[int, int], rle_to_mask) -> np.ndarray:
