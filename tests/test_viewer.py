@@ -455,6 +455,11 @@ def test_overlay_rejects_mismatched_inputs():
         overlay_instances(torch.zeros(4, 5, 3), torch.zeros(4, 5, dtype=torch.long), opacity=1.5)
 
 
+def state_cpu_instances(scene, view, base, ids, part_ids):
+    state = InstanceViewerState(("instance", "part"), cluster_fn=lambda s, levels: known_instances(scene, ids, part_ids))
+    return state.render_outputs(scene, view, base, wanted={OUTPUT_INSTANCES})[OUTPUT_INSTANCES]
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device (the GPU path renders with gsplat)")
 def test_viewer_outputs_on_cuda_agree_with_the_cpu_renderer(scene_and_ids, front):
     scene, ids, part_ids = scene_and_ids
@@ -468,7 +473,15 @@ def test_viewer_outputs_on_cuda_agree_with_the_cpu_renderer(scene_and_ids, front
     assert all(outputs[name].is_cuda for name in VIEWER_OUTPUTS)
     cuda_map = direct_id_map(cuda_scene, cuda_view, ids.cuda()).cpu()
     assert (cuda_map == id_map).float().mean() > 0.99  # pixels at a 0.5 weight boundary may flip
-    assert torch.equal(outputs[OUTPUT_INSTANCES].cpu(), palette(cuda_map))
+    # the viewer's id render and direct_id_map are two gsplat passes: weights within float error of
+    # the 0.5 threshold may fall either side, so hold them to the same 99% as above
+    same_colour = (outputs[OUTPUT_INSTANCES].cpu() == palette(cuda_map)).all(dim=-1)
+    differ = ~same_colour
+    assert same_colour.float().mean() > 0.99, (
+        f"{int(differ.sum())} pixels differ; there the id map says {torch.unique(cuda_map[differ]).tolist()}, "
+        f"the output shows colours {torch.unique(outputs[OUTPUT_INSTANCES].cpu()[differ], dim=0).tolist()[:6]}, "
+        f"the CPU state {torch.unique(state_cpu_instances(scene, view, base, ids, part_ids)[differ], dim=0).tolist()[:6]}"
+    )
     torch.testing.assert_close(outputs[OUTPUT_VOTES].cpu(), render_vote_picture(scene, view, 0), rtol=0, atol=2e-3)
 
 
