@@ -15,6 +15,13 @@
 #                     calls and merge them with `compare` (here, no GPU). STEPS=100 smoke: ~90 s.
 #   train-synthetic [DATA]  the same comparison on a synthetic scene (default .gpu/synthetic,
 #                     masks from its transforms.json); time depends on the scene
+#   bench-sam         ~60-120 s  benchmarks/bench_sam.py: SAM vit_b and vit_h mask generation at
+#                     1920x1080 on a fox frame (random weights: no checkpoint here), + the fox
+#                     vote cache's size per view when a train-fox run left one
+#   quality           ~300-450 s  benchmarks/quality.py on the scenes in $QUALITY_SCENES (GT and
+#                     noisy masks) and the ablation on $ABLATION_SCENE, every run its own process,
+#                     all at once (the GPU is mostly idle in one small-scene run); QUALITY_STEPS
+#                     (3000), QUALITY_VOTE_START (500). Output quality.md (merged tables), quality.tar.gz
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
 #                     with votesplat/splatfacto ratios; prints it
 #
@@ -43,11 +50,15 @@ STEPS=${STEPS:-7000}
 METHODS=${METHODS:-"splatfacto votesplat"}
 CALL_BUDGET_S=${CALL_BUDGET_S:-570}
 EVAL_RESERVE_S=${EVAL_RESERVE_S:-45}
-GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_rasterize_torch.py"}
+GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_rasterize_torch.py tests/test_viewer.py"}
 SYNTH_DOWNSCALE=${SYNTH_DOWNSCALE:-1}
 FOX=${FOX:-.gpu/fox}
 PY=${PY:-python3}
 EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-}
+QUALITY_SCENES=${QUALITY_SCENES:-"votesplat_ns/data/demo build/scenes/nested build/scenes/forward"}
+ABLATION_SCENE=${ABLATION_SCENE:-build/scenes/forward}
+QUALITY_STEPS=${QUALITY_STEPS:-3000}
+QUALITY_VOTE_START=${QUALITY_VOTE_START:-500}
 SITE=${SITE:-/tmp/site}                                  # carried wheels are installed here
 RUNS=/tmp/votesplat_runs
 OUT=${OUT:-/tmp/votesplat_gpu_out}
@@ -183,6 +194,11 @@ PY
     cp scripts/gpu/gsplat_prebuilt_csrc.py "$SITE/gsplat/csrc.py"
     log "gsplat will load the prebuilt $GSPLAT_BUILD_DIR/gsplat_cuda.so"
   fi
+  if ! "$PY" -c 'import open3d' 2>/dev/null; then
+    # nerfstudio reads a dataset's sparse_pc.ply with open3d (too large to carry): a plyfile shim
+    mkdir -p "$SITE/open3d" && cp scripts/gpu/open3d_ply_shim.py "$SITE/open3d/__init__.py"
+    log "open3d absent: installed the read_point_cloud shim (scripts/gpu/open3d_ply_shim.py)"
+  fi
   log "loading gsplat's CUDA code (JIT build if needed, MAX_JOBS=$MAX_JOBS, arch $TORCH_CUDA_ARCH_LIST)"
   "$PY" - <<'PY' || return 1
 import time, torch
@@ -252,6 +268,62 @@ stage_bench_vote() {
       2>&1 | tee -a "$OUT/bench_vote.log"
     [ "${PIPESTATUS[0]}" = 0 ] || rc=1
   done
+  return "$rc"
+}
+
+# -------------------------------------------------------------------------------- bench-sam
+stage_bench_sam() {
+  ensure_setup || return 1
+  local image rc
+  image=$(find "$FOX" -path '*/images*' -type f \( -name '*.jpg' -o -name '*.png' \) 2>/dev/null | sort | head -1)
+  log "bench_sam on ${image:-a random image}" | tee -a "$OUT/bench_sam.log"
+  timeout "$(limit_s)" "$PY" benchmarks/bench_sam.py ${image:+--image "$image"} --model-types vit_b vit_h \
+    --width 1920 --height 1080 --repeats 2 --json "$OUT/bench_sam.json" 2>&1 | tee -a "$OUT/bench_sam.log"
+  rc=${PIPESTATUS[0]}
+  if [ -d "$RUNS/votesplat_cache_fox" ]; then
+    "$PY" - "$RUNS/votesplat_cache_fox" <<'PY' 2>&1 | tee -a "$OUT/bench_sam.log"
+import pathlib, sys
+root = pathlib.Path(sys.argv[1])
+files = [p for p in root.rglob("*") if p.is_file()]
+entries = {p.parent for p in files if p.suffix in (".npz", ".npy", ".png")}
+total = sum(p.stat().st_size for p in files)
+print(f"fox vote cache: {total / 1e6:.2f} MB in {len(files)} files, {len(entries)} view entries -> {total / max(1, len(entries)) / 1e3:.1f} kB per view")
+PY
+  fi
+  return "$rc"
+}
+
+# ---------------------------------------------------------------------------------- quality
+stage_quality() {
+  ensure_setup || return 1
+  local work=$RUNS/quality pids=() scene name masks variant rc=0
+  rm -rf "$work"; mkdir -p "$work"
+  for scene in $QUALITY_SCENES; do
+    [ -f "$scene/transforms.json" ] || { log "quality: $scene/transforms.json missing (carry build/scenes)" | tee -a "$OUT/quality.log"; rc=1; continue; }
+    name=$(basename "$scene")
+    for masks in gt noisy; do
+      timeout "$(limit_s)" "$PY" benchmarks/quality.py --scenes "$scene" --masks "$masks" --steps "$QUALITY_STEPS" \
+        --vote-start "$QUALITY_VOTE_START" --work-dir "$work/$name-$masks" >"$work/$name-$masks.log" 2>&1 &
+      pids+=($!)
+    done
+  done
+  if [ -f "$ABLATION_SCENE/transforms.json" ]; then
+    for variant in "full" "no distortion" "2D blending" "alpha*T weights"; do
+      timeout "$(limit_s)" "$PY" benchmarks/quality.py --scenes "$ABLATION_SCENE" --ablation --variants "$variant" \
+        --steps "$QUALITY_STEPS" --vote-start "$QUALITY_VOTE_START" \
+        --work-dir "$work/ablation-${variant//[^a-zA-Z0-9]/_}" >"$work/ablation-${variant//[^a-zA-Z0-9]/_}.log" 2>&1 &
+      pids+=($!)
+    done
+  fi
+  log "quality: ${#pids[@]} runs started, $QUALITY_STEPS steps each" | tee -a "$OUT/quality.log"
+  for pid in "${pids[@]}"; do wait "$pid" || rc=1; done
+  log "quality: all runs ended (exit $rc)" | tee -a "$OUT/quality.log"
+  { for f in "$work"/*/quality.md "$work"/*/ablation.md; do [ -f "$f" ] && { echo "## $f"; cat "$f"; echo; }; done; } >"$OUT/quality.md"
+  cat "$OUT/quality.md" | tee -a "$OUT/quality.log"
+  tail -n 5 "$work"/*.log >>"$OUT/quality.log"
+  # metrics, comparison pictures and logs (no checkpoints) come back
+  (cd "$work" && find . \( -name 'metrics.json' -o -name '*.png' -o -name '*.md' -o -name '*.log' -o -name 'quality.json' -o -name 'ablation.json' \) \
+     -not -path '*/noisy_masks/*' -print0 | tar --null -czf "$OUT/quality.tar.gz" -T -)
   return "$rc"
 }
 
@@ -440,13 +512,15 @@ while [ "$#" -gt 0 ]; do
     setup) stage_setup || rc=1 ;;
     tests) stage_tests || rc=1 ;;
     bench-vote) stage_bench_vote || rc=1 ;;
+    bench-sam) stage_bench_sam || rc=1 ;;
+    quality) stage_quality || rc=1 ;;
     train-fox) train_compare fox "$FOX" 2 || rc=1 ;;
     train-synthetic)
       data=.gpu/synthetic
       if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
       train_compare synthetic "$data" "$SYNTH_DOWNSCALE" || rc=1 ;;
     compare) summarize - "$@" || rc=1; shift "$#" ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, train-fox, train-synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, train-fox, train-synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2
