@@ -26,6 +26,7 @@ as well to keep the cache beside the runs.
 
 from __future__ import annotations
 
+import json
 from collections import OrderedDict
 from copy import deepcopy
 from dataclasses import dataclass, field
@@ -38,9 +39,11 @@ import torch
 
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from votesplat_ns.cli_errors import VoteSplatInputError, check_device_available
 from votesplat_ns.mask_sources import (
     SAM_CHECKPOINT_FILES,
     SAM_LEVELS,
@@ -73,9 +76,71 @@ def check_cache_outside_dataset(cache_dir: Path, data: Path) -> None:
     cache_resolved = Path(cache_dir).resolve()
     data_resolved = dataset_dir(data).resolve()
     if cache_resolved == data_resolved or data_resolved in cache_resolved.parents:
-        raise ValueError(
+        raise VoteSplatInputError(
             f"vote cache folder {cache_dir} lies inside the dataset {data_resolved}; "
             "pass --pipeline.datamanager.cache-dir <folder outside the dataset> (or run from another folder)"
+        )
+
+
+MAKE_DATASET_HINT = "give the folder that holds transforms.json (ns-process-data makes one from images or a video)"
+
+
+def frame_image_path(data_dir: Path, file_path: str, downscale_factor: Optional[int]) -> Path:
+    """The image file nerfstudio's dataparser opens for a frame (``images_N/`` with ``--downscale-factor N``)."""
+    if downscale_factor is not None and downscale_factor > 1:
+        return data_dir / f"images_{downscale_factor}" / Path(file_path).name
+    return data_dir / file_path
+
+
+def check_data_input(config: "VoteDataManagerConfig", check_images: bool = True, where: Optional[str] = None) -> None:
+    """Raise :class:`VoteSplatInputError`, saying what to do, for a dataset nerfstudio would reject with a traceback.
+
+    Checks that the data path exists and, for the nerfstudio dataparser, that it holds a readable
+    transforms.json with frames and (``check_images``) that every frame's image file exists.
+    ``where`` names the path in the message (default ``--data <path>``).
+    """
+    data = config.dataset_path
+    where = where or f"--data {data}"
+    nerfstudio_data = isinstance(config.dataparser, NerfstudioDataParserConfig)
+    if not data.exists():
+        what = "file" if data.suffix else "folder"
+        hint = MAKE_DATASET_HINT if nerfstudio_data else "give the dataset folder"
+        raise VoteSplatInputError(f"{where}: {what} not found; {hint}")
+    if not nerfstudio_data:
+        return
+    if data.is_dir():
+        transforms = data / "transforms.json"
+        if not transforms.is_file():
+            if config.data is None and data == Path("."):
+                raise VoteSplatInputError(f"no --data given and the current folder holds no transforms.json; {MAKE_DATASET_HINT}")
+            raise VoteSplatInputError(f"{where}: this folder holds no transforms.json; {MAKE_DATASET_HINT}")
+    elif data.suffix == ".json":
+        transforms = data
+    else:
+        raise VoteSplatInputError(f"{where} is a file, not a dataset; {MAKE_DATASET_HINT}, or that transforms.json itself")
+    try:
+        meta = json.loads(transforms.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise VoteSplatInputError(f"{transforms} is not valid JSON ({err}); fix it or make it again with ns-process-data") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and "file_path" in f for f in frames):
+        raise VoteSplatInputError(
+            f"{transforms} lists no frames (a 'frames' list whose entries have file_path and transform_matrix); "
+            "make it again with ns-process-data"
+        )
+    if not check_images:
+        return
+    downscale_factor = config.dataparser.downscale_factor
+    images = [frame_image_path(transforms.parent, frame["file_path"], downscale_factor) for frame in frames]
+    missing = [image for image in images if not image.is_file()]
+    if missing:
+        if downscale_factor is not None and downscale_factor > 1:
+            fix = f"put the downscaled images in images_{downscale_factor}/ (--downscale-factor {downscale_factor})"
+        else:
+            fix = f"put the images where the file_path entries of {transforms.name} point"
+        raise VoteSplatInputError(
+            f"{where}: {len(missing)} of {len(images)} images listed in {transforms.name} are missing (first: {missing[0]}); "
+            f"{fix}, or make the dataset again with ns-process-data"
         )
 
 
@@ -138,14 +203,14 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
 
     def _require_mask_folder(self) -> Path:
         if self.mask_folder is None:
-            raise ValueError("mask source 'folder' needs --pipeline.datamanager.mask-folder <root> (<root>/<level>/<image_stem>.png)")
+            raise VoteSplatInputError("mask source 'folder' needs --pipeline.datamanager.mask-folder <root> (<root>/<level>/<image_stem>.png)")
         return Path(self.mask_folder)
 
     def make_mask_source(self) -> MaskSource:
         kind = self.resolved_mask_source()
         if kind == "sam" and self.sam_checkpoint is None:
             reason = "this dataset lists no instance_mask_path, so masks come from SAM; " if self.mask_source == "auto" else ""
-            raise ValueError(
+            raise VoteSplatInputError(
                 f"{reason}give the SAM checkpoint with --pipeline.datamanager.sam-checkpoint /path/to/"
                 f"{SAM_CHECKPOINT_FILES[self.sam_model_type]} (the official checkpoints are listed in the README of "
                 "facebookresearch/segment-anything; nothing is downloaded), or use --pipeline.datamanager.mask-source folder"
@@ -175,7 +240,18 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
     config: VoteDataManagerConfig
 
     def __init__(self, config: VoteDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
-        super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
+        # bad input fails here with one actionable line (cli_errors), before images are loaded or masks made
+        check_device_available(device)
+        where = None if test_mode == "val" else f"dataset {config.dataset_path} (the data path of the run's config.yml)"
+        check_data_input(config, check_images=test_mode != "inference", where=where)
+        try:
+            super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
+        except FileNotFoundError as err:
+            if err.filename is None:
+                raise
+            raise VoteSplatInputError(
+                f"{where or f'--data {config.dataset_path}'}: {err.filename} not found; check that the dataset folder is complete"
+            ) from err
         # nerfstudio overwrites the train cameras when it undistorts images; the label images
         # must be warped from the cameras as loaded.
         self._cameras_as_loaded: Cameras = deepcopy(self.train_dataset.cameras)

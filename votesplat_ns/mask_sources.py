@@ -18,6 +18,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 from PIL import Image
 
+from votesplat_ns.cli_errors import VoteSplatInputError
 from votesplat_ns.vote_maps import labels_from_binary_masks
 
 PathLike = Union[str, Path]
@@ -48,21 +49,21 @@ def read_label_png(path: PathLike) -> np.ndarray:
     """Read a single-channel 8- or 16-bit label PNG as int32 [H, W]."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"label image {path} does not exist")
+        raise VoteSplatInputError(f"label image {path} does not exist")
     try:
         with Image.open(path) as image:
             mode = image.mode
             labels = np.array(image)
     except Exception as error:  # PIL raises several types for broken files
-        raise ValueError(f"label image {path} could not be read ({error}); write it as a single-channel PNG") from error
+        raise VoteSplatInputError(f"label image {path} could not be read ({error}); write it as a single-channel PNG") from error
     if labels.ndim != 2 or mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
-        raise ValueError(
+        raise VoteSplatInputError(
             f"label image {path} has mode {mode} with shape {labels.shape}; it must be a single-channel "
             "8- or 16-bit PNG holding mask ids (0 = no mask)"
         )
     labels = labels.astype(np.int32)
     if labels.size and labels.min() < 0:
-        raise ValueError(f"label image {path} holds negative ids; use 0 for no mask and 1..K for masks")
+        raise VoteSplatInputError(f"label image {path} holds negative ids; use 0 for no mask and 1..K for masks")
     return labels
 
 
@@ -82,7 +83,7 @@ def check_label_size(label_hw: Tuple[int, int], image_hw: Tuple[int, int], what:
         width_from_height = label_w * image_h / label_h
         if abs(height_from_width - image_h) <= 1.0 and abs(width_from_height - image_w) <= 1.0:
             return
-    raise ValueError(
+    raise VoteSplatInputError(
         f"{what} is {label_w}x{label_h} but its image is {image_w}x{image_h}; "
         "label images must have the image's size (or be a uniformly scaled copy of it)"
     )
@@ -119,9 +120,9 @@ class MaskSource(abc.ABC):
 def _validate_levels(levels: Sequence[str], what: str) -> Tuple[str, ...]:
     levels = tuple(str(level) for level in levels)
     if not levels:
-        raise ValueError(f"{what}: give at least one mask level")
+        raise VoteSplatInputError(f"{what}: give at least one mask level")
     if len(set(levels)) != len(levels):
-        raise ValueError(f"{what}: mask levels {levels} contain duplicates")
+        raise VoteSplatInputError(f"{what}: mask levels {levels} contain duplicates")
     return levels
 
 
@@ -137,15 +138,15 @@ class FolderMaskSource(MaskSource):
     def __init__(self, root: PathLike, levels: Optional[Sequence[str]] = None):
         self.root = Path(root)
         if not self.root.is_dir():
-            raise ValueError(f"mask folder {self.root} does not exist; it must hold one sub-folder of label PNGs per level")
+            raise VoteSplatInputError(f"mask folder {self.root} does not exist; it must hold one sub-folder of label PNGs per level")
         if levels is None:
             levels = sorted(p.name for p in self.root.iterdir() if p.is_dir())
             if not levels:
-                raise ValueError(f"mask folder {self.root} has no level sub-folders (expected <root>/<level>/<image_stem>.png)")
+                raise VoteSplatInputError(f"mask folder {self.root} has no level sub-folders (expected <root>/<level>/<image_stem>.png)")
         self.levels = _validate_levels(levels, f"mask folder {self.root}")
         for level in self.levels:
             if not (self.root / level).is_dir():
-                raise ValueError(
+                raise VoteSplatInputError(
                     f"mask folder {self.root} has no sub-folder '{level}' for level '{level}' "
                     f"(levels {list(self.levels)} need one folder each)"
                 )
@@ -158,7 +159,7 @@ class FolderMaskSource(MaskSource):
         for level in self.levels:
             path = self.label_path(image_path, level)
             if not path.is_file():
-                raise ValueError(
+                raise VoteSplatInputError(
                     f"missing label image {path} for image {Path(image_path).name} at level '{level}' "
                     f"(every level in {list(self.levels)} needs one PNG per image)"
                 )
@@ -191,7 +192,7 @@ class DatasetMaskSource(MaskSource):
         data = Path(data)
         self.transforms_path = data if data.suffix == ".json" else data / "transforms.json"
         if not self.transforms_path.is_file():
-            raise ValueError(f"{self.transforms_path} does not exist; the 'dataset' mask source reads label paths from it")
+            raise VoteSplatInputError(f"{self.transforms_path} does not exist; the 'dataset' mask source reads label paths from it")
         self.root = self.transforms_path.parent
         self.levels = _validate_levels(levels, "dataset mask source")
         with open(self.transforms_path, encoding="utf-8") as handle:
@@ -204,7 +205,7 @@ class DatasetMaskSource(MaskSource):
             for level in self.levels:
                 key = f"{level}_mask_path"
                 if key not in frame:
-                    raise ValueError(
+                    raise VoteSplatInputError(
                         f"frame {number} ({frame.get('file_path')}) of {self.transforms_path} has no '{key}'; "
                         "every frame needs one label image per level (or pick another --mask-source)"
                     )
@@ -232,8 +233,8 @@ class DatasetMaskSource(MaskSource):
         if len(candidates) == 1:
             return candidates[0]
         if not candidates:
-            raise ValueError(f"image {image_path} is not a frame of {self.transforms_path}")
-        raise ValueError(
+            raise VoteSplatInputError(f"image {image_path} is not a frame of {self.transforms_path}")
+        raise VoteSplatInputError(
             f"image {image_path} matches {len(candidates)} frames of {self.transforms_path} by file name; "
             "frame file names must be unique"
         )
@@ -338,13 +339,13 @@ class SamMaskSource(MaskSource):
         sam_model: Any = None,
     ):
         if model_type not in SAM_CHECKPOINT_FILES:
-            raise ValueError(f"unknown SAM model type '{model_type}'; use one of {sorted(SAM_CHECKPOINT_FILES)}")
+            raise VoteSplatInputError(f"unknown SAM model type '{model_type}'; use one of {sorted(SAM_CHECKPOINT_FILES)}")
         self.levels = _validate_levels(levels, "SAM mask source")
         unknown = [level for level in self.levels if level not in SAM_LEVELS]
         if unknown:
-            raise ValueError(f"unknown SAM mask levels {unknown}; use a subset of {list(SAM_LEVELS)}")
+            raise VoteSplatInputError(f"unknown SAM mask levels {unknown}; use a subset of {list(SAM_LEVELS)}")
         if max_long_side is not None and max_long_side < 16:
-            raise ValueError(f"max_long_side={max_long_side} is too small; use >= 16 or None")
+            raise VoteSplatInputError(f"max_long_side={max_long_side} is too small; use >= 16 or None")
         self.model_type = model_type
         self.device = device
         self.max_long_side = max_long_side
@@ -400,7 +401,7 @@ class SamMaskSource(MaskSource):
                 model = sam_model_registry[self.model_type](checkpoint=None)
                 model.load_state_dict(state_dict)
             except Exception as error:
-                raise ValueError(
+                raise VoteSplatInputError(
                     f"could not load SAM checkpoint {self.checkpoint} as model type '{self.model_type}' ({type(error).__name__}); "
                     f"expected the official {SAM_CHECKPOINT_FILES[self.model_type]} from the segment-anything "
                     "repository's README (facebookresearch/segment-anything)"
@@ -480,7 +481,7 @@ def _paint_rles(annotations: List[Dict[str, Any]], shape: Tuple[int, int], rle_t
 def _as_rgb_uint8(image: np.ndarray, image_path: PathLike) -> np.ndarray:
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
-        raise ValueError(f"image {image_path} must be uint8 [H, W, 3], got {image.dtype} {tuple(image.shape)}")
+        raise VoteSplatInputError(f"image {image_path} must be uint8 [H, W, 3], got {image.dtype} {tuple(image.shape)}")
     return np.ascontiguousarray(image[..., :3])
 
 
@@ -501,15 +502,15 @@ def check_sam_checkpoint(checkpoint: Optional[PathLike], model_type: str) -> Pat
         "segment-anything repository's README, facebookresearch/segment-anything); it is never downloaded automatically"
     )
     if checkpoint is None or str(checkpoint) == "":
-        raise ValueError(f"no SAM checkpoint given: pass the path to {expected}; {hint}")
+        raise VoteSplatInputError(f"no SAM checkpoint given: pass the path to {expected}; {hint}")
     path = Path(checkpoint).expanduser()
     if not path.is_file():
-        raise ValueError(f"SAM checkpoint {path} does not exist; {hint}")
+        raise VoteSplatInputError(f"SAM checkpoint {path} does not exist; {hint}")
     try:
         with open(path, "rb") as handle:
             handle.read(1)
     except OSError as error:
-        raise ValueError(f"SAM checkpoint {path} is not readable ({error.strerror}); {hint}") from error
+        raise VoteSplatInputError(f"SAM checkpoint {path} is not readable ({error.strerror}); {hint}") from error
     return path
 
 
@@ -550,15 +551,15 @@ def make_mask_source(
     """
     if kind == "auto":
         if data is None:
-            raise ValueError("mask source 'auto' needs the dataset path")
+            raise VoteSplatInputError("mask source 'auto' needs the dataset path")
         kind = "dataset" if DatasetMaskSource.has_masks(data) else "sam"
     if kind == "dataset":
         if data is None:
-            raise ValueError("mask source 'dataset' needs the dataset path")
+            raise VoteSplatInputError("mask source 'dataset' needs the dataset path")
         return DatasetMaskSource(data, levels=tuple(levels) if levels else ("instance", "part"))
     if kind == "folder":
         if mask_folder is None:
-            raise ValueError("mask source 'folder' needs a mask folder: pass --mask-folder <root> (<root>/<level>/<image_stem>.png)")
+            raise VoteSplatInputError("mask source 'folder' needs a mask folder: pass --mask-folder <root> (<root>/<level>/<image_stem>.png)")
         return FolderMaskSource(mask_folder, levels=tuple(levels) if levels else None)
     if kind == "sam":
         return SamMaskSource(
@@ -568,4 +569,4 @@ def make_mask_source(
             levels=tuple(levels) if levels else SAM_LEVELS,
             **(sam_options or {}),
         )
-    raise ValueError(f"unknown mask source '{kind}'; use one of: auto, dataset, folder, sam")
+    raise VoteSplatInputError(f"unknown mask source '{kind}'; use one of: auto, dataset, folder, sam")
