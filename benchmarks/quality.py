@@ -178,6 +178,7 @@ def parse_args(argv: Optional[List[str]] = None):
     parser.add_argument(
         "--vote-pixels", type=int, default=None, help="vote_pixels_per_step (model default 4096); fewer makes CPU steps cheaper"
     )
+    parser.add_argument("--vote-every", type=int, default=None, help="vote_every_n_steps (model default 1)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     parser.add_argument("--level", default="instance", help="vote level reported in the table (metrics.json has every level)")
     parser.add_argument("--min-weight", type=float, default=0.5)
@@ -214,7 +215,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         rows.append(row)
         table = markdown_table(rows, first_columns)
         settings = (
-            f"steps {args.steps}, vote start {args.vote_start}, vote pixels per level {args.vote_pixels or 'default (4096)'}, "
+            f"steps {args.steps}, vote start {args.vote_start}, vote pixels per step {args.vote_pixels or 'default (4096)'}, "
+            f"vote every {args.vote_every or 1} steps, "
             f"device {args.device}, level {args.level}"
         )
         atomic_write_text(args.work_dir / f"{suffix}.md", f"{settings}\n\n{table}\n")
@@ -223,6 +225,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     noise = MaskNoise(split_rate=args.split_rate, merge_rate=args.merge_rate, jitter_rate=args.jitter_rate, drop_rate=args.drop_rate, seed=args.noise_seed)
     base = {} if args.vote_pixels is None else {"vote_pixels_per_step": args.vote_pixels}
+    if args.vote_every is not None:
+        base["vote_every_n_steps"] = args.vote_every
     for scene in args.scenes:
         name = scene.resolve().name
         jobs = []

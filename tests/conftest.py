@@ -37,6 +37,7 @@ def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, *
     model.num_downscales = 1
     model.resolution_schedule = 100 * steps
     model.vote_pixels_per_step = 1024
+    model.vote_every_n_steps = 1  # a few hundred CPU steps: every one counts
     for name, value in model_overrides.items():
         setattr(model, name, value)
     config.set_timestamp()

@@ -26,3 +26,12 @@ def test_preset_parses_and_sets_the_model(path):
     expected = dict(zip(preset_args(path)[::2], preset_args(path)[1::2]))
     assert model.distortion_loss_weight == float(expected["--pipeline.model.distortion-loss-weight"])
     assert model.vote_loss_weight == float(expected["--pipeline.model.vote-loss-weight"])
+
+
+def test_vote_step_schedule():
+    from votesplat_ns.model import vote_step_due
+
+    assert [step for step in range(10) if vote_step_due(step, 3, 1)] == [3, 4, 5, 6, 7, 8, 9]
+    assert [step for step in range(12) if vote_step_due(step, 3, 4)] == [3, 7, 11]
+    with pytest.raises(ValueError, match="vote_every_n_steps"):
+        vote_step_due(5, 0, 0)

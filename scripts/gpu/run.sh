@@ -59,6 +59,8 @@ QUALITY_SCENES=${QUALITY_SCENES:-"votesplat_ns/data/demo build/scenes/nested bui
 ABLATION_SCENE=${ABLATION_SCENE:-build/scenes/forward}
 QUALITY_STEPS=${QUALITY_STEPS:-3000}
 QUALITY_VOTE_START=${QUALITY_VOTE_START:-500}
+QUALITY_MASKS=${QUALITY_MASKS:-"gt noisy"}
+QUALITY_ARGS=${QUALITY_ARGS:-}                            # extra benchmarks/quality.py flags, e.g. --vote-every 4
 SITE=${SITE:-/tmp/site}                                  # carried wheels are installed here
 RUNS=/tmp/votesplat_runs
 OUT=${OUT:-/tmp/votesplat_gpu_out}
@@ -301,16 +303,18 @@ stage_quality() {
   for scene in $QUALITY_SCENES; do
     [ -f "$scene/transforms.json" ] || { log "quality: $scene/transforms.json missing (carry build/scenes)" | tee -a "$OUT/quality.log"; rc=1; continue; }
     name=$(basename "$scene")
-    for masks in gt noisy; do
+    for masks in $QUALITY_MASKS; do
+      # shellcheck disable=SC2086
       timeout "$(limit_s)" "$PY" benchmarks/quality.py --scenes "$scene" --masks "$masks" --steps "$QUALITY_STEPS" \
-        --vote-start "$QUALITY_VOTE_START" --work-dir "$work/$name-$masks" >"$work/$name-$masks.log" 2>&1 &
+        --vote-start "$QUALITY_VOTE_START" --work-dir "$work/$name-$masks" $QUALITY_ARGS >"$work/$name-$masks.log" 2>&1 &
       pids+=($!)
     done
   done
   if [ -f "$ABLATION_SCENE/transforms.json" ]; then
     for variant in "full" "no distortion" "2D blending" "alpha*T weights"; do
+      # shellcheck disable=SC2086
       timeout "$(limit_s)" "$PY" benchmarks/quality.py --scenes "$ABLATION_SCENE" --ablation --variants "$variant" \
-        --steps "$QUALITY_STEPS" --vote-start "$QUALITY_VOTE_START" \
+        --steps "$QUALITY_STEPS" --vote-start "$QUALITY_VOTE_START" $QUALITY_ARGS \
         --work-dir "$work/ablation-${variant//[^a-zA-Z0-9]/_}" >"$work/ablation-${variant//[^a-zA-Z0-9]/_}.log" 2>&1 &
       pids+=($!)
     done
