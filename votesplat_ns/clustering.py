@@ -234,7 +234,9 @@ def cluster_votes(
 def background_mask(vote_support, level: int) -> np.ndarray:
     """[N] bool, True for Gaussians that received no vote supervision at ``level`` (background).
 
-    vote_support [N, L] counts the supervised pixels each Gaussian voted for at each level.
+    vote_support [N, L] counts the supervised pixels each Gaussian voted for at each level; the model
+    negates the count of Gaussians whose rendering weight lies mostly outside the masks (see
+    ``votesplat_ns.foreground``), so only > 0 is foreground.
     """
     support = _to_numpy(vote_support)
     if support.ndim != 2:

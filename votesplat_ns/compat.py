@@ -118,8 +118,9 @@ def _tensor_stays_put(self: torch.Tensor, *args, **kwargs) -> torch.Tensor:
 
 
 @contextlib.contextmanager
-def cuda_calls_stay_on_cpu() -> Iterator[None]:
-    """Make ``Tensor.cuda()`` a no-op inside the block when no CUDA device exists.
+def cuda_calls_stay_on_cpu(model_on_cpu: bool = False) -> Iterator[None]:
+    """Make ``Tensor.cuda()`` a no-op inside the block when no CUDA device exists, or always when
+    ``model_on_cpu`` (a model kept on the CPU of a CUDA machine, e.g. ``--machine.device-type cpu``).
 
     splatfacto hard-codes ``.cuda()`` in ``populate_modules`` and ``get_outputs``; on a CPU-only
     machine we run its code unchanged (rather than copying it) and keep tensors where they are.
@@ -127,7 +128,7 @@ def cuda_calls_stay_on_cpu() -> Iterator[None]:
     training runs: the real method comes back only when the last block exits.
     """
     global _cuda_patch_depth
-    if torch.cuda.is_available():
+    if torch.cuda.is_available() and not model_on_cpu:
         yield
         return
     with _cuda_patch_lock:

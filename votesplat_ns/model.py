@@ -19,10 +19,12 @@ import torch
 from torch.nn import Parameter
 
 from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
 
 from votesplat_ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
-from votesplat_ns.rasterizer import install_in_splatfacto, project_for_votes
+from votesplat_ns.foreground import foreground_from_exposure, mask_exposure
+from votesplat_ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
 from votesplat_ns.viewer import VoteSplatViewerState
 from votesplat_ns.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
 
@@ -114,6 +116,11 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Add instances to an already trained splatfacto (or votesplat) scene: take its Gaussians from this
     checkpoint (a .ckpt file, or a run folder holding nerfstudio_models/), freeze geometry and appearance, and
     train only the vote offsets. No colour pass and no densification run: this is also the fast vote-only path."""
+    foreground_min_masked_share: Optional[float] = 0.5
+    """At the end of training, a Gaussian keeps its vote support (stays foreground for clustering) at a level only
+    if more than this share of its rendering weight in the training views lies inside that level's masks: children
+    of densification inherit support and offsets from parents that once overlapped an object. The others get
+    negative support (background; offsets kept). None: keep all."""
     clip_model_name: str = "ViT-B-16"
     """open_clip model name used by the viewer's text query box."""
     clip_checkpoint: Optional[Path] = None
@@ -142,7 +149,8 @@ class VoteSplatModel(SplatfactoModel):
             raise ValueError(f"vote_every_n_steps must be >= 1 (got {self.config.vote_every_n_steps})")
         self.config.vote_levels = self._resolve_vote_levels()
         install_in_splatfacto()
-        with offline_lpips(), cuda_calls_stay_on_cpu():
+        # built on the CPU (splatfacto hard-codes one .cuda()); the pipeline moves the model to its device
+        with offline_lpips(), cuda_calls_stay_on_cpu(model_on_cpu=True):
             super().populate_modules()
         self.retrofitted = False
         if self.config.retrofit_from is not None:
@@ -185,7 +193,50 @@ class VoteSplatModel(SplatfactoModel):
                 f"--pipeline.model.retrofit-from {self.config.retrofit_from} does not exist: "
                 "give the trained splatfacto run folder or its step-*.ckpt"
             )
-        return super().get_training_callbacks(training_callback_attributes)
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
+        datamanager = getattr(pipeline, "datamanager", None)
+        if self.config.foreground_min_masked_share is not None and trainer is not None and hasattr(datamanager, "vote_batch"):
+            # after the last step's other callbacks (densification) and before the final checkpoint is saved
+            last_step = trainer._start_step + trainer.config.max_num_iterations - 1
+            callbacks.append(
+                TrainingCallback(
+                    [TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                    lambda step: self.restrict_support_to_masked_gaussians(datamanager),
+                    iters=(last_step,),
+                )
+            )
+        return callbacks
+
+    @torch.no_grad()
+    def restrict_support_to_masked_gaussians(self, datamanager) -> torch.Tensor:
+        """Negate the vote support of Gaussians whose weight in the training views lies mostly outside the masks.
+
+        Returns the [N, L] foreground mask. See ``votesplat_ns.foreground``.
+        """
+        cameras = datamanager.train_dataset.cameras.to(self.device)
+
+        def views():
+            for index in range(cameras.shape[0]):
+                camera = cameras[index : index + 1]
+                labels = datamanager.vote_batch(index, int(camera.height.item()), int(camera.width.item()))["vote_labels"]
+                yield get_viewmat(camera.camera_to_worlds)[0], camera.get_intrinsics_matrices()[0], labels
+
+        exposure = mask_exposure(
+            rasterize,
+            self.means,
+            self.quats,
+            torch.exp(self.scales),
+            torch.sigmoid(self.opacities).squeeze(-1),
+            views(),
+            rasterize_mode=self.config.rasterize_mode,
+        )
+        foreground = foreground_from_exposure(exposure, self.config.foreground_min_masked_share)
+        # > 0: foreground; 0: never supervised (zero offset); < 0: supervised, but seen mostly outside the
+        # masks, so background. Every consumer tests > 0; the count itself is kept.
+        support = self.gauss_params["vote_support"]
+        support.copy_(torch.where(foreground, support.abs(), -support.abs()))
+        return foreground
 
     def _resolve_vote_levels(self) -> Tuple[str, ...]:
         data_levels = (self.kwargs.get("metadata") or {}).get("vote_levels")
@@ -212,7 +263,7 @@ class VoteSplatModel(SplatfactoModel):
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
         if self.training and self.vote_only:
             return self._project_for_votes(camera)
-        with cuda_calls_stay_on_cpu():
+        with cuda_calls_stay_on_cpu(model_on_cpu=self.device.type == "cpu"):
             outputs = super().get_outputs(camera)
         if not self.training:  # ns-viewer's overlay, votes picture and selection (no-op for other callers)
             outputs.update(self.viewer_state.extra_outputs(camera, outputs))
