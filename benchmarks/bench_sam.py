@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -109,9 +108,10 @@ def main(argv=None) -> int:
     for row in rows:
         print(f"| {row['model_type']} | {row['encoder_s']:.3f} | {row['masks_s']:.2f} | {row['masks_per_level']} | {row['peak_mib']:.0f} |")
     if args.json is not None:
-        tmp = args.json.with_name(args.json.name + ".tmp")
-        tmp.write_text(json.dumps({"device": gpu, "width": args.width, "height": args.height, "rows": rows}, indent=2))
-        os.replace(tmp, args.json)
+        from votesplat_ns.ply_io import atomic_write
+
+        with atomic_write(args.json, "w") as handle:
+            json.dump({"device": gpu, "width": args.width, "height": args.height, "rows": rows}, handle, indent=2)
     return 0
 
 

@@ -23,16 +23,15 @@ keeps its folder (config.yml, checkpoint, eval/) under ``<work-dir>``.
 from __future__ import annotations
 
 import argparse
-import gc
 import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from votesplat_ns.ply_io import atomic_write  # noqa: E402  (after the path set-up)
 
 ABLATIONS: Dict[str, Dict[str, str]] = {
     "full": {},
@@ -42,79 +41,10 @@ ABLATIONS: Dict[str, Dict[str, str]] = {
 }
 
 
-def reset_nerfstudio_writers() -> None:
-    """nerfstudio keeps its event writers in module globals; a new run in the same process must not log into the old ones."""
-    from nerfstudio.utils import writer
-
-    for event_writer in list(writer.EVENT_WRITERS):
-        if hasattr(event_writer, "tb_writer"):
-            event_writer.tb_writer.close()
-    writer.EVENT_WRITERS.clear()
-    writer.EVENT_STORAGE.clear()
-    writer.GLOBAL_BUFFER.clear()
-
-
-def train_votesplat(
-    data: Path,
-    output_dir: Path,
-    steps: int,
-    vote_start: int,
-    device: str,
-    mask_folder: Optional[Path] = None,
-    **model_overrides,
-) -> Path:
-    """Train votesplat in-process (as tests/conftest.py does) and return the run's config.yml."""
-    import torch
-
-    from votesplat_ns.method import votesplat_trainer_config
-
-    config = votesplat_trainer_config()
-    config.machine.device_type = device
-    config.vis = "tensorboard"
-    config.output_dir = output_dir
-    config.timestamp = "run"
-    config.max_num_iterations = steps
-    config.steps_per_eval_image = 10 * steps
-    config.steps_per_eval_all_images = 10 * steps
-    config.steps_per_save = 10 * steps
-    config.data = data
-    config.pipeline.datamanager.data = data
-    config.pipeline.datamanager.cache_dir = output_dir / "vote_cache"
-    if mask_folder is not None:
-        config.pipeline.datamanager.mask_source = "folder"
-        config.pipeline.datamanager.mask_folder = mask_folder
-    model = config.pipeline.model
-    model.vote_start_step = vote_start
-    model.num_downscales = 0
-    for name, value in model_overrides.items():
-        if not hasattr(model, name):
-            raise ValueError(f"votesplat's model config has no field {name!r}")
-        setattr(model, name, value)
-    config.set_timestamp()
-    config.save_config()
-    reset_nerfstudio_writers()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    trainer.train()
-    config_path = config.get_base_dir() / "config.yml"
-    del trainer
-    gc.collect()
-    if device == "cuda":
-        torch.cuda.empty_cache()
-    return config_path
-
-
 def atomic_write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "w") as handle:
+        handle.write(text)
 
 
 def markdown_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
@@ -141,9 +71,10 @@ def markdown_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
 
 def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, **overrides) -> dict:
     from votesplat_ns.evaluate_cli import evaluate_run
+    from votesplat_ns.method import train_in_process
 
     start = time.time()
-    config_path = train_votesplat(scene, run_dir, args.steps, args.vote_start, args.device, mask_folder, **overrides)
+    config_path = train_in_process(scene, run_dir, args.steps, args.vote_start, args.device, "run", mask_folder, num_downscales=0, **overrides)
     train_seconds = time.time() - start
     start = time.time()
     result = evaluate_run(config_path, run_dir / "eval", level=args.level, min_weight=args.min_weight)

@@ -15,37 +15,13 @@ DEMO_VOTE_START = 40
 
 def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, **model_overrides) -> Path:
     """Train votesplat in-process on CPU and return the run's config.yml."""
-    from votesplat_ns.method import votesplat_trainer_config
+    from votesplat_ns.method import train_in_process
 
-    config = votesplat_trainer_config()
-    config.machine.device_type = "cpu"
-    config.vis = "tensorboard"
-    config.output_dir = output_dir
-    config.timestamp = "test"
-    config.max_num_iterations = steps
-    config.steps_per_eval_image = 10 * steps
-    config.steps_per_eval_all_images = 10 * steps
-    config.steps_per_save = 10 * steps
-    config.data = data
-    config.pipeline.datamanager.data = data
-    config.pipeline.datamanager.cache_dir = output_dir / "vote_cache"
-    model = config.pipeline.model
-    model.vote_start_step = vote_start
     # CPU budget: render at 64 px (splatfacto's resolution schedule stays at 1/2 for the whole
-    # run) and sample 1024 vote pixels per level; the vote loss is a mean over masked pixels,
-    # so fewer samples keep its expected gradient.
-    model.num_downscales = 1
-    model.resolution_schedule = 100 * steps
-    model.vote_pixels_per_step = 1024
-    model.vote_every_n_steps = 1  # a few hundred CPU steps: every one counts
-    for name, value in model_overrides.items():
-        setattr(model, name, value)
-    config.set_timestamp()
-    config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    trainer.train()
-    return config.get_base_dir() / "config.yml"
+    # run) and sample 1024 vote pixels per step; the vote loss is a mean over masked pixels,
+    # so fewer samples keep its expected gradient. A few hundred steps: vote on every one.
+    cpu_budget = dict(num_downscales=1, resolution_schedule=100 * steps, vote_pixels_per_step=1024, vote_every_n_steps=1)
+    return train_in_process(data, output_dir, steps, vote_start, "cpu", "test", **{**cpu_budget, **model_overrides})
 
 
 @pytest.fixture(scope="session")

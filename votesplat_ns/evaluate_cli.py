@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import shutil
 import sys
 import tempfile
@@ -52,6 +51,7 @@ from votesplat_ns.evaluation import gaussian_purity, match_instances, save_compa
 from votesplat_ns.instances import render_instance_ids
 from votesplat_ns.mask_noise import MaskNoise
 from votesplat_ns.mask_sources import read_label_png
+from votesplat_ns.ply_io import atomic_write
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"
@@ -452,15 +452,8 @@ def score_level(
 def write_json_atomic(path: Union[str, Path], data: dict) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(json.dumps(data, indent=2) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "w") as handle:
+        handle.write(json.dumps(data, indent=2) + "\n")
     return path
 
 

@@ -8,7 +8,10 @@ applies the plugin's compatibility fixes: checkpoint loading under torch >= 2.6 
 
 from __future__ import annotations
 
+import gc
 import warnings
+from pathlib import Path
+from typing import Optional
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -100,3 +103,61 @@ votesplat_method = MethodSpecification(
 )
 
 _install_export_hook()
+
+
+def train_in_process(
+    data: Path,
+    output_dir: Path,
+    steps: int,
+    vote_start: int,
+    device: str = "cpu",
+    timestamp: str = "run",
+    mask_folder: Optional[Path] = None,
+    **model_overrides,
+) -> Path:
+    """Train votesplat in this process (tests, benchmarks/quality.py); returns the run's config.yml.
+
+    No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
+    ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields.
+    """
+    import torch
+    from nerfstudio.utils import writer
+
+    config = votesplat_trainer_config()
+    config.machine.device_type = device
+    config.vis = "tensorboard"
+    config.output_dir = output_dir
+    config.timestamp = timestamp
+    config.max_num_iterations = steps
+    config.steps_per_eval_image = 10 * steps
+    config.steps_per_eval_all_images = 10 * steps
+    config.steps_per_save = 10 * steps
+    config.data = data
+    config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.cache_dir = output_dir / "vote_cache"
+    if mask_folder is not None:
+        config.pipeline.datamanager.mask_source = "folder"
+        config.pipeline.datamanager.mask_folder = mask_folder
+    model = config.pipeline.model
+    model.vote_start_step = vote_start
+    for name, value in model_overrides.items():
+        if not hasattr(model, name):
+            raise ValueError(f"votesplat's model config has no field {name!r}")
+        setattr(model, name, value)
+    config.set_timestamp()
+    config.save_config()
+    # nerfstudio keeps its event writers in module globals: a second run in this process must not log into the first's
+    for event_writer in list(writer.EVENT_WRITERS):
+        if hasattr(event_writer, "tb_writer"):
+            event_writer.tb_writer.close()
+    writer.EVENT_WRITERS.clear()
+    writer.EVENT_STORAGE.clear()
+    writer.GLOBAL_BUFFER.clear()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    del trainer
+    gc.collect()
+    if device == "cuda":
+        torch.cuda.empty_cache()
+    return config.get_base_dir() / "config.yml"
