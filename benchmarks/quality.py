@@ -2,6 +2,8 @@
 
     python benchmarks/quality.py --scenes votesplat_ns/data/demo build/scenes/forward --steps 800
     python benchmarks/quality.py --scenes build/scenes/forward --ablation --steps 800
+    python benchmarks/quality.py --scenes build/scenes/forward --ablation --retrofit --base-steps 1500 \
+        --steps 400 --seeds 0 1 2
 
 For every scene folder (written by ``votesplat-synth``) and every mask kind in ``--masks``:
 
@@ -15,6 +17,13 @@ paper's Table 3 variants on each scene with GT masks instead: the full model, no
 (``vote_distortion=none``), votes blended in 2D (``vote_blend_space=2d``) and alpha*T vote weights
 (``vote_weighting=alpha_t``).
 
+``--seeds 0 1 2`` repeats every run with each seed and adds a table of means and standard
+deviations: on the forward-facing scene one run does not rank the ablation variants.
+``--retrofit`` trains each scene's geometry once without votes (``--base-steps``) and then trains
+only the offsets on that frozen scene for ``--steps`` steps per run (the retrofit / vote-only path,
+affordable on CPU). The vote losses never move the geometry (``votes_move_geometry`` off), so this
+keeps exactly what the variants change and removes the run-to-run noise of densification.
+
 Training runs in this process on CUDA if present, else CPU (``num_downscales=0``: the scenes are
 small). Results go to ``<work-dir>/quality.md`` and ``quality.json`` (atomic writes); every run
 keeps its folder (config.yml, checkpoint, eval/) under ``<work-dir>``.
@@ -24,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -69,18 +79,58 @@ def markdown_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
-def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, **overrides) -> dict:
+SUMMARY_METRICS = ("miou", "precision", "recall", "purity", "num_pred")
+
+
+def summary_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
+    """Mean ± standard deviation over seeds of each (scene, variant/masks) group."""
+    groups: Dict[tuple, List[dict]] = {}
+    for row in rows:
+        if "error" not in row:
+            groups.setdefault(tuple(row[c] for c in first_columns), []).append(row)
+    header = list(first_columns) + ["runs", "mIoU", "precision", "recall", "purity", "#pred"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for key, group in groups.items():
+        cells = []
+        for metric in SUMMARY_METRICS:
+            values = [float(row[metric]) for row in group]
+            spread = statistics.stdev(values) if len(values) > 1 else 0.0
+            cells.append(f"{statistics.mean(values):.3f} ± {spread:.3f}" if metric != "num_pred" else f"{statistics.mean(values):.1f} ± {spread:.1f}")
+        lines.append("| " + " | ".join([str(k) for k in key] + [str(len(group))] + cells) + " |")
+    return "\n".join(lines)
+
+
+def train_base_scene(scene: Path, args) -> Path:
+    """The scene's geometry without votes (the retrofit source), trained once and reused."""
+    from votesplat_ns.method import train_in_process
+    from votesplat_ns.model import latest_checkpoint
+
+    base_dir = args.work_dir / scene.resolve().name / f"base_{args.base_steps}"
+    for config_path in sorted(base_dir.glob("*/votesplat/run/config.yml")):  # <experiment>/<method>/<timestamp>
+        try:
+            latest_checkpoint(config_path)
+            return config_path
+        except ValueError:  # an interrupted training: train again
+            pass
+    # vote start after the last step: plain splatfacto training (the vote cache is still built)
+    return train_in_process(scene, base_dir, args.base_steps, args.base_steps + 1, args.device, "run", num_downscales=0)
+
+
+def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, seed: int = 42, **overrides) -> dict:
     from votesplat_ns.evaluate_cli import evaluate_run
     from votesplat_ns.method import train_in_process
 
     start = time.time()
-    config_path = train_in_process(scene, run_dir, args.steps, args.vote_start, args.device, "run", mask_folder, num_downscales=0, **overrides)
+    config_path = train_in_process(
+        scene, run_dir, args.steps, args.vote_start, args.device, "run", mask_folder, seed=seed, num_downscales=0, **overrides
+    )
     train_seconds = time.time() - start
     start = time.time()
     result = evaluate_run(config_path, run_dir / "eval", level=args.level, min_weight=args.min_weight)
     eval_seconds = time.time() - start
     level = result.metrics["levels"][args.level]
     return {
+        "seed": seed,
         "level": args.level,
         "miou": level["miou"],
         "precision": level["precision"],
@@ -109,7 +159,7 @@ def parse_args(argv: Optional[List[str]] = None):
     parser.add_argument(
         "--vote-pixels", type=int, default=None, help="vote_pixels_per_step (model default 4096); fewer makes CPU steps cheaper"
     )
-    parser.add_argument("--vote-every", type=int, default=None, help="vote_every_n_steps (model default 1)")
+    parser.add_argument("--vote-every", type=int, default=None, help="vote_every_n_steps (model default 4; a retrofit votes every step)")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     parser.add_argument("--level", default="instance", help="vote level reported in the table (metrics.json has every level)")
     parser.add_argument("--min-weight", type=float, default=0.5)
@@ -119,7 +169,18 @@ def parse_args(argv: Optional[List[str]] = None):
     parser.add_argument("--jitter-rate", type=float, default=0.5)
     parser.add_argument("--drop-rate", type=float, default=0.05)
     parser.add_argument("--noise-seed", type=int, default=0)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[42], help="repeat every run with each training seed")
+    parser.add_argument("--retrofit", action="store_true", help="train the offsets only, on a scene trained once without votes")
+    parser.add_argument("--base-steps", type=int, default=1500, help="training steps of that scene (with --retrofit)")
+    parser.add_argument(
+        "--summarize", nargs="+", type=Path, default=None, metavar="JSON",
+        help="train nothing: print mean ± std over the rows of these quality.json/ablation.json files (runs made in parallel)",
+    )
     args = parser.parse_args(argv)
+    if args.summarize:
+        return args
+    if args.retrofit:
+        args.vote_start = 0  # a retrofit votes from its first step
     if args.steps <= args.vote_start:
         parser.error(f"--steps ({args.steps}) must exceed --vote-start ({args.vote_start}) so the votes get trained")
     for scene in args.scenes:
@@ -128,8 +189,29 @@ def parse_args(argv: Optional[List[str]] = None):
     return args
 
 
+def summarize(files: Sequence[Path]) -> str:
+    """One mean ± std table over the runs stored in several quality.json / ablation.json files."""
+    rows: List[dict] = []
+    first_columns: Optional[List[str]] = None
+    for path in files:
+        try:
+            stored = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as err:
+            raise SystemExit(f"quality.py: error: cannot read {path} ({err}); pass quality.json/ablation.json files this script wrote")
+        columns = ["scene", "variant"] if stored["settings"].get("ablation") else ["scene", "masks"]
+        if first_columns not in (None, columns):
+            raise SystemExit("quality.py: error: --summarize got both ablation and quality files; summarize each kind separately")
+        first_columns = columns
+        rows.extend(stored["rows"])
+    assert first_columns is not None
+    return summary_table(rows, first_columns)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     args = parse_args(argv)
+    if args.summarize:
+        print(summarize(args.summarize))
+        return 0
     import torch
 
     from votesplat_ns.evaluate_cli import write_noisy_masks
@@ -144,12 +226,16 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     def record(row: dict) -> None:
         rows.append(row)
-        table = markdown_table(rows, first_columns)
+        table = markdown_table(rows, [*first_columns, "seed"] if len(args.seeds) > 1 else first_columns)
         settings = (
             f"steps {args.steps}, vote start {args.vote_start}, vote pixels per step {args.vote_pixels or 'default (4096)'}, "
-            f"vote every {args.vote_every or 1} steps, "
+            f"vote every {1 if args.retrofit else args.vote_every or 'default (4)'} steps, "
             f"device {args.device}, level {args.level}"
         )
+        if args.retrofit:
+            settings = f"retrofit on a scene trained {args.base_steps} steps without votes; " + settings
+        if len(args.seeds) > 1:
+            table += "\n\nMean ± standard deviation over seeds " + ", ".join(map(str, args.seeds)) + ":\n\n" + summary_table(rows, first_columns)
         atomic_write_text(args.work_dir / f"{suffix}.md", f"{settings}\n\n{table}\n")
         atomic_write_text(args.work_dir / f"{suffix}.json", json.dumps({"settings": vars(args) | {"scenes": [str(s) for s in args.scenes], "work_dir": str(args.work_dir)}, "rows": rows}, indent=2, default=str) + "\n")
         print(table, flush=True)
@@ -170,12 +256,18 @@ def main(argv: Optional[List[str]] = None) -> int:
                 if masks == "noisy":
                     folder = write_noisy_masks(scene, args.work_dir / name / "noisy_masks", noise, overwrite=True)
                 jobs.append(({"scene": name, "masks": masks}, args.work_dir / name / masks, folder, dict(base)))
-        for labels, run_dir, folder, overrides in jobs:
-            try:
-                row = run_one(scene, run_dir, args, folder, **overrides)
-            except Exception as err:  # one failed run must not lose the others' rows
-                row = {"error": f"{type(err).__name__}: {err}"}
-            record({**labels, **row})
+        if args.retrofit:
+            base_config = train_base_scene(scene, args)
+            jobs = [(labels, run_dir, folder, {**overrides, "retrofit_from": base_config}) for labels, run_dir, folder, overrides in jobs]
+        for seed in args.seeds:
+            for labels, run_dir, folder, overrides in jobs:
+                if len(args.seeds) > 1:
+                    run_dir = run_dir.with_name(f"{run_dir.name}_seed{seed}")
+                try:
+                    row = run_one(scene, run_dir, args, folder, seed=seed, **overrides)
+                except Exception as err:  # one failed run must not lose the others' rows
+                    row = {"error": f"{type(err).__name__}: {err}", "seed": seed}
+                record({**labels, **row})
     print(f"\nwrote {args.work_dir / (suffix + '.md')}")
     return 0
 

@@ -113,18 +113,24 @@ def train_in_process(
     device: str = "cpu",
     timestamp: str = "run",
     mask_folder: Optional[Path] = None,
+    seed: int = 42,
     **model_overrides,
 ) -> Path:
     """Train votesplat in this process (tests, benchmarks/quality.py); returns the run's config.yml.
 
     No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
     ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields.
+    ``seed`` seeds Python, NumPy and torch as ns-train does (``--machine.seed``).
     """
+    import random
+
+    import numpy as np
     import torch
     from nerfstudio.utils import writer
 
     config = votesplat_trainer_config()
     config.machine.device_type = device
+    config.machine.seed = seed
     config.vis = "tensorboard"
     config.output_dir = output_dir
     config.timestamp = timestamp
@@ -153,6 +159,9 @@ def train_in_process(
     writer.EVENT_WRITERS.clear()
     writer.EVENT_STORAGE.clear()
     writer.GLOBAL_BUFFER.clear()
+    random.seed(seed)  # what ns-train's train_loop does before setting up the trainer
+    np.random.seed(seed)
+    torch.manual_seed(seed)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     trainer.train()

@@ -19,7 +19,8 @@
 #                     1920x1080 on a fox frame (random weights: no checkpoint here), + the fox
 #                     vote cache's size per view when a train-fox run left one
 #   quality           ~300-450 s  benchmarks/quality.py on the scenes in $QUALITY_SCENES (GT and
-#                     noisy masks) and the ablation on $ABLATION_SCENE, every run its own process,
+#                     noisy masks) and the ablation on $ABLATION_SCENE (each seed of $ABLATION_SEEDS,
+#                     then mean ± std), every run its own process,
 #                     all at once (the GPU is mostly idle in one small-scene run); QUALITY_STEPS
 #                     (3000), QUALITY_VOTE_START (500). Output quality.md (merged tables), quality.tar.gz
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
@@ -57,6 +58,7 @@ PY=${PY:-python3}
 EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-}
 QUALITY_SCENES=${QUALITY_SCENES:-"votesplat_ns/data/demo build/scenes/nested build/scenes/forward"}
 ABLATION_SCENE=${ABLATION_SCENE:-build/scenes/forward}
+ABLATION_SEEDS=${ABLATION_SEEDS:-"0 1 2"}                  # one run per variant and seed, all in parallel
 QUALITY_STEPS=${QUALITY_STEPS:-3000}
 QUALITY_VOTE_START=${QUALITY_VOTE_START:-500}
 QUALITY_MASKS=${QUALITY_MASKS:-"gt noisy"}
@@ -311,18 +313,25 @@ stage_quality() {
     done
   done
   if [ -f "$ABLATION_SCENE/transforms.json" ]; then
-    for variant in "full" "no distortion" "2D blending" "alpha*T weights"; do
-      # shellcheck disable=SC2086
-      timeout "$(limit_s)" "$PY" benchmarks/quality.py --scenes "$ABLATION_SCENE" --ablation --variants "$variant" \
-        --steps "$QUALITY_STEPS" --vote-start "$QUALITY_VOTE_START" $QUALITY_ARGS \
-        --work-dir "$work/ablation-${variant//[^a-zA-Z0-9]/_}" >"$work/ablation-${variant//[^a-zA-Z0-9]/_}.log" 2>&1 &
-      pids+=($!)
+    local seed run
+    for seed in $ABLATION_SEEDS; do
+      for variant in "full" "no distortion" "2D blending" "alpha*T weights"; do
+        run="ablation-${variant//[^a-zA-Z0-9]/_}-seed$seed"
+        # shellcheck disable=SC2086
+        timeout "$(limit_s)" "$PY" benchmarks/quality.py --scenes "$ABLATION_SCENE" --ablation --variants "$variant" \
+          --seeds "$seed" --steps "$QUALITY_STEPS" --vote-start "$QUALITY_VOTE_START" $QUALITY_ARGS \
+          --work-dir "$work/$run" >"$work/$run.log" 2>&1 &
+        pids+=($!)
+      done
     done
   fi
   log "quality: ${#pids[@]} runs started, $QUALITY_STEPS steps each" | tee -a "$OUT/quality.log"
   for pid in "${pids[@]}"; do wait "$pid" || rc=1; done
   log "quality: all runs ended (exit $rc)" | tee -a "$OUT/quality.log"
   { for f in "$work"/*/quality.md "$work"/*/ablation.md; do [ -f "$f" ] && { echo "## $f"; cat "$f"; echo; }; done; } >"$OUT/quality.md"
+  if compgen -G "$work/ablation-*/ablation.json" >/dev/null; then
+    { echo "## ablation: mean ± std over seeds $ABLATION_SEEDS"; "$PY" benchmarks/quality.py --summarize "$work"/ablation-*/ablation.json; } >>"$OUT/quality.md" 2>&1
+  fi
   cat "$OUT/quality.md" | tee -a "$OUT/quality.log"
   tail -n 5 "$work"/*.log >>"$OUT/quality.log"
   # metrics, comparison pictures and logs (no checkpoints) come back
