@@ -121,6 +121,8 @@ def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
         seen.add(index)
         labels, centroids = data["vote_labels"], data["vote_centroids"]
         assert labels.dtype == torch.int32 and centroids.dtype == torch.float32
+        # host tensors: the model copies them to its device only on the steps that vote
+        assert labels.device.type == "cpu" and centroids.device.type == "cpu"
         assert labels.shape == (2, *data["image"].shape[:2]) == (2, HEIGHT, WIDTH)
         instance, part = frame_labels(frame_number(manager, index))
         # ids 1, 2 keep their numbers; the border-touching id 3 is dropped

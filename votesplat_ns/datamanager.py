@@ -323,14 +323,20 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         camera, data = super().next_train(step)
         assert camera.metadata is not None
         index = int(camera.metadata["cam_idx"])
-        data.update(self.vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
+        # Host tensors: the model copies them to its device only on the steps that vote
+        # (vote_every_n_steps), instead of ~4 MB host-to-device on every step.
+        data.update(self.host_vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
         return camera, data
 
     def vote_batch(self, index: int, height: Optional[int] = None, width: Optional[int] = None) -> Dict[str, torch.Tensor]:
-        """``vote_labels`` [L,H,W] and ``vote_centroids`` [L,K+1,2] of train view ``index``.
+        """``vote_labels`` [L,H,W] and ``vote_centroids`` [L,K+1,2] of train view ``index``, on the device.
 
         At the training image's resolution unless ``height``/``width`` are given.
         """
+        return {name: tensor.to(self.device) for name, tensor in self.host_vote_batch(index, height, width).items()}
+
+    def host_vote_batch(self, index: int, height: Optional[int] = None, width: Optional[int] = None) -> Dict[str, torch.Tensor]:
+        """``vote_batch`` in host memory (the kept copy: do not modify it)."""
         if height is None or width is None:
             camera = self.train_dataset.cameras[index]
             height, width = int(camera.height.item()), int(camera.width.item())
@@ -347,7 +353,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
                 self._in_memory.popitem(last=False)
         else:
             self._in_memory.move_to_end(index)
-        return {name: tensor.to(self.device) for name, tensor in cached.items()}
+        return dict(cached)
 
 
 def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
