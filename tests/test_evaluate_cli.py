@@ -12,9 +12,9 @@ import pytest
 import torch
 from PIL import Image
 
+from votesplat_ns.cameras import PinholeView
 import votesplat_ns.evaluate_cli as evaluate_cli
 from votesplat_ns.evaluate_cli import (
-    EvalView,
     GroundTruthDataset,
     LabelledView,
     MaskNoise,
@@ -171,7 +171,7 @@ def test_rendering_gt_gaussian_ids_through_the_eval_path_scores_high(trained_dem
 
 def test_view_splits():
     def views(*names):
-        return lambda: [EvalView(n, torch.eye(4), torch.eye(3), 8, 8) for n in names]
+        return lambda: [PinholeView(torch.eye(4), torch.eye(3), 8, 8, name=n) for n in names]
 
     held_out, train = views("a.png", "b.png"), views("c.png", "a.png", "d.png")
     assert [v.name for v in select_views("eval", held_out, train)] == ["a.png", "b.png"]

@@ -19,11 +19,10 @@ import votesplat_ns.export as export_module
 from votesplat_ns.export import (
     SUBCOMMAND_NAME,
     ExportVoteSplatInstances,
-    View,
     export_instances,
     install_ns_export_hook,
-    viewmat_from_camera_to_world,
 )
+from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.instances import InstanceSet
 from votesplat_ns.ply_io import read_gaussian_ply, read_ply_header
 
@@ -120,7 +119,7 @@ def test_export_writes_a_consistent_folder(tmp_path):
 def test_export_picture_with_a_renderer(tmp_path):
     params, _ = vote_scene(num_background=0)
     K = torch.tensor([[24.0, 0, 20.0], [0, 24.0, 15.0], [0, 0, 1]])
-    view = View(viewmat=torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 8], [0, 0, 0, 1]]), K=K, width=40, height=30)
+    view = PinholeView(viewmat=torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 8], [0, 0, 0, 1]]), K=K, width=40, height=30)
     manifest = export(params, tmp_path / "out", views=[view, view], rasterize_fn=brute_force_rasterize)
     from PIL import Image
 

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from votesplat_ns.instances import InstanceSet, LevelInstances, instance_colors, render_instance_ids
 from votesplat_ns.ply_io import read_gaussian_ply
 from votesplat_ns.rasterizer import rasterize
+from votesplat_ns.cameras import PinholeView
 from votesplat_ns.viewer import (
     DISPLAY_ALL,
     DISPLAY_HIDE,
@@ -31,7 +32,6 @@ from votesplat_ns.viewer import (
     VOTE_BACKGROUND_GREY,
     InstanceViewerState,
     SplatScene,
-    ViewCamera,
     overlay_instances,
     render_rgb,
     render_vote_picture,
@@ -59,9 +59,9 @@ def look_at(eye, target=(0.0, 0.0, 4.0)) -> torch.Tensor:
     return viewmat
 
 
-def make_view(eye=(0.0, 0.0, 0.0)) -> ViewCamera:
+def make_view(eye=(0.0, 0.0, 0.0)) -> PinholeView:
     K = torch.tensor([[40.0, 0.0, WIDTH / 2], [0.0, 40.0, HEIGHT / 2], [0.0, 0.0, 1.0]])
-    return ViewCamera(viewmat=look_at(eye), K=K, width=WIDTH, height=HEIGHT)
+    return PinholeView(viewmat=look_at(eye), K=K, width=WIDTH, height=HEIGHT)
 
 
 def make_scene(seed: int = 0):
@@ -146,7 +146,7 @@ def palette(instance_map: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(instance_colors(instance_map.numpy())).float() / 255.0
 
 
-def direct_id_map(scene: SplatScene, view: ViewCamera, ids: torch.Tensor) -> torch.Tensor:
+def direct_id_map(scene: SplatScene, view: PinholeView, ids: torch.Tensor) -> torch.Tensor:
     return render_instance_ids(rasterize, scene.means, scene.quats, scene.scales, scene.opacities, ids,
                                view.viewmat, view.K, view.width, view.height)
 
@@ -464,7 +464,7 @@ def state_cpu_instances(scene, view, base, ids, part_ids):
 def test_viewer_outputs_on_cuda_agree_with_the_cpu_renderer(scene_and_ids, front):
     scene, ids, part_ids = scene_and_ids
     view, base, id_map = front
-    cuda_view = ViewCamera(view.viewmat.cuda(), view.K.cuda(), view.width, view.height)
+    cuda_view = PinholeView(view.viewmat.cuda(), view.K.cuda(), view.width, view.height)
     cuda_scene = scene.to("cuda")
     state = InstanceViewerState(("instance", "part"), cluster_fn=lambda s, levels: known_instances(scene, ids, part_ids))
     cuda_base = render_rgb(cuda_scene, cuda_view)  # gsplat's CUDA rasteriser

@@ -46,6 +46,7 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple, Uni
 import numpy as np
 import torch
 
+from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.evaluation import gaussian_purity, match_instances, save_comparison_png
 from votesplat_ns.instances import render_instance_ids
@@ -301,17 +302,6 @@ def gaussian_ground_truth(
 
 
 @dataclass
-class EvalView:
-    """A camera of the pipeline (nerfstudio frame) and the image it was loaded from."""
-
-    name: str
-    viewmat: torch.Tensor  # [4, 4] world-to-camera, OpenCV (gsplat)
-    K: torch.Tensor  # [3, 3]
-    width: int
-    height: int
-
-
-@dataclass
 class GaussianScene:
     """Activated Gaussians (nerfstudio frame) with their votes, as the renderer and clustering need them."""
 
@@ -351,7 +341,7 @@ class GaussianScene:
 def render_id_maps(
     scene: GaussianScene,
     gaussian_ids,
-    views: Sequence[EvalView],
+    views: Sequence[PinholeView],
     rasterize_fn: Callable[..., tuple],
     out_sizes: Optional[Sequence[Tuple[int, int]]] = None,
     min_weight: float = 0.5,
@@ -490,9 +480,7 @@ def _dataset_of(config) -> Path:
     return Path(data)
 
 
-def _views_of(dataset) -> List[EvalView]:
-    from votesplat_ns.export import viewmat_from_camera_to_world
-
+def _views_of(dataset) -> List[PinholeView]:
     cameras = dataset.cameras
     views = []
     for index, filename in enumerate(dataset.image_filenames):
@@ -501,7 +489,7 @@ def _views_of(dataset) -> List[EvalView]:
         if distortion is not None and bool(torch.any(distortion != 0)):
             raise ValueError(f"view {Path(filename).name} has lens distortion; votesplat-eval supports undistorted (pinhole) datasets")
         views.append(
-            EvalView(
+            PinholeView(
                 name=Path(filename).name,
                 viewmat=viewmat_from_camera_to_world(camera.camera_to_worlds[0].float()),
                 K=camera.get_intrinsics_matrices()[0].float(),
@@ -531,11 +519,11 @@ def _levels_to_score(model_levels: Sequence[str], gt_levels: Sequence[str], leve
     return [(level, target)]
 
 
-def select_views(kind: ViewSplit, eval_views: Callable[[], List[EvalView]], train_views: Callable[[], List[EvalView]]) -> List[EvalView]:
+def select_views(kind: ViewSplit, eval_views: Callable[[], List[PinholeView]], train_views: Callable[[], List[PinholeView]]) -> List[PinholeView]:
     """The views of a split: held-out ("eval"), training ("train") or both ("all", held-out first, no repeats)."""
     if kind not in ("eval", "train", "all"):
         raise ValueError(f"views must be 'eval', 'train' or 'all' (got {kind!r})")
-    chosen: List[EvalView] = list(eval_views()) if kind in ("eval", "all") else []
+    chosen: List[PinholeView] = list(eval_views()) if kind in ("eval", "all") else []
     if kind in ("train", "all"):
         seen = {v.name for v in chosen}
         chosen += [v for v in train_views() if v.name not in seen]

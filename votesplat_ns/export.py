@@ -39,6 +39,7 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
+from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.instances import MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture
 from votesplat_ns.ply_io import SH_C0, gaussian_vertex_table, write_gaussian_table, write_instance_id_file
@@ -47,17 +48,6 @@ VOTE_OFFSETS_KEY = "vote_offsets"
 VOTE_SUPPORT_KEY = "vote_support"
 SUBCOMMAND_NAME = "votesplat-instances"
 EXPORTER_MODULE = "nerfstudio.scripts.exporter"
-
-
-@dataclass
-class View:
-    """A camera to draw the instance picture from (OpenCV world-to-camera, as gsplat)."""
-
-    viewmat: torch.Tensor  # [4, 4]
-    K: torch.Tensor  # [3, 3]
-    width: int
-    height: int
-    image: Optional[torch.Tensor] = None  # [H, W, 3] in [0, 1], shown above the id map
 
 
 @dataclass
@@ -185,7 +175,7 @@ def export_instances(
     output_dir: Union[str, Path],
     level: Union[int, str, None] = None,
     remove: Optional[Sequence[int]] = None,
-    views: Optional[Sequence[View]] = None,
+    views: Optional[Sequence[PinholeView]] = None,
     rasterize_fn: Optional[Callable[..., tuple]] = None,
     level_names: Optional[Sequence[str]] = None,
     sh_degree: Optional[int] = None,
@@ -288,7 +278,7 @@ def _write_export(
     level_index: int,
     remove_ids: List[int],
     folder: Path,
-    views: Optional[Sequence[View]],
+    views: Optional[Sequence[PinholeView]],
     rasterize_fn,
     render_device,
     task,
@@ -345,7 +335,7 @@ def _write_export(
     return instance_set.save(folder, instance_extra={chosen.name: per_instance}, extra=extra)
 
 
-def _write_picture(params: _Params, ids: np.ndarray, views: Sequence[View], rasterize_fn, device, path: Path, task) -> str:
+def _write_picture(params: _Params, ids: np.ndarray, views: Sequence[PinholeView], rasterize_fn, device, path: Path, task) -> str:
     device = torch.device(device) if device is not None else torch.device("cpu")
     finite = np.isfinite(params.means).all(1) & np.isfinite(params.log_scales).all(1) & np.isfinite(params.quats).all(1)
     finite &= np.isfinite(params.opacity_logits)
@@ -370,20 +360,7 @@ def _write_picture(params: _Params, ids: np.ndarray, views: Sequence[View], rast
 # ----------------------------------------------------------------------------- nerfstudio glue
 
 
-def viewmat_from_camera_to_world(camera_to_world: torch.Tensor) -> torch.Tensor:
-    """nerfstudio camera-to-world [3, 4] (OpenGL axes) -> gsplat world-to-camera [4, 4] (OpenCV).
-
-    The same conversion as splatfacto's ``get_viewmat``.
-    """
-    rotation = camera_to_world[:3, :3] * torch.tensor([1.0, -1.0, -1.0], dtype=camera_to_world.dtype, device=camera_to_world.device)
-    translation = camera_to_world[:3, 3:4]
-    viewmat = torch.eye(4, dtype=camera_to_world.dtype, device=camera_to_world.device)
-    viewmat[:3, :3] = rotation.T
-    viewmat[:3, 3:4] = -rotation.T @ translation
-    return viewmat
-
-
-def training_views(pipeline, num_views: int, max_width: int = 320) -> List[View]:
+def training_views(pipeline, num_views: int, max_width: int = 320) -> List[PinholeView]:
     """Up to ``num_views`` evenly spaced training cameras (and images), at most ``max_width`` wide."""
     if num_views <= 0:
         return []
@@ -403,7 +380,7 @@ def training_views(pipeline, num_views: int, max_width: int = 320) -> List[View]
         with contextlib.suppress(Exception):  # the picture still works without the photo row
             image = dataset[index]["image"][..., :3].float()
             image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(out_h, out_w), mode="area")[0].permute(1, 2, 0)
-        views.append(View(viewmat_from_camera_to_world(camera.camera_to_worlds[0].float()), K, out_w, out_h, image))
+        views.append(PinholeView(viewmat_from_camera_to_world(camera.camera_to_worlds[0].float()), K, out_w, out_h, image=image))
     return views
 
 
@@ -459,7 +436,7 @@ class ExportVoteSplatInstances:
             _, pipeline, _, _ = eval_setup(self.load_config, test_mode="inference")
             model = pipeline.model
             device = next(iter(model.gauss_params.values())).device if hasattr(model, "gauss_params") else torch.device("cpu")
-            views: List[View] = []
+            views: List[PinholeView] = []
             rasterize_fn = default_rasterizer() if self.num_views > 0 else None
             if rasterize_fn is None and self.num_views > 0:
                 CONSOLE.print("[yellow]No rasterizer available on this device; instances.png is skipped.")

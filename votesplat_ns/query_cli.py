@@ -44,6 +44,7 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
+from votesplat_ns.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
 from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.instances import InstanceSet, LevelInstances, render_instance_ids
 from votesplat_ns.lerf_ovs import (
@@ -123,17 +124,6 @@ def make_encoder(clip_model: str = DEFAULT_CLIP_MODEL, clip_checkpoint: Optional
 
 
 @dataclass
-class ViewCamera:
-    """One camera in the project convention (OpenCV world-to-camera) and its image name."""
-
-    viewmat: torch.Tensor  # [4, 4]
-    K: torch.Tensor  # [3, 3]
-    width: int
-    height: int
-    name: str = ""
-
-
-@dataclass
 class ClusteringOptions:
     """HDBSCAN settings of the instances; the defaults are votesplat-export's."""
 
@@ -160,12 +150,12 @@ class QueryScene:
 
     Build it with :meth:`from_config` (loads the checkpoint through nerfstudio) or directly from
     parameters and cameras (tests, other front ends). ``params`` is export's ``_Params``;
-    ``train_views``/``eval_views`` are lists of ``(ViewCamera, image_loader)`` where
+    ``train_views``/``eval_views`` are lists of ``(PinholeView, image_loader)`` where
     ``image_loader()`` returns the view's image as [H, W, 3] uint8 at the camera's resolution.
     """
 
-    def __init__(self, params, level: LevelInstances, train_views: Sequence[Tuple[ViewCamera, Any]],
-                 eval_views: Sequence[Tuple[ViewCamera, Any]] = (), run_dir: Optional[Path] = None,
+    def __init__(self, params, level: LevelInstances, train_views: Sequence[Tuple[PinholeView, Any]],
+                 eval_views: Sequence[Tuple[PinholeView, Any]] = (), run_dir: Optional[Path] = None,
                  device: Union[str, torch.device] = "cpu", rasterize_mode: str = "classic",
                  instances_source: str = "clustered") -> None:
         self.params = params
@@ -222,16 +212,16 @@ class QueryScene:
                    rasterize_mode=rasterize_mode, instances_source=source)
 
     # ------------------------------------------------------------------ cameras
-    def train_camera(self, index: int, max_width: Optional[int] = None) -> ViewCamera:
+    def train_camera(self, index: int, max_width: Optional[int] = None) -> PinholeView:
         if not isinstance(index, (int, np.integer)) or not 0 <= index < len(self.train_views):
             raise ValueError(
                 f"view {index} is out of range: this run has {len(self.train_views)} training views "
                 f"(pass --view/--views between 0 and {len(self.train_views) - 1})"
             )
         camera = self.train_views[index][0]
-        return camera if max_width is None else scaled_camera(camera, max_width)
+        return camera if max_width is None else scaled_view(camera, max_width)
 
-    def train_image(self, index: int, camera: Optional[ViewCamera] = None) -> np.ndarray:
+    def train_image(self, index: int, camera: Optional[PinholeView] = None) -> np.ndarray:
         """The training image of view ``index`` as uint8 [H, W, 3], area-resized to ``camera``'s size."""
         full_camera = self.train_camera(index)
         image = np.asarray(self.train_views[index][1]())
@@ -247,7 +237,7 @@ class QueryScene:
             image = resized.round().clamp(0, 255).to(torch.uint8).numpy()
         return image
 
-    def camera_for_image(self, name: str) -> ViewCamera:
+    def camera_for_image(self, name: str) -> PinholeView:
         """The camera of the training or evaluation image whose file stem equals ``name``'s."""
         stem = Path(name).stem
         for camera, _ in self.train_views + self.eval_views:
@@ -263,7 +253,7 @@ class QueryScene:
     def instance_counts(self) -> Dict[int, int]:
         return {i: int(c) for i, c in enumerate(self.level.counts)}
 
-    def id_map(self, camera: ViewCamera) -> np.ndarray:
+    def id_map(self, camera: PinholeView) -> np.ndarray:
         """Rendered instance id map [H, W] int32 (-1 = none) of ``camera`` (the last few are kept)."""
         from votesplat_ns.rasterizer import rasterize
 
@@ -289,7 +279,7 @@ class QueryScene:
         return click_select(self.id_map(self.train_camera(view)), float(x), float(y))
 
     @torch.no_grad()
-    def render(self, keep: np.ndarray, camera: ViewCamera) -> Tuple[np.ndarray, np.ndarray]:
+    def render(self, keep: np.ndarray, camera: PinholeView) -> Tuple[np.ndarray, np.ndarray]:
         """RGB [H, W, 3] in [0, 1] (black background) and accumulated opacity [H, W] of the kept Gaussians."""
         from votesplat_ns.rasterizer import rasterize
 
@@ -371,14 +361,12 @@ def instances_of_level(params, level: Optional[str], instances_dir: Optional[Pat
     return chosen, source
 
 
-def dataset_views(datamanager, split: Literal["train", "eval"]) -> List[Tuple[ViewCamera, Any]]:
+def dataset_views(datamanager, split: Literal["train", "eval"]) -> List[Tuple[PinholeView, Any]]:
     """Cameras and lazy uint8 image loaders of a nerfstudio full-image datamanager's split.
 
     Images of distorted cameras are taken from nerfstudio's undistorted cache, whose loading also
     rewrites the cameras' intrinsics, so image and camera always agree.
     """
-    from votesplat_ns.export import viewmat_from_camera_to_world
-
     dataset = datamanager.train_dataset if split == "train" else datamanager.eval_dataset
     if dataset is None:
         return []
@@ -399,7 +387,7 @@ def dataset_views(datamanager, split: Literal["train", "eval"]) -> List[Tuple[Vi
     for index in range(len(dataset)):
         camera = cameras[index]
         K = camera.get_intrinsics_matrices().reshape(3, 3).float().clone()
-        view = ViewCamera(viewmat_from_camera_to_world(camera.camera_to_worlds.reshape(3, 4).float()), K,
+        view = PinholeView(viewmat_from_camera_to_world(camera.camera_to_worlds.reshape(3, 4).float()), K,
                           int(camera.width.item()), int(camera.height.item()), str(dataset.image_filenames[index]))
         views.append((view, loader(index)))
     return views
@@ -411,33 +399,6 @@ def _uint8_image(image) -> np.ndarray:
     if image.dtype != torch.uint8:
         image = (image.float().clamp(0, 1) * 255).round().to(torch.uint8)
     return image.numpy()
-
-
-def scaled_camera(camera: ViewCamera, max_width: Optional[int] = None, width: Optional[int] = None,
-                  height: Optional[int] = None) -> ViewCamera:
-    """``camera`` at another resolution: at most ``max_width`` wide, or exactly ``width`` x ``height``.
-
-    Intrinsics scale with the image in the continuous pixel frame (pixel centre = index + 0.5).
-    """
-    if width is None or height is None:
-        if max_width is None or camera.width <= max_width:
-            return camera
-        if max_width < 1:
-            raise ValueError(f"max_width must be >= 1, got {max_width}")
-        scale = max_width / camera.width
-        width, height = max(1, int(round(camera.width * scale))), max(1, int(round(camera.height * scale)))
-    if (width, height) == (camera.width, camera.height):
-        return camera
-    sx, sy = width / camera.width, height / camera.height
-    if abs(sx - sy) > 0.02 * max(sx, sy):
-        raise ValueError(
-            f"cannot render {camera.name or 'the view'} ({camera.width}x{camera.height}) at {width}x{height}: "
-            "the aspect ratio differs; the labels must be made at the image's aspect ratio"
-        )
-    K = camera.K.clone()
-    K[0] *= sx
-    K[1] *= sy
-    return ViewCamera(camera.viewmat, K, int(width), int(height), camera.name)
 
 
 def evenly_spaced(count: int, limit: Optional[int]) -> List[int]:
@@ -674,7 +635,7 @@ def evaluate_queries(scene: QueryScene, frames: Sequence[LabelFrame], encoder: E
             selections[text] = select_instances(query_text(text, features, encoder, negatives=negatives), threshold)
         if not selections[text]:
             return None
-        camera = scaled_camera(scene.camera_for_image(frame.name), width=frame.width, height=frame.height)
+        camera = scaled_view(scene.camera_for_image(frame.name), width=frame.width, height=frame.height)
         _, alpha = scene.render(scene.selection_mask(selections[text]), camera)
         return silhouette_mask(alpha, SILHOUETTE_THRESHOLD)
 

@@ -904,7 +904,6 @@ def rasterize_torch(
         backgrounds, render_mode, rasterize_mode, packed,
     )
     width, height, tile_size = int(width), int(height), int(tile_size)
-    N = means.shape[0]
     C = viewmats.shape[0]
 
     radii, means2d, depths, conics, compensations = project_gaussians_torch(

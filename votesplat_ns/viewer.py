@@ -5,7 +5,7 @@ Three layers:
 1. Pure image work on tensors (no nerfstudio import): :func:`overlay_instances`,
    :func:`instance_colour_image`, :func:`vote_colours`, :func:`display_keep_mask`,
    :func:`screen_to_pixel`, and the renders :func:`render_rgb`, :func:`render_instance_map`,
-   :func:`render_vote_picture` of a :class:`SplatScene` seen by a :class:`ViewCamera`.
+   :func:`render_vote_picture` of a :class:`SplatScene` seen by a :class:`PinholeView`.
 2. :class:`InstanceViewerState`: what the person chose (level, selection, display mode, pending
    click/text query) plus lazily computed, cached results (the instances of every level from
    clustering the votes, per-instance CLIP features). Its setters only record state; the work
@@ -13,7 +13,7 @@ Three layers:
 3. :class:`VoteSplatViewerState`: the thin nerfstudio glue. It puts the GUI elements on the model
    (nerfstudio's viewer finds ``ViewerElement``/``ViewerControl`` objects only by walking the
    attributes of the pipeline and of its ``nn.Module`` children) and turns a model and a
-   ``Cameras`` into a :class:`SplatScene` and a :class:`ViewCamera`.
+   ``Cameras`` into a :class:`SplatScene` and a :class:`PinholeView`.
 
 Colours come from :func:`votesplat_ns.instances.instance_colors`, a pure function of the instance
 id, so an instance has the same colour in every view and session (and in the exported pictures).
@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from votesplat_ns.cameras import PinholeView
 from votesplat_ns.instances import InstanceSet, instance_colors, render_instance_ids
 
 if TYPE_CHECKING:
@@ -178,16 +179,6 @@ def _check_instance_map(instance_map: Tensor) -> None:
 
 
 @dataclass
-class ViewCamera:
-    """One pinhole camera: world-to-camera ``viewmat`` [4, 4] (OpenCV), ``K`` [3, 3], image size."""
-
-    viewmat: Tensor
-    K: Tensor
-    width: int
-    height: int
-
-
-@dataclass
 class SplatScene:
     """Gaussians ready to rasterise, as splatfacto renders them.
 
@@ -250,11 +241,11 @@ def _default_rasterize() -> RasterizeFn:
     return rasterize
 
 
-def _background_image(scene: SplatScene, view: ViewCamera) -> Tensor:
+def _background_image(scene: SplatScene, view: PinholeView) -> Tensor:
     return scene.background.reshape(1, 1, 3).expand(view.height, view.width, 3).to(scene.means.dtype).clone()
 
 
-def _rasterize(scene: SplatScene, view: ViewCamera, colors: Tensor, sh_degree: Optional[int], render_mode: str,
+def _rasterize(scene: SplatScene, view: PinholeView, colors: Tensor, sh_degree: Optional[int], render_mode: str,
                rasterize_fn: RasterizeFn) -> Tuple[Tensor, Tensor]:
     render, alpha, _ = rasterize_fn(
         scene.means,
@@ -279,7 +270,7 @@ def _rasterize(scene: SplatScene, view: ViewCamera, colors: Tensor, sh_degree: O
 
 
 @torch.no_grad()
-def render_rgb(scene: SplatScene, view: ViewCamera, rasterize_fn: Optional[RasterizeFn] = None) -> Dict[str, Tensor]:
+def render_rgb(scene: SplatScene, view: PinholeView, rasterize_fn: Optional[RasterizeFn] = None) -> Dict[str, Tensor]:
     """rgb [H, W, 3], depth [H, W, 1] and accumulation [H, W, 1], exactly as splatfacto's eval render."""
     if scene.num_gaussians == 0:
         return {
@@ -294,7 +285,7 @@ def render_rgb(scene: SplatScene, view: ViewCamera, rasterize_fn: Optional[Raste
 
 
 @torch.no_grad()
-def render_instance_map(scene: SplatScene, view: ViewCamera, instance_ids: Tensor,
+def render_instance_map(scene: SplatScene, view: PinholeView, instance_ids: Tensor,
                         rasterize_fn: Optional[RasterizeFn] = None) -> Tensor:
     """Instance id [H, W] (-1 none) per pixel, by :func:`votesplat_ns.instances.render_instance_ids`."""
     if instance_ids.shape != (scene.num_gaussians,):
@@ -315,7 +306,7 @@ def render_instance_map(scene: SplatScene, view: ViewCamera, instance_ids: Tenso
 
 
 @torch.no_grad()
-def render_vote_picture(scene: SplatScene, view: ViewCamera, level: int,
+def render_vote_picture(scene: SplatScene, view: PinholeView, level: int,
                         rasterize_fn: Optional[RasterizeFn] = None) -> Tensor:
     """The "votes" output [H, W, 3]: :func:`vote_colours` of ``level`` rasterised over the background."""
     if scene.vote_offsets is None:
@@ -351,7 +342,7 @@ def _uninterruptible() -> Iterator[None]:
 
 ClusterFn = Callable[[SplatScene, Sequence[str]], InstanceSet]
 EncoderFactory = Callable[[], Any]
-FeatureViewsFn = Callable[[], Sequence[Tuple[ViewCamera, np.ndarray]]]
+FeatureViewsFn = Callable[[], Sequence[Tuple[PinholeView, np.ndarray]]]
 
 
 def cluster_scene(scene: SplatScene, level_names: Sequence[str]) -> InstanceSet:
@@ -522,7 +513,7 @@ class InstanceViewerState:
     def render_outputs(
         self,
         scene: SplatScene,
-        view: ViewCamera,
+        view: PinholeView,
         base_outputs: Mapping[str, Tensor],
         wanted: Iterable[str] = VIEWER_OUTPUTS,
         crop: Optional[Tensor] = None,
@@ -670,14 +661,14 @@ def _same_mask(a: Optional[Tensor], b: Optional[Tensor]) -> bool:
 # nerfstudio glue
 
 
-def view_from_camera(camera: "Cameras") -> ViewCamera:
-    """The :class:`ViewCamera` splatfacto renders for a (single, eval-mode) nerfstudio camera."""
+def view_from_camera(camera: "Cameras") -> PinholeView:
+    """The :class:`PinholeView` splatfacto renders for a (single, eval-mode) nerfstudio camera."""
     from nerfstudio.models.splatfacto import get_viewmat
 
     if camera.shape[0] != 1:
         raise ValueError(f"the viewer renders one camera at a time, got {camera.shape[0]}")
     c2w = camera.camera_to_worlds
-    return ViewCamera(
+    return PinholeView(
         viewmat=get_viewmat(c2w)[0],
         K=camera.get_intrinsics_matrices()[0].to(c2w),
         width=int(camera.width.item()),
@@ -832,7 +823,7 @@ class VoteSplatViewerState:
 
         return ClipEncoder.from_checkpoint(self.clip_model_name, self.clip_checkpoint, device=self.model.device)
 
-    def _feature_views(self) -> List[Tuple[ViewCamera, np.ndarray]]:
+    def _feature_views(self) -> List[Tuple[PinholeView, np.ndarray]]:
         viewer = getattr(self.model.instance_gui_viewer_control, "viewer", None)
         if viewer is None:
             raise ValueError("instance features need the training views; open the model in ns-viewer")
