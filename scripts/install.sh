@@ -23,6 +23,14 @@ want=$(cat pyproject.toml scripts/install.sh | sha256sum | cut -c1-16)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
   exit 0
 fi
+# torch's CUDA build and its nvidia wheels make the venv ~8.3 GB: say so before pip runs out of space half-way
+need_kb=$((9 * 1024 * 1024))
+[ -d .venv/lib ] && need_kb=$((1024 * 1024))  # updating an existing venv
+free_kb=$(df -Pk . | awk 'NR == 2 {print $4}')
+if [ -n "$free_kb" ] && [ "$free_kb" -lt "$need_kb" ]; then
+  echo "install.sh: error: $((free_kb / 1024)) MB free on the disk of $PWD; the environment needs ~$((need_kb / 1024 / 1024)) GB free: free some space and run again" >&2
+  exit 1
+fi
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 # shellcheck disable=SC2086
