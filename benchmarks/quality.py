@@ -160,6 +160,10 @@ def parse_args(argv: Optional[List[str]] = None):
         "--vote-pixels", type=int, default=None, help="vote_pixels_per_step (model default 4096); fewer makes CPU steps cheaper"
     )
     parser.add_argument("--vote-every", type=int, default=None, help="vote_every_n_steps (model default 4; a retrofit votes every step)")
+    parser.add_argument(
+        "--distortion-weight", type=float, default=None,
+        help="lambda_d, distortion_loss_weight (model default 0.1; configs/ presets: 360 0.1, forward-facing 1.0)",
+    )
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     parser.add_argument("--level", default="instance", help="vote level reported in the table (metrics.json has every level)")
     parser.add_argument("--min-weight", type=float, default=0.5)
@@ -230,6 +234,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         settings = (
             f"steps {args.steps}, vote start {args.vote_start}, vote pixels per step {args.vote_pixels or 'default (4096)'}, "
             f"vote every {1 if args.retrofit else args.vote_every or 'default (4)'} steps, "
+            f"lambda_d {args.distortion_weight if args.distortion_weight is not None else 'default (0.1)'}, "
             f"device {args.device}, level {args.level}"
         )
         if args.retrofit:
@@ -244,6 +249,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     base = {} if args.vote_pixels is None else {"vote_pixels_per_step": args.vote_pixels}
     if args.vote_every is not None:
         base["vote_every_n_steps"] = args.vote_every
+    if args.distortion_weight is not None:
+        base["distortion_loss_weight"] = args.distortion_weight
     for scene in args.scenes:
         name = scene.resolve().name
         jobs = []
