@@ -202,6 +202,7 @@ def test_parent_links_and_level_lookup():
     assert instances.level("part") is fine and instances.level(1) is fine and instances.level("1") is fine and instances.level(None) is coarse
     with pytest.raises(ValueError, match="unknown vote level 'object'"):
         instances.level("object")
+    assert instances.level("-1") is fine and instances.level_index(-1) == 1  # negative indices count from the end
     with pytest.raises(ValueError, match="out of range"):
         instances.level(2)
 

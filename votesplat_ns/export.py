@@ -41,7 +41,7 @@ from typing_extensions import Annotated
 
 from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.instances import MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture
+from votesplat_ns.instances import MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
 from votesplat_ns.ply_io import SH_C0, gaussian_vertex_table, write_gaussian_table, write_instance_id_file
 
 VOTE_OFFSETS_KEY = "vote_offsets"
@@ -207,14 +207,7 @@ def export_instances(
     if n == 0:
         raise ValueError("the model has no Gaussians to export")
     names = params.level_names
-    if level is None:
-        level_index = 0
-    elif isinstance(level, str) and level in names:
-        level_index = names.index(level)
-    elif (isinstance(level, int) or (isinstance(level, str) and level.lstrip("-").isdigit())) and -len(names) <= int(level) < len(names):
-        level_index = int(level) % len(names)
-    else:
-        raise ValueError(f"unknown vote level {level!r}; this model has levels {list(names)} (pass a name or an index)")
+    level_index = vote_level_index(names, level)
     level_name = names[level_index]
 
     foreground_count = int(((params.vote_support[:, level_index] > 0) & np.isfinite(params.vote_support[:, level_index])).sum())

@@ -176,6 +176,21 @@ def _jsonable(value):
     return value
 
 
+def vote_level_index(level_names: Sequence[str], key: Union[int, str, None]) -> int:
+    """Index in ``level_names`` of a level given by name, by index (also as a string: "1", "-1"), or None (the first)."""
+    if key is None:
+        key = 0
+    if isinstance(key, str):
+        if key in level_names:
+            return list(level_names).index(key)
+        if not key.lstrip("-").isdigit():
+            raise ValueError(f"unknown vote level {key!r}; this model has levels {list(level_names)} (pass a name or an index)")
+    index = int(key)
+    if not -len(level_names) <= index < len(level_names):
+        raise ValueError(f"vote level index {index} out of range; this model has levels {list(level_names)}")
+    return index % len(level_names)
+
+
 @dataclass
 class InstanceSet:
     """Instances of every vote level of one model."""
@@ -194,21 +209,10 @@ class InstanceSet:
 
     def level(self, key: Union[int, str, None] = None) -> LevelInstances:
         """A level by name or index (None: the first level)."""
-        if key is None:
-            key = 0
-        if isinstance(key, str):
-            for level in self.levels:
-                if level.name == key:
-                    return level
-            if not key.lstrip("-").isdigit():
-                raise ValueError(f"unknown vote level {key!r}; this model has levels {list(self.level_names)}")
-        index = int(key)
-        if not -len(self.levels) <= index < len(self.levels):
-            raise ValueError(f"vote level index {index} out of range; this model has levels {list(self.level_names)}")
-        return self.levels[index]
+        return self.levels[self.level_index(key)]
 
     def level_index(self, key: Union[int, str, None]) -> int:
-        return self.levels.index(self.level(key))
+        return vote_level_index(self.level_names, key)
 
     def validate(self) -> None:
         """Raise ValueError if an invariant of the module docstring does not hold."""

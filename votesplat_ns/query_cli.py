@@ -45,8 +45,8 @@ import tyro
 from typing_extensions import Annotated
 
 from votesplat_ns.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
-from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.instances import InstanceSet, LevelInstances, render_instance_ids
+from votesplat_ns.clustering import cluster_levels
+from votesplat_ns.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
 from votesplat_ns.lerf_ovs import (
     SILHOUETTE_THRESHOLD,
     LabelFrame,
@@ -125,14 +125,10 @@ def make_encoder(clip_model: str = DEFAULT_CLIP_MODEL, clip_checkpoint: Optional
 
 @dataclass
 class ClusteringOptions:
-    """HDBSCAN settings of the instances; the defaults are votesplat-export's."""
+    """The HDBSCAN settings the query commands expose; the rest keep ``cluster_levels``' defaults (votesplat-export's)."""
 
     min_cluster_size: Optional[int] = None
     min_samples: Optional[int] = None
-    max_points: int = DEFAULT_MAX_POINTS
-    noise: Literal["nearest", "drop"] = "nearest"
-    noise_radius: Optional[float] = None
-    cluster_selection_epsilon: float = 0.0
     seed: int = 0
 
 
@@ -336,21 +332,11 @@ def instances_of_level(params, level: Optional[str], instances_dir: Optional[Pat
         chosen = instance_set.level(level)
         source = f"export {instances_dir}"
     else:
-        if level is None:
-            index = 0
-        elif level in names:
-            index = names.index(level)
-        elif level.lstrip("-").isdigit() and -len(names) <= int(level) < len(names):
-            index = int(level) % len(names)
-        else:
-            raise ValueError(f"unknown vote level {level!r}; this model has levels {list(names)} (pass a name or an index)")
+        index = vote_level_index(names, level)
         # Levels are clustered independently, so clustering only the asked level gives the same ids.
-        options = clustering
         chosen = cluster_levels(
             params.means, params.vote_offsets[:, index:index + 1], params.vote_support[:, index:index + 1], (names[index],),
-            min_cluster_size=options.min_cluster_size, min_samples=options.min_samples, max_points=options.max_points,
-            seed=options.seed, noise=options.noise, noise_radius=options.noise_radius,
-            cluster_selection_epsilon=options.cluster_selection_epsilon,
+            min_cluster_size=clustering.min_cluster_size, min_samples=clustering.min_samples, seed=clustering.seed,
         ).levels[0]
         source = "clustered"
     if chosen.num_instances == 0:
