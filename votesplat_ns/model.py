@@ -23,7 +23,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
 
 from votesplat_ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
-from votesplat_ns.foreground import foreground_from_exposure, mask_exposure
+from votesplat_ns.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
 from votesplat_ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
 from votesplat_ns.viewer import VoteSplatViewerState
 from votesplat_ns.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
@@ -116,7 +116,7 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Add instances to an already trained splatfacto (or votesplat) scene: take its Gaussians from this
     checkpoint (a .ckpt file, or a run folder holding nerfstudio_models/), freeze geometry and appearance, and
     train only the vote offsets. No colour pass and no densification run: this is also the fast vote-only path."""
-    foreground_min_masked_share: Optional[float] = 0.5
+    foreground_min_masked_share: Optional[float] = DEFAULT_MIN_MASKED_SHARE
     """At the end of training, a Gaussian keeps its vote support (stays foreground for clustering) at a level only
     if more than this share of its rendering weight in the training views lies inside that level's masks: children
     of densification inherit support and offsets from parents that once overlapped an object. The others get
