@@ -53,7 +53,13 @@ from votesplat_ns.mask_sources import (
     make_mask_source,
 )
 from votesplat_ns.vote_cache import VoteCache, VoteOptions
-from votesplat_ns.vote_maps import VoteMaps, resize_label_images, resize_vote_maps, vote_maps_from_labels
+from votesplat_ns.vote_maps import (
+    DEFAULT_BORDER_MASKS,
+    VoteMaps,
+    resize_label_images,
+    resize_vote_maps,
+    vote_maps_from_labels,
+)
 
 DEFAULT_OUTPUT_DIR = Path("outputs")
 DATASET_LEVELS = ("instance", "part")
@@ -171,8 +177,9 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
     sam_min_mask_region_area: int = 100
     sam_max_long_side: Optional[int] = 1080
     """Images are downscaled to this long side before SAM (LangSplat works at <= 1080 px)."""
-    drop_border_masks: bool = True
-    """Drop masks touching the image border (their centroid is not the object's)."""
+    border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
+    """A mask touching the image border: 'vote' (its visible part's centroid is the target), 'mask_only' (a
+    mask without a vote target) or 'drop' (not a mask). Objects cut by the frame in most views need the first two."""
     cache_dir: Optional[Path] = None
     """Vote cache folder; default outputs/<dataset folder name>/votesplat_cache (never inside the dataset)."""
     vote_maps_in_memory: int = 128
@@ -286,7 +293,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         cache = VoteCache(
             self.vote_cache_dir,
             source,
-            VoteOptions(drop_border_masks=self.config.drop_border_masks),
+            VoteOptions(border_masks=self.config.border_masks),
         )
         views = [(index, Path(path)) for index, path in enumerate(self.train_dataset.image_filenames)]
         CONSOLE.log(f"Vote maps: {source.name} masks, levels {list(source.levels)}, cache {cache.entry_dir}")
@@ -316,7 +323,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
                 f"undistorted vote labels of {image_path} are {warped[0].shape[1]}x{warped[0].shape[0]} "
                 f"but nerfstudio's undistorted image is {width}x{height}"
             )
-        return vote_maps_from_labels(warped, self.config.drop_border_masks, stored.level_names)
+        return vote_maps_from_labels(warped, self.config.border_masks, stored.level_names)
 
     # ------------------------------------------------------------------ batches
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:

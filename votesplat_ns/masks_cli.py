@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from votesplat_ns.vote_cache import VoteCache, VoteOptions, atomic_write_bytes, load_image_rgb
-from votesplat_ns.vote_maps import VoteMaps
+from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps
 
 PREVIEW_FOLDER_NAME = "votesplat_previews"
 
@@ -50,8 +50,8 @@ class MasksConfig:
     sam_crop_n_layers: int = 1
     sam_min_mask_region_area: int = 100
     sam_max_long_side: Optional[int] = 1080
-    drop_border_masks: bool = True
-    """Drop masks touching the image border."""
+    border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
+    """A mask touching the image border: 'vote', 'mask_only' (no vote target) or 'drop' (as ns-train's flag)."""
     downscale_factor: Optional[int] = None
     """nerfstudio dataparser downscale factor (images_N/); must match training's for the cache to be reused."""
     preview: int = 0
@@ -145,12 +145,12 @@ def main(config: MasksConfig) -> Dict[str, object]:
         sam_crop_n_layers=config.sam_crop_n_layers,
         sam_min_mask_region_area=config.sam_min_mask_region_area,
         sam_max_long_side=config.sam_max_long_side,
-        drop_border_masks=config.drop_border_masks,
+        border_masks=config.border_masks,
     )
     cache_dir = config.cache_dir if config.cache_dir is not None else default_cache_dir(config.data, config.output_dir)
     check_cache_outside_dataset(cache_dir, config.data)
     source = manager_config.make_mask_source()
-    cache = VoteCache(cache_dir, source, VoteOptions(drop_border_masks=config.drop_border_masks))
+    cache = VoteCache(cache_dir, source, VoteOptions(border_masks=config.border_masks))
     images = dataset_images(config.data, config.downscale_factor)
     views = list(enumerate(images))
     keys = cache.build_all(views)
