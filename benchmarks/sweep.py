@@ -24,6 +24,7 @@ import json
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -98,10 +99,11 @@ def run_job(job: dict) -> List[dict]:
             )
             return {name: instances.level(name).ids for name in scene.level_names}
 
+        result = evaluate_run(config, run_dir / f"eval_{cluster_name}", gaussian_ids_override=recluster)  # every level
         for level in LEVELS:
-            result = evaluate_run(config, run_dir / f"eval_{cluster_name}_{level}", level=level, gaussian_ids_override=recluster)
-            rows.append({**job["labels"], "cluster": cluster_name, "level": level, **score(result.metrics, level),
-                         "train_seconds": train_seconds, "config": str(config)})
+            if level in result.metrics["levels"]:
+                rows.append({**job["labels"], "cluster": cluster_name, "level": level, **score(result.metrics, level),
+                             "train_seconds": train_seconds, "config": str(config)})
     return rows
 
 
@@ -215,14 +217,23 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"done: {job['labels']}", flush=True)
         return rows
 
-    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        rows = [row for rows in pool.map(launch, jobs) for row in rows]
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k not in ("job", "summarize")}
     settings["scenes"] = [str(s) for s in args.scenes]
-    write_text(work / "sweep.json", json.dumps({"settings": settings, "rows": rows}, indent=1, default=str) + "\n")
-    text = f"steps {args.steps}, vote start {args.vote_start}\n\n{table(rows)}\n\nPer scene:\n\n{per_scene_table(rows)}\n"
-    write_text(work / "sweep.md", text)
-    print(text)
+    rows: List[dict] = []
+    lock = threading.Lock()
+
+    def finished(job_rows: List[dict]) -> None:
+        # written after every run, so a call cut short by its time limit still reports what finished
+        with lock:
+            rows.extend(job_rows)
+            write_text(work / "sweep.json", json.dumps({"settings": settings, "rows": rows}, indent=1, default=str) + "\n")
+            text = f"steps {args.steps}, vote start {args.vote_start}\n\n{table(rows)}\n\nPer scene:\n\n{per_scene_table(rows)}\n"
+            write_text(work / "sweep.md", text)
+
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        for job_rows in pool.map(launch, jobs):
+            finished(job_rows)
+    print((work / "sweep.md").read_text())
     return 0
 
 
