@@ -12,6 +12,7 @@ from votesplat_ns.clustering import (
     cluster_votes_detailed,
     default_min_cluster_size,
     fill_from_neighbours,
+    merge_spread_clusters,
 )
 
 
@@ -258,3 +259,20 @@ def test_cluster_levels_fill_is_reported_and_switchable():
     assert filled.level(0).clustering["fill"] == "spatial"
     assert "fill" not in plain.level(0).clustering
     assert filled.level(0).num_noise <= plain.level(0).num_noise
+
+
+def test_merge_joins_a_spread_object_and_keeps_converged_neighbours_apart():
+    rng = np.random.default_rng(4)
+    # a flat object's votes smeared along a 1.0-long bar, cut in three pieces; two converged
+    # objects 0.2 apart (closer than the bar's pieces) with tight votes
+    bar = np.concatenate(
+        [np.column_stack([rng.uniform(lo, lo + 1 / 3, 300), rng.normal(0.0, 0.02, (300, 2))]) for lo in (-0.5, -1 / 6, 1 / 6)]
+    )
+    tight = np.concatenate([rng.normal(c, 0.01, size=(300, 3)) for c in ([3.0, 0.0, 0.0], [3.2, 0.0, 0.0])])
+    votes = np.concatenate([bar, tight])
+    labels = np.repeat([0, 1, 2, 3, 4], 300)
+    for scale in (1.0, 50.0):  # the rule does not depend on the scene's units
+        merged = merge_spread_clusters(votes * scale, labels, separation=2.5)
+        assert len(set(merged[:900])) == 1
+        assert len({merged[900], merged[1200], merged[0]}) == 3
+    assert len(np.unique(merge_spread_clusters(votes, labels, separation=0.0))) == 5

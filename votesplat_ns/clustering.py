@@ -34,6 +34,13 @@ changes, so a hole fills from its rim inwards. A Gaussian with no labelled neigh
 stays noise, and a fragment that nothing reaches stays an instance of its own (a small object
 far from everything else). Both scales are relative to the scene's own spacing.
 
+Over-split objects (``merge_separation``, in :func:`cluster_levels`): an object whose votes did not
+converge to one point (large, flat or seen from one side) spreads them, and HDBSCAN may cut the
+spread into several clusters. Two clusters merge when their vote centres (medians) are closer than
+``merge_separation`` times the sum of their vote spreads (median distance of a cluster's votes to
+its centre); merges are transitive. The test compares the gap with the clusters' own spread, so it
+holds at any scene scale: converged neighbours (small spreads) stay apart however close they are.
+
 Labels are renumbered 0..K-1 by decreasing cluster size (ties: smallest first member), so the
 result is deterministic for a fixed seed and independent of HDBSCAN's internal numbering.
 """
@@ -305,6 +312,36 @@ def fill_from_neighbours(
     return _relabel_by_size(labels)
 
 
+def merge_spread_clusters(votes: np.ndarray, labels: np.ndarray, separation: float) -> np.ndarray:
+    """Labels [M] after merging clusters whose vote centres are closer than ``separation`` times
+    the sum of their vote spreads (module docstring, "Over-split objects"); renumbered by size."""
+    votes = np.asarray(votes, dtype=np.float64)
+    labels = np.asarray(labels, dtype=np.int64)
+    if separation < 0:
+        raise ValueError(f"merge separation must be >= 0, got {separation}")
+    ids = np.unique(labels[labels >= 0])
+    if ids.size < 2 or separation == 0:
+        return _relabel_by_size(labels)
+    centres = np.stack([np.median(votes[labels == k], axis=0) for k in ids])
+    spreads = np.array([np.median(np.linalg.norm(votes[labels == k] - c, axis=1)) for k, c in zip(ids, centres)])
+    gap = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    close = gap < separation * (spreads[:, None] + spreads[None, :])
+    root = np.arange(ids.size)
+
+    def find(i: int) -> int:
+        while root[i] != i:
+            root[i] = root[root[i]]
+            i = root[i]
+        return i
+
+    for a, b in zip(*np.nonzero(np.triu(close, k=1))):
+        root[find(a)] = find(b)
+    mapping = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
+    mapping[ids] = [find(i) for i in range(ids.size)]
+    merged = np.where(labels >= 0, mapping[np.maximum(labels, 0)], -1)
+    return _relabel_by_size(merged)
+
+
 def background_mask(vote_support, level: int) -> np.ndarray:
     """[N] bool, True for Gaussians that received no vote supervision at ``level`` (background).
 
@@ -338,6 +375,7 @@ def cluster_levels(
     on_level: Optional[Callable[[int, str], None]] = None,
     fill: bool = True,
     min_instance_fraction: float = DEFAULT_MIN_INSTANCE_FRACTION,
+    merge_separation: Optional[float] = None,
     **cluster_kwargs,
 ) -> InstanceSet:
     """Instances of every vote level, linked parent -> child between consecutive levels.
@@ -350,7 +388,8 @@ def cluster_levels(
     here: the exporter decides which levels it needs). ``on_level(index, name)`` is called before
     each level is clustered (progress reporting). ``fill`` gives foreground noise and fragments
     smaller than ``min_instance_fraction`` of the level's foreground the instance of their spatial
-    neighbours (:func:`fill_from_neighbours`).
+    neighbours (:func:`fill_from_neighbours`). ``merge_separation`` (None: off) first merges
+    clusters of spread votes (:func:`merge_spread_clusters`).
     """
     means = _to_numpy(means)
     offsets = _to_numpy(offsets)
@@ -391,6 +430,9 @@ def cluster_levels(
             )
             labels = result.labels
             params = dict(result.params)
+            if merge_separation is not None:
+                labels = merge_spread_clusters(votes, labels, merge_separation)
+                params.update(merge_separation=float(merge_separation), num_clusters_before_merge=int(result.params["num_clusters"]))
             if fill:
                 labels = fill_from_neighbours(means[fg_index], labels, min_instance_fraction=min_instance_fraction)
                 params.update(
@@ -402,6 +444,7 @@ def cluster_levels(
                     num_noise=int((labels < 0).sum()),
                     num_noise_before_fill=int(result.params["num_noise"]),
                 )
+            params["num_clusters"] = int(labels.max()) + 1 if (labels >= 0).any() else 0
             ids[fg_index] = labels
         else:
             params = {"algorithm": "hdbscan", "num_votes": 0, "num_clusters": 0, "num_noise": 0}
