@@ -235,7 +235,7 @@ def test_fill_closes_holes_and_leaves_far_strays():
     filled = filled[:-1]
     assert (filled[:3000] >= 0).all()
     assert agreement(filled, truth) > 0.99
-    # the far small cube is below min_instance_fraction but nothing can absorb it: it stays itself
+    # the far small cube stays an instance of its own
     assert len(set(filled[3000:])) == 1 and filled[3000] not in set(filled[:3000])
 
 

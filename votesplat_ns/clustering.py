@@ -66,7 +66,9 @@ DEFAULT_SMOOTHING_FRACTION = 1e-3
 # Spatial fill of noise and fragments (module docstring, "Holes and fragments").
 DEFAULT_FILL_NEIGHBOURS = 8
 DEFAULT_FILL_RADIUS_FACTOR = 3.0
-DEFAULT_MIN_INSTANCE_FRACTION = 0.002
+# Fragment dissolution is off: on the tuning scenes it absorbed small objects resting on
+# larger ones (stacked, fruit in a bowl); the noise fill alone kept them (BENCHMARKS.md, #13).
+DEFAULT_MIN_INSTANCE_FRACTION = 0.0
 _FILL_MAX_ROUNDS = 64
 
 
@@ -96,9 +98,9 @@ def vote_spread(votes: np.ndarray) -> float:
     return float(np.linalg.norm(high - low))
 
 
-def default_min_cluster_size(num_votes: int) -> int:
-    """Smallest instance the defaults look for, in votes: 0.05% of the votes, at least 10."""
-    return max(10, int(math.ceil(DEFAULT_MIN_CLUSTER_FRACTION * num_votes)))
+def default_min_cluster_size(num_votes: int, fraction: float = DEFAULT_MIN_CLUSTER_FRACTION) -> int:
+    """Smallest instance the defaults look for, in votes: ``fraction`` of the votes (0.05%), at least 10."""
+    return max(10, int(math.ceil(fraction * num_votes)))
 
 
 def _relabel_by_size(labels: np.ndarray) -> np.ndarray:
@@ -126,10 +128,11 @@ def cluster_votes_detailed(
     smoothing: Optional[float] = None,
     cluster_selection_epsilon: float = 0.0,
     n_jobs: Optional[int] = None,
+    min_cluster_fraction: float = DEFAULT_MIN_CLUSTER_FRACTION,
 ) -> VoteClustering:
     """HDBSCAN on 3D votes [M, 3] with subsampling and the noise rule of the module docstring.
 
-    min_cluster_size: smallest instance in votes of the full set (default: 0.05% of M, >= 10).
+    min_cluster_size: smallest instance in votes of the full set (default: ``min_cluster_fraction`` of M, >= 10).
     min_samples: HDBSCAN's density smoothing, in subsampled votes (default min(10, scaled size)).
     max_points: the most votes HDBSCAN sees; the rest are labelled by nearest neighbour.
     noise_radius / smoothing: distances in vote units (defaults from the vote spread, above).
@@ -155,7 +158,9 @@ def cluster_votes_detailed(
 
     spread = vote_spread(votes)
     if min_cluster_size is None:
-        min_cluster_size = default_min_cluster_size(num_votes)
+        if not 0.0 < min_cluster_fraction < 1.0:
+            raise ValueError(f"min_cluster_fraction must be in (0, 1), got {min_cluster_fraction}")
+        min_cluster_size = default_min_cluster_size(num_votes, min_cluster_fraction)
     if min_cluster_size < 2:
         raise ValueError(f"min_cluster_size must be at least 2, got {min_cluster_size}")
     if noise_radius is None:

@@ -98,8 +98,8 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Names of the mask levels, one 3D offset per Gaussian per level. Default: the datamanager's levels."""
     vote_loss_weight: float = 1.0
     """lambda_vote: weight of the L1 vote loss (in pixels)."""
-    distortion_loss_weight: float = 0.1
-    """lambda_d: weight of the unweighted pairwise depth distortion of the votes (scene units)."""
+    distortion_loss_weight: float = 0.05
+    """lambda_d: weight of the vote depth distortion (with l1_pixels: its mean pairwise gap in pixels)."""
     vote_start_step: int = 500
     """Step at which the vote losses start (geometry settles first)."""
     vote_pixels_per_step: int = 4096
@@ -115,8 +115,8 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Ablation: 'alpha_t' blends votes with alpha*T weights instead of the paper's uniform mean."""
     vote_blend_space: Literal["3d", "2d"] = "3d"
     """Ablation: '2d' projects each Gaussian's vote first, then blends (the paper blends in 3D)."""
-    vote_distortion: Literal["l1", "l1_pixels", "squared", "none"] = "l1"
-    """Depth distortion of the votes: the paper's pairwise L1, its squared form, or none (ablation)."""
+    vote_distortion: Literal["l1", "l1_pixels", "squared", "none"] = "l1_pixels"
+    """Depth distortion of the votes: l1_pixels (scale-free, chosen on the tuning scenes), the paper's pair sum l1, squared, none."""
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
     retrofit_from: Optional[Path] = None
