@@ -477,11 +477,11 @@ def test_family_renders_consistent_labels(tiny_family, tmp_path):
 @needs_mitsuba
 @pytest.mark.parametrize("capture", ["360", "forward"])
 def test_family_cut_object_touches_the_border_in_most_rendered_views(capture):
-    """The labels themselves (ray cast at 128x96): the cut object's mask reaches the image border in most views."""
+    """The labels themselves (ray cast at 64x48): the cut object's mask reaches the image border in most views."""
     from votesplat_ns.synthetic.render import SceneRenderer
 
     seed = next(s for s in TEST_SEEDS if family_properties(s).capture == capture and family_properties(s).cut_object)
-    scene = make_scene("family", seed=seed, num_views=48, num_eval_views=6, width=128, height=96)
+    scene = make_scene("family", seed=seed, num_views=48, num_eval_views=6, width=64, height=48)
     renderer = SceneRenderer(scene)
     cut_id = scene.parameters["cut_instance"]
     touching_border = 0
