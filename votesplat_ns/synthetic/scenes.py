@@ -1584,6 +1584,7 @@ def _family_ground(rng, props: FamilyProperties, palette: List[str], small_size:
     """The objects standing on the table/ground, in placing order: (kind, size, colour) for the large ones and the rest."""
     large = [k for k in props.flat if k != props.cut_object]
     bowl_on_table = props.container and "table" in props.flat and rng.random() < 0.5
+    # sizes are relative to the capture's small objects (small_size 1.1-1.5 at 360, 2-3 forward-facing)
     rest: List[Tuple[str, float]] = []
     if props.container and not bowl_on_table:
         rest.append(("bowl", 1.3 * small_size[0] / 1.1 * rng.uniform(0.95, 1.1)))
@@ -1606,7 +1607,9 @@ def _family_dress(rng, placed, touching, props: FamilyProperties, palette: List[
     for index in [i for i, item in enumerate(placed) if item.template.kind in ("table", "board")]:
         kind = placed[index].template.kind
         count = int(rng.integers(1, 3)) if kind == "table" else int(rng.random() < 0.6)
-        items = [("bowl", 0.9 * small_size[0] * rng.uniform(1.05, 1.2), palette.pop())] if kind == "table" and bowl_on_table else []
+        bowl_here = kind == "table" and bowl_on_table
+        count = max(0, min(count, len(palette) - bowl_here))  # every object other than fruit has a colour of its own
+        items = [("bowl", 0.9 * small_size[0] * rng.uniform(1.05, 1.2), palette.pop())] if bowl_here else []
         items += [(k, rng.uniform(0.9, 1.0) * small_size[0], palette.pop()) for k in _pick_kinds(rng, count, list(_ON_TOP_KINDS))]
         _place_on_top(rng, placed, index, items, touching)
     touching = _rest_balls_on_tops(rng, placed, touching)
