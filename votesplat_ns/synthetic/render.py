@@ -30,6 +30,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from votesplat_ns.ply_io import atomic_write
 from votesplat_ns.synthetic.scenes import (
     GENERATOR_VERSION,
     Camera,
@@ -73,18 +74,12 @@ def mitsuba_available() -> bool:
 # atomic writers
 
 
-def _atomic_write_bytes(path: Path, write: Callable[[str], None], suffix: str) -> None:
+def _atomic_write_bytes(path: Path, write: Callable[[object], None]) -> None:
+    """``write(handle)`` fills a binary file that replaces ``path`` in one rename (``ply_io.atomic_write``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "wb") as handle:
+        write(handle)
 
 
 def write_png(path: Path, array: np.ndarray) -> None:
@@ -98,7 +93,7 @@ def write_png(path: Path, array: np.ndarray) -> None:
         image = Image.fromarray(array)
     else:
         raise ValueError(f"write_png: expected uint8 [H,W(,3)] or uint16 [H,W], got {array.dtype} {array.shape}")
-    _atomic_write_bytes(path, lambda tmp: image.save(tmp, format="PNG"), ".png")
+    _atomic_write_bytes(path, lambda handle: image.save(handle, format="PNG"))
 
 
 def write_jpeg(path: Path, rgb: np.ndarray, quality: int) -> None:
@@ -108,17 +103,12 @@ def write_jpeg(path: Path, rgb: np.ndarray, quality: int) -> None:
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"write_jpeg: expected uint8 [H,W,3], got {rgb.dtype} {rgb.shape}")
     image = Image.fromarray(np.ascontiguousarray(rgb))
-    _atomic_write_bytes(path, lambda tmp: image.save(tmp, format="JPEG", quality=int(quality), subsampling=0), ".jpg")
+    _atomic_write_bytes(path, lambda handle: image.save(handle, format="JPEG", quality=int(quality), subsampling=0))
 
 
 def write_json(path: Path, data: dict) -> None:
-    text = json.dumps(data, indent=2)
-
-    def write(tmp):
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text + "\n")
-
-    _atomic_write_bytes(path, write, ".json")
+    text = json.dumps(data, indent=2) + "\n"
+    _atomic_write_bytes(path, lambda handle: handle.write(text.encode("utf-8")))
 
 
 def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -> None:
@@ -129,7 +119,7 @@ def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -
     vertex["x"], vertex["y"], vertex["z"] = np.asarray(points, dtype=np.float32).T
     vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours_uint8, dtype=np.uint8).T
     data = PlyData([PlyElement.describe(vertex, "vertex")], text=False)
-    _atomic_write_bytes(path, lambda tmp: data.write(tmp), ".ply")
+    _atomic_write_bytes(path, lambda handle: data.write(handle))
 
 
 def _write_mesh_ply(path: str, mesh) -> None:
