@@ -27,7 +27,7 @@
 #                     all trainings in parallel worker processes; sweep.md, sweep.json, sweep.log
 #   quality-family [DIR]  benchmarks/quality.py on every scene of a family set (default
 #                     $FAMILY_DIR = .gpu/family_test, written here by `votesplat-synth family-set
-#                     --set test --output-dir .gpu/family_test`; ~11 MB): one process per scene and
+#                     --set test --output-dir .gpu/family_test`; 12.9 MB): one process per scene and
 #                     mask kind ($QUALITY_MASKS), all at once on the one GPU, each scoring the instance
 #                     and part levels; FAMILY_STEPS ($QUALITY_STEPS), FAMILY_VOTE_START
 #                     ($QUALITY_VOTE_START), FAMILY_ARGS (extra quality.py flags). Output
