@@ -16,8 +16,9 @@ For every scene folder (written by ``votesplat-synth``) and every mask kind in `
 then score the run with ``votesplat-eval`` (held-out views, every level of ``--levels``, by
 default instance and part: mIoU, precision and recall at IoU 0.5; 3D per-Gaussian purity) and
 print one markdown table with a row per scene, mask kind and level, and a mean row over the scenes.
-The mIoU is votesplat-eval's ``miou_valid_views`` (held-out views whose RGB reconstruction did not
-fail) where it reports one, else its ``miou`` over all held-out views; the "views" column says which.
+mIoU, precision and recall are votesplat-eval's ``*_valid_views`` scores (held-out views whose RGB
+reconstruction did not fail) where it reports them, else its scores over all held-out views; the
+"views" column says which (and how many views were valid).
 
 ``--family tuning`` (or ``test``) scores every scene of that family set (``--family-dir``, default
 ``build/family_<set>``, written by ``votesplat-synth family-set``); no default may be tuned on the
@@ -119,7 +120,7 @@ def mean_rows(rows: Sequence[dict], first_columns: Sequence[str]) -> List[dict]:
         row = {"scene": label, **dict(zip(others, key[:-1])), "level": key[-1], "seed": group[0].get("seed")}
         for metric in MEAN_METRICS:
             row[metric] = statistics.mean(float(r.get(metric, r["miou"] if metric == "miou_all_views" else 0.0)) for r in group)
-        views = {r.get("miou_views", "all") for r in group}
+        views = {str(r.get("miou_views", "all")).split()[0] for r in group}  # "valid 5/6" -> "valid"
         row["miou_views"] = views.pop() if len(views) == 1 else "mixed"
         means.append(row)
     return means
@@ -171,18 +172,27 @@ def train_base_scene(scene: Path, args) -> Path:
 
 
 def level_row(metrics: dict, level: str) -> dict:
-    """The table's numbers for one level of a votesplat-eval metrics.json; the mIoU over valid views where reported."""
+    """The table's numbers for one level of a votesplat-eval metrics.json: mIoU, precision and recall over the
+    valid views where it reports them (``*_valid_views``), else over all held-out views."""
     if level not in metrics["levels"]:
         return {"level": level, "error": f"no {level!r} level scored (metrics.json has {sorted(metrics['levels'])})"}
     scores = metrics["levels"][level]
     valid = scores.get("miou_valid_views")
+
+    def on_valid(key: str) -> float:
+        value = scores.get(f"{key}_valid_views")
+        return scores[key] if valid is None or value is None else value
+
+    views = "all"
+    if valid is not None:
+        views = f"valid {scores['num_valid_views']}/{len(metrics['view_names'])}" if "num_valid_views" in scores and "view_names" in metrics else "valid"
     return {
         "level": level,
-        "miou": scores["miou"] if valid is None else valid,
-        "miou_views": "all" if valid is None else "valid",
+        "miou": on_valid("miou"),
+        "miou_views": views,
         "miou_all_views": scores["miou"],
-        "precision": scores["precision"],
-        "recall": scores["recall"],
+        "precision": on_valid("precision"),
+        "recall": on_valid("recall"),
         "purity": scores["purity"],
         "completeness": scores["completeness"],
         "num_gt": scores["scores_2d"]["num_gt"],

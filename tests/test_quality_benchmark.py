@@ -73,15 +73,17 @@ def level_scores(miou, valid=None, num_pred=4):
     scores = {"miou": miou, "precision": 0.8, "recall": 0.7, "purity": 0.9, "completeness": 0.95,
               "scores_2d": {"num_gt": 5}, "num_predicted_instances": num_pred}
     if valid is not None:
-        scores["miou_valid_views"] = valid
+        scores.update(miou_valid_views=valid, precision_valid_views=0.85, recall_valid_views=None, num_valid_views=5)
     return scores
 
 
-def test_level_row_reads_the_valid_view_miou_where_reported(quality):
-    metrics = {"num_gaussians": 1234, "levels": {"instance": level_scores(0.6, valid=0.9), "part": level_scores(0.5)}}
+def test_level_row_reads_the_valid_view_scores_where_reported(quality):
+    metrics = {"num_gaussians": 1234, "view_names": ["a", "b", "c", "d", "e", "f"],
+               "levels": {"instance": level_scores(0.6, valid=0.9), "part": level_scores(0.5)}}
     instance, part = quality.level_row(metrics, "instance"), quality.level_row(metrics, "part")
-    assert (instance["miou"], instance["miou_views"], instance["miou_all_views"]) == (0.9, "valid", 0.6)
-    assert (part["miou"], part["miou_views"], part["miou_all_views"]) == (0.5, "all", 0.5)
+    assert (instance["miou"], instance["miou_views"], instance["miou_all_views"]) == (0.9, "valid 5/6", 0.6)
+    assert (instance["precision"], instance["recall"]) == (0.85, 0.7)  # no valid-view recall reported: all views
+    assert (part["miou"], part["miou_views"], part["miou_all_views"], part["precision"]) == (0.5, "all", 0.5, 0.8)
     assert instance["num_gt"] == 5 and instance["num_pred"] == 4 and instance["num_gaussians"] == 1234
     missing = quality.level_row(metrics, "object")
     assert "error" in missing and "'object'" in missing["error"]
