@@ -4,6 +4,8 @@
     python benchmarks/quality.py --scenes build/scenes/forward --ablation --steps 800
     python benchmarks/quality.py --scenes build/scenes/forward --ablation --retrofit --base-steps 1500 \
         --steps 400 --seeds 0 1 2
+    python benchmarks/quality.py --family tuning --steps 3000     # build/family_tuning (votesplat-synth family-set)
+    python benchmarks/quality.py --merge runs/*/quality.json      # one table (+ mean over scenes) of parallel runs
 
 For every scene folder (written by ``votesplat-synth``) and every mask kind in ``--masks``:
 
@@ -11,8 +13,16 @@ For every scene folder (written by ``votesplat-synth``) and every mask kind in `
 * ``noisy``: write the GT masks corrupted by ``MaskNoise`` (``--split-rate`` ...) into
   ``<work-dir>/<scene>/noisy_masks`` and train with ``mask_source=folder`` on them;
 
-then score the run with ``votesplat-eval`` (held-out views, instance level: mIoU, precision and
-recall at IoU 0.5; 3D per-Gaussian purity) and print one markdown table. ``--ablation`` trains the
+then score the run with ``votesplat-eval`` (held-out views, every level of ``--levels``, by
+default instance and part: mIoU, precision and recall at IoU 0.5; 3D per-Gaussian purity) and
+print one markdown table with a row per scene, mask kind and level, and a mean row over the scenes.
+mIoU, precision and recall are votesplat-eval's ``*_valid_views`` scores (held-out views whose RGB
+reconstruction did not fail) where it reports them, else its scores over all held-out views; the
+"views" column says which (and how many views were valid).
+
+``--family tuning`` (or ``test``) scores every scene of that family set (``--family-dir``, default
+``build/family_<set>``, written by ``votesplat-synth family-set``); no default may be tuned on the
+test set (votesplat_ns/synthetic/family.py). ``--ablation`` trains the
 paper's Table 3 variants on each scene with GT masks instead: the full model, no depth distortion
 (``vote_distortion=none``), votes blended in 2D (``vote_blend_space=2d``) and alpha*T vote weights
 (``vote_weighting=alpha_t``).
@@ -57,26 +67,71 @@ def atomic_write_text(path: Path, text: str) -> None:
         handle.write(text)
 
 
+def _count(value) -> str:
+    return str(value) if isinstance(value, int) else f"{float(value):.1f}"
+
+
 def markdown_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
-    header = list(first_columns) + ["level", "mIoU", "precision", "recall", "purity", "#GT", "#pred", "Gaussians", "train time"]
+    header = list(first_columns) + [
+        "level", "mIoU", "views", "mIoU all views", "precision", "recall", "purity", "#GT", "#pred", "Gaussians", "train time"
+    ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:
         if "error" in row:
-            lines.append("| " + " | ".join([str(row[c]) for c in first_columns] + [f"failed: {row['error']}"] + [""] * 8) + " |")
+            lines.append("| " + " | ".join([str(row.get(c, "")) for c in first_columns] + [str(row.get("level", "")), f"failed: {row['error']}"] + [""] * 9) + " |")
             continue
         values = [str(row[c]) for c in first_columns] + [
             row["level"],
             f"{row['miou']:.3f}",
+            row.get("miou_views", "all"),
+            f"{row.get('miou_all_views', row['miou']):.3f}",
             f"{row['precision']:.3f}",
             f"{row['recall']:.3f}",
             f"{row['purity']:.3f}",
-            str(row["num_gt"]),
-            str(row["num_pred"]),
-            str(row["num_gaussians"]),
+            _count(row["num_gt"]),
+            _count(row["num_pred"]),
+            _count(row["num_gaussians"]),
             f"{row['train_seconds'] / 60:.1f} min",
         ]
         lines.append("| " + " | ".join(values) + " |")
     return "\n".join(lines)
+
+
+MEAN_METRICS = ("miou", "miou_all_views", "precision", "recall", "purity", "num_gt", "num_pred", "num_gaussians", "train_seconds")
+
+
+def mean_rows(rows: Sequence[dict], first_columns: Sequence[str]) -> List[dict]:
+    """One row per (mask kind or variant, level) with the mean over its scenes' rows; failed runs are left out
+    and named in the scene column (a mean over fewer scenes than were run must not pass unnoticed)."""
+    others = [c for c in first_columns if c not in ("scene", "seed")]
+    groups: Dict[tuple, List[dict]] = {}
+    failed: Dict[tuple, List[str]] = {}
+    for row in rows:
+        key = tuple(row.get(c) for c in others) + (row.get("level"),)
+        if "error" in row:
+            failed.setdefault(key, []).append(str(row.get("scene")))
+        else:
+            groups.setdefault(key, []).append(row)
+    means = []
+    for key, group in groups.items():
+        label = f"mean of {len(group)}"
+        if failed.get(key):
+            label += f" ({len(failed[key])} failed: {', '.join(failed[key])})"
+        row = {"scene": label, **dict(zip(others, key[:-1])), "level": key[-1], "seed": group[0].get("seed")}
+        for metric in MEAN_METRICS:
+            row[metric] = statistics.mean(float(r.get(metric, r["miou"] if metric == "miou_all_views" else 0.0)) for r in group)
+        views = {str(r.get("miou_views", "all")).split()[0] for r in group}  # "valid 5/6" -> "valid"
+        row["miou_views"] = views.pop() if len(views) == 1 else "mixed"
+        means.append(row)
+    return means
+
+
+def result_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
+    """The per-run rows, then (with more than one scene) the mean over scenes per mask kind/variant and level."""
+    table = markdown_table(rows, first_columns)
+    if len({row.get("scene") for row in rows}) > 1:
+        table += "\n\nMean over scenes:\n\n" + markdown_table(mean_rows(rows, first_columns), first_columns)
+    return table
 
 
 SUMMARY_METRICS = ("miou", "precision", "recall", "purity", "num_pred")
@@ -87,8 +142,8 @@ def summary_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
     groups: Dict[tuple, List[dict]] = {}
     for row in rows:
         if "error" not in row:
-            groups.setdefault(tuple(row[c] for c in first_columns), []).append(row)
-    header = list(first_columns) + ["runs", "mIoU", "precision", "recall", "purity", "#pred"]
+            groups.setdefault(tuple(row[c] for c in first_columns) + (row.get("level", ""),), []).append(row)
+    header = list(first_columns) + ["level", "runs", "mIoU", "precision", "recall", "purity", "#pred"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for key, group in groups.items():
         cells = []
@@ -116,7 +171,38 @@ def train_base_scene(scene: Path, args) -> Path:
     return train_in_process(scene, base_dir, args.base_steps, args.base_steps + 1, args.device, "run", num_downscales=0)
 
 
-def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, seed: int = 42, **overrides) -> dict:
+def level_row(metrics: dict, level: str) -> dict:
+    """The table's numbers for one level of a votesplat-eval metrics.json: mIoU, precision and recall over the
+    valid views where it reports them (``*_valid_views``), else over all held-out views."""
+    if level not in metrics["levels"]:
+        return {"level": level, "error": f"no {level!r} level scored (metrics.json has {sorted(metrics['levels'])})"}
+    scores = metrics["levels"][level]
+    valid = scores.get("miou_valid_views")
+
+    def on_valid(key: str) -> float:
+        value = scores.get(f"{key}_valid_views")
+        return scores[key] if valid is None or value is None else value
+
+    views = "all"
+    if valid is not None:
+        views = f"valid {scores['num_valid_views']}/{len(metrics['view_names'])}" if "num_valid_views" in scores and "view_names" in metrics else "valid"
+    return {
+        "level": level,
+        "miou": on_valid("miou"),
+        "miou_views": views,
+        "miou_all_views": scores["miou"],
+        "precision": on_valid("precision"),
+        "recall": on_valid("recall"),
+        "purity": scores["purity"],
+        "completeness": scores["completeness"],
+        "num_gt": scores["scores_2d"]["num_gt"],
+        "num_pred": scores["num_predicted_instances"],
+        "num_gaussians": metrics["num_gaussians"],
+    }
+
+
+def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, seed: int = 42, **overrides) -> List[dict]:
+    """Train once, score every level of ``args.levels``: one row per level."""
     from votesplat_ns.evaluate_cli import evaluate_run
     from votesplat_ns.method import train_in_process
 
@@ -126,31 +212,25 @@ def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None
     )
     train_seconds = time.time() - start
     start = time.time()
-    result = evaluate_run(config_path, run_dir / "eval", level=args.level, min_weight=args.min_weight)
+    level = args.levels[0] if len(args.levels) == 1 else None  # None: every level the model and the GT share
+    result = evaluate_run(config_path, run_dir / "eval", level=level, min_weight=args.min_weight)
     eval_seconds = time.time() - start
-    level = result.metrics["levels"][args.level]
-    return {
+    common = {
         "seed": seed,
-        "level": args.level,
-        "miou": level["miou"],
-        "precision": level["precision"],
-        "recall": level["recall"],
-        "purity": level["purity"],
-        "completeness": level["completeness"],
-        "num_gt": level["scores_2d"]["num_gt"],
-        "num_pred": level["num_predicted_instances"],
-        "num_gaussians": result.metrics["num_gaussians"],
         "train_seconds": train_seconds,
         "eval_seconds": eval_seconds,
         "config": str(config_path),
         "metrics": str(result.output_dir / "metrics.json"),
         "summary": result.metrics["summary"],
     }
+    return [{**common, **level_row(result.metrics, name)} for name in args.levels]
 
 
 def parse_args(argv: Optional[List[str]] = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenes", nargs="+", type=Path, default=[Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"])
+    parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="scene folders (default: the bundled demo scene)")
+    parser.add_argument("--family", choices=["tuning", "test"], default=None, help="score every scene of this family set instead")
+    parser.add_argument("--family-dir", type=Path, default=None, help="where the set was written (default build/family_<set>)")
     parser.add_argument("--masks", nargs="+", choices=["gt", "noisy"], default=["gt", "noisy"])
     parser.add_argument("--ablation", action="store_true", help="train the Table 3 variants (GT masks) instead of gt/noisy")
     parser.add_argument("--variants", nargs="+", choices=sorted(ABLATIONS), default=list(ABLATIONS), help="ablation variants to run")
@@ -165,7 +245,10 @@ def parse_args(argv: Optional[List[str]] = None):
         help="lambda_d, distortion_loss_weight (model default 0.1; configs/ presets: 360 0.1, forward-facing 1.0)",
     )
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
-    parser.add_argument("--level", default="instance", help="vote level reported in the table (metrics.json has every level)")
+    parser.add_argument(
+        "--levels", "--level", nargs="+", default=["instance", "part"],
+        help="vote levels scored, a row each (metrics.json has every level)",
+    )
     parser.add_argument("--min-weight", type=float, default=0.5)
     parser.add_argument("--work-dir", type=Path, default=Path("build/quality"))
     parser.add_argument("--split-rate", type=float, default=0.15)
@@ -180,9 +263,26 @@ def parse_args(argv: Optional[List[str]] = None):
         "--summarize", nargs="+", type=Path, default=None, metavar="JSON",
         help="train nothing: print mean ± std over the rows of these quality.json/ablation.json files (runs made in parallel)",
     )
+    parser.add_argument(
+        "--merge", nargs="+", type=Path, default=None, metavar="JSON",
+        help="train nothing: print one table of the rows of these quality.json files (one scene each, say) and the mean over scenes",
+    )
     args = parser.parse_args(argv)
-    if args.summarize:
+    if args.summarize or args.merge:
         return args
+    if args.family is not None:
+        if args.scenes is not None:
+            parser.error("pass either --scenes or --family, not both")
+        from votesplat_ns.synthetic.family import read_family_set
+
+        try:
+            name, args.scenes = read_family_set(args.family_dir or Path("build") / f"family_{args.family}")
+        except ValueError as err:
+            parser.error(str(err))
+        if name != args.family:
+            parser.error(f"{args.family_dir} holds the {name} set, not {args.family}")
+    elif args.scenes is None:
+        args.scenes = [Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"]
     if args.retrofit:
         args.vote_start = 0  # a retrofit votes from its first step
     if args.steps <= args.vote_start:
@@ -193,8 +293,22 @@ def parse_args(argv: Optional[List[str]] = None):
     return args
 
 
+def merge(files: Sequence[Path]) -> str:
+    """The rows of several quality.json files (runs made in parallel) as one table, with the mean over scenes."""
+    rows, first_columns = _read_rows(files)
+    if first_columns != ["scene", "masks"]:
+        raise SystemExit("quality.py: error: --merge takes quality.json files; use --summarize for ablation.json")
+    rows.sort(key=lambda r: (str(r.get("masks")), str(r.get("level")), str(r.get("scene"))))
+    return result_table(rows, first_columns)
+
+
 def summarize(files: Sequence[Path]) -> str:
     """One mean ± std table over the runs stored in several quality.json / ablation.json files."""
+    rows, first_columns = _read_rows(files)
+    return summary_table(rows, first_columns)
+
+
+def _read_rows(files: Sequence[Path]):
     rows: List[dict] = []
     first_columns: Optional[List[str]] = None
     for path in files:
@@ -208,13 +322,16 @@ def summarize(files: Sequence[Path]) -> str:
         first_columns = columns
         rows.extend(stored["rows"])
     assert first_columns is not None
-    return summary_table(rows, first_columns)
+    return rows, first_columns
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = parse_args(argv)
     if args.summarize:
         print(summarize(args.summarize))
+        return 0
+    if args.merge:
+        print(merge(args.merge))
         return 0
     import torch
 
@@ -230,13 +347,16 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     def record(row: dict) -> None:
         rows.append(row)
-        table = markdown_table(rows, [*first_columns, "seed"] if len(args.seeds) > 1 else first_columns)
+        table = result_table(rows, [*first_columns, "seed"] if len(args.seeds) > 1 else first_columns)
         settings = (
             f"steps {args.steps}, vote start {args.vote_start}, vote pixels per step {args.vote_pixels or 'default (4096)'}, "
             f"vote every {1 if args.retrofit else args.vote_every or 'default (4)'} steps, "
             f"lambda_d {args.distortion_weight if args.distortion_weight is not None else 'default (0.1)'}, "
-            f"device {args.device}, level {args.level}"
+            f"device {args.device}, levels {' '.join(args.levels)}; mIoU over the held-out views that votesplat-eval "
+            "counts as valid where it reports them (views column), else over all"
         )
+        if args.family:
+            settings = f"family set {args.family} (no default may be tuned on the test set); " + settings
         if args.retrofit:
             settings = f"retrofit on a scene trained {args.base_steps} steps without votes; " + settings
         if len(args.seeds) > 1:
@@ -271,10 +391,11 @@ def main(argv: Optional[List[str]] = None) -> int:
                 if len(args.seeds) > 1:
                     run_dir = run_dir.with_name(f"{run_dir.name}_seed{seed}")
                 try:
-                    row = run_one(scene, run_dir, args, folder, seed=seed, **overrides)
+                    level_rows = run_one(scene, run_dir, args, folder, seed=seed, **overrides)
                 except Exception as err:  # one failed run must not lose the others' rows
-                    row = {"error": f"{type(err).__name__}: {err}", "seed": seed}
-                record({**labels, **row})
+                    level_rows = [{"error": f"{type(err).__name__}: {err}", "seed": seed, "level": level} for level in args.levels]
+                for row in level_rows:
+                    record({**labels, **row})
     print(f"\nwrote {args.work_dir / (suffix + '.md')}")
     return 0
 

@@ -67,3 +67,84 @@ def test_summarize_refuses_unreadable_or_mixed_files(quality, tmp_path):
     masks.write_text(json.dumps({"settings": {"ablation": False}, "rows": []}))
     with pytest.raises(SystemExit, match="summarize each kind separately"):
         quality.summarize([ablation, masks])
+
+
+def level_scores(miou, valid=None, num_pred=4):
+    scores = {"miou": miou, "precision": 0.8, "recall": 0.7, "purity": 0.9, "completeness": 0.95,
+              "scores_2d": {"num_gt": 5}, "num_predicted_instances": num_pred}
+    if valid is not None:
+        scores.update(miou_valid_views=valid, precision_valid_views=0.85, recall_valid_views=None, num_valid_views=5)
+    return scores
+
+
+def test_level_row_reads_the_valid_view_scores_where_reported(quality):
+    metrics = {"num_gaussians": 1234, "view_names": ["a", "b", "c", "d", "e", "f"],
+               "levels": {"instance": level_scores(0.6, valid=0.9), "part": level_scores(0.5)}}
+    instance, part = quality.level_row(metrics, "instance"), quality.level_row(metrics, "part")
+    assert (instance["miou"], instance["miou_views"], instance["miou_all_views"]) == (0.9, "valid 5/6", 0.6)
+    assert (instance["precision"], instance["recall"]) == (0.85, 0.7)  # no valid-view recall reported: all views
+    assert (part["miou"], part["miou_views"], part["miou_all_views"], part["precision"]) == (0.5, "all", 0.5, 0.8)
+    assert instance["num_gt"] == 5 and instance["num_pred"] == 4 and instance["num_gaussians"] == 1234
+    missing = quality.level_row(metrics, "object")
+    assert "error" in missing and "'object'" in missing["error"]
+
+
+def scene_row(scene, level, miou, masks="gt"):
+    metrics = {"num_gaussians": 100, "levels": {level: level_scores(miou / 2, valid=miou)}}
+    return {"scene": scene, "masks": masks, "seed": 42, "train_seconds": 60.0, **quality_module().level_row(metrics, level)}
+
+
+def quality_module():
+    return sys.modules["votesplat_quality_benchmark"]
+
+
+def test_merge_gives_rows_per_scene_and_the_mean_over_scenes(quality, tmp_path):
+    files = []
+    for scene, mious in (("family_1", (0.9, 0.5)), ("family_2", (0.7, 0.3)), ("family_3", None)):
+        if mious is None:
+            rows = [{"scene": scene, "masks": "gt", "seed": 42, "level": level, "error": "RuntimeError: CUDA out of memory"}
+                    for level in ("instance", "part")]
+        else:
+            rows = [scene_row(scene, "instance", mious[0]), scene_row(scene, "part", mious[1])]
+        path = tmp_path / scene / "quality.json"
+        path.parent.mkdir()
+        path.write_text(json.dumps({"settings": {"ablation": False}, "rows": rows}))
+        files.append(path)
+    text = quality.merge(files)
+    per_scene, means = text.split("Mean over scenes:")
+    per_scene = [r for r in parse_summary(per_scene) if not r["mIoU"].startswith("failed")]
+    assert {(r["scene"], r["level"], r["mIoU"]) for r in per_scene} == {
+        ("family_1", "instance", "0.900"), ("family_1", "part", "0.500"),
+        ("family_2", "instance", "0.700"), ("family_2", "part", "0.300"),
+    }
+    assert all(r["views"] == "valid" and float(r["mIoU all views"]) == float(r["mIoU"]) / 2 for r in per_scene)
+    assert sum("failed: RuntimeError" in line for line in text.splitlines()) == 2
+    mean = {r["level"]: r for r in parse_summary(means)}
+    assert mean["instance"]["mIoU"] == "0.800" and mean["part"]["mIoU"] == "0.400"
+    assert mean["instance"]["scene"] == "mean of 2 (1 failed: family_3)"
+    assert quality.main(["--merge", *map(str, files)]) == 0
+    ablation = tmp_path / "ablation.json"
+    ablation.write_text(json.dumps({"settings": {"ablation": True}, "rows": []}))
+    with pytest.raises(SystemExit, match="--merge takes quality.json"):
+        quality.merge([ablation])
+
+
+def test_family_option_reads_the_set_folder(quality, tmp_path):
+    from votesplat_ns.synthetic.family import SET_MANIFEST, TEST_SEEDS, TUNING_SEEDS, scene_folder
+
+    with pytest.raises(SystemExit):
+        quality.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # no family_set.json
+    (tmp_path / SET_MANIFEST).write_text(json.dumps({"set": "test", "seeds": list(TEST_SEEDS)}))
+    for seed in TEST_SEEDS:
+        (tmp_path / scene_folder(seed)).mkdir()
+        (tmp_path / scene_folder(seed) / "transforms.json").write_text("{}")
+    args = quality.parse_args(["--family", "test", "--family-dir", str(tmp_path)])
+    assert args.scenes == [tmp_path / scene_folder(seed) for seed in TEST_SEEDS]
+    assert args.levels == ["instance", "part"]
+    with pytest.raises(SystemExit):
+        quality.parse_args(["--family", "tuning", "--family-dir", str(tmp_path)])  # the folder holds the test set
+    with pytest.raises(SystemExit):
+        quality.parse_args(["--family", "test", "--family-dir", str(tmp_path), "--scenes", str(tmp_path)])
+    (tmp_path / SET_MANIFEST).write_text(json.dumps({"set": "test", "seeds": list(TUNING_SEEDS)}))
+    with pytest.raises(SystemExit):
+        quality.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # seeds that are not this code's test set

@@ -22,9 +22,13 @@ from votesplat_ns.synthetic.render import (
     read_views,
     scene_from_dataset,
 )
+from votesplat_ns.synthetic.family import TEST_SEEDS, TUNING_SEEDS, covering_block, covers, family_set
 from votesplat_ns.synthetic.scenes import (
+    FAMILY_PROPERTY_KINDS,
+    FRUITS,
     GENERATOR_VERSION,
     RECIPES,
+    family_properties,
     make_scene,
     primitive_mesh,
 )
@@ -46,14 +50,20 @@ def _reproject(depth_m, K, c2w):
     return ys, xs, cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
+def _frame(meta, view):
+    """The transforms.json frame of a view (its label and depth paths)."""
+    return next(f for f in meta["frames"] if Path(f["file_path"]).name == view.name)
+
+
 def check_interior_points_land_in_masks(dataset_dir):
     """Project each object's interior point with the written cameras; where it is not hidden behind a
     nearer surface, the pixel must carry the object's id. Returns (hits, occluded) counts."""
     meta, views = read_views(dataset_dir)
     hits = occluded = 0
     for view in views:
-        ids = read_label_png(Path(dataset_dir) / "instances" / view.name)
-        depth = read_depth_png(Path(dataset_dir) / "depth" / view.name)
+        frame = _frame(meta, view)
+        ids = read_label_png(Path(dataset_dir) / frame["instance_mask_path"])
+        depth = read_depth_png(Path(dataset_dir) / frame["depth_file_path"])
         for inst in meta["instances"]:
             p = view.viewmat @ np.append(inst["interior_point"], 1.0)
             if p[2] <= 0:
@@ -79,9 +89,10 @@ def check_labels_and_depth_match_geometry(dataset_dir, scene, views_to_check=Non
     checked = 0
     for view in views if views_to_check is None else [views[i] for i in views_to_check]:
         root = Path(dataset_dir)
-        ids = read_label_png(root / "instances" / view.name)
-        part_ids = read_label_png(root / "parts" / view.name)
-        depth = read_depth_png(root / "depth" / view.name)
+        frame = _frame(meta, view)
+        ids = read_label_png(root / frame["instance_mask_path"])
+        part_ids = read_label_png(root / frame["part_mask_path"])
+        depth = read_depth_png(root / frame["depth_file_path"])
         assert ids.dtype == np.uint16 and part_ids.dtype == np.uint16
         assert ids.shape == (meta["h"], meta["w"])
         # a part pixel belongs to the instance that owns the part; background has no part
@@ -143,30 +154,40 @@ def test_recipes_are_seeded(recipe):
 @pytest.mark.parametrize("recipe", sorted(RECIPES))
 def test_touching_pairs_touch_and_others_do_not(recipe):
     for seed in range(2):
-        scene = make_scene(recipe, seed=seed, num_views=2, num_eval_views=0, width=32, height=32)
-        assert scene.touching, "every recipe puts at least one pair of objects in contact"
-        vertices = {
-            o.id: np.concatenate([primitive_mesh(p).vertices for part in o.parts for p in part.primitives])
-            for o in scene.objects
-        }
-        bounds = {o.id: (vertices[o.id].min(axis=0), vertices[o.id].max(axis=0)) for o in scene.objects}
-        for a in scene.objects:
-            for b in scene.objects:
-                if a.id >= b.id:
-                    continue
-                (alo, ahi), (blo, bhi) = bounds[a.id], bounds[b.id]
-                box_gap = np.max(np.maximum(alo - bhi, blo - ahi))
-                if box_gap > 0.002:
-                    assert (a.id, b.id) not in scene.touching
-                    continue
-                gap = min(
-                    scene.object_surface_distance(b, vertices[a.id]).min(),
-                    scene.object_surface_distance(a, vertices[b.id]).min(),
-                )
-                if (a.id, b.id) in scene.touching:
-                    assert gap < 0.002, (recipe, seed, a.name, b.name, gap)
-                else:
-                    assert gap > 0.001, (recipe, seed, a.name, b.name, gap)
+        check_touching(make_scene(recipe, seed=seed, num_views=2, num_eval_views=0, width=32, height=32))
+
+
+@pytest.mark.parametrize("seed", TUNING_SEEDS + TEST_SEEDS)
+def test_family_set_touching_pairs_touch_and_others_do_not(seed):
+    check_touching(make_scene("family", seed=seed, num_views=2, num_eval_views=0, width=32, height=32))
+
+
+def check_touching(scene):
+    """Listed pairs touch (surfaces within 2 mm); every other pair of objects is at least 1 mm apart."""
+    recipe, seed = scene.recipe, scene.seed
+    assert scene.touching, "every recipe puts at least one pair of objects in contact"
+    vertices = {
+        o.id: np.concatenate([primitive_mesh(p).vertices for part in o.parts for p in part.primitives])
+        for o in scene.objects
+    }
+    bounds = {o.id: (vertices[o.id].min(axis=0), vertices[o.id].max(axis=0)) for o in scene.objects}
+    for a in scene.objects:
+        for b in scene.objects:
+            if a.id >= b.id:
+                continue
+            (alo, ahi), (blo, bhi) = bounds[a.id], bounds[b.id]
+            box_gap = np.max(np.maximum(alo - bhi, blo - ahi))
+            if box_gap > 0.002:
+                assert (a.id, b.id) not in scene.touching
+                continue
+            gap = min(
+                scene.object_surface_distance(b, vertices[a.id]).min(),
+                scene.object_surface_distance(a, vertices[b.id]).min(),
+            )
+            if (a.id, b.id) in scene.touching:
+                assert gap < 0.002, (recipe, seed, a.name, b.name, gap)
+            else:
+                assert gap > 0.001, (recipe, seed, a.name, b.name, gap)
 
 
 def test_nested_fruit_lies_inside_the_bowl():
@@ -179,6 +200,116 @@ def test_nested_fruit_lies_inside_the_bowl():
         assert np.hypot(*(centre[:2] - (lo[:2] + hi[:2]) / 2)) < (hi[0] - lo[0]) / 2
         assert lo[2] < centre[2] < hi[2]
         assert (bowl.id, fid) in scene.touching
+
+
+# --------------------------------------------------------------------------------------------
+# the family recipe and its tuning / test sets (pure numpy)
+
+
+def _camera_elevations(scene):
+    """Degrees of each camera above its look-at target (the recipe's camera_target)."""
+    target = np.asarray(scene.parameters["camera_target"])
+    offsets = np.array([c.c2w[:3, 3] for c in scene.cameras]) - target
+    return np.degrees(np.arctan2(offsets[:, 2], np.linalg.norm(offsets[:, :2], axis=1)))
+
+
+def test_family_sets_are_disjoint_and_cover_every_property():
+    assert set(TUNING_SEEDS).isdisjoint(TEST_SEEDS)
+    assert len(set(TUNING_SEEDS)) == len(TUNING_SEEDS) == len(set(TEST_SEEDS)) == len(TEST_SEEDS) == 6
+    for name, seeds in (("tuning", TUNING_SEEDS), ("test", TEST_SEEDS)):
+        members = family_set(name)
+        assert [seed for seed, _ in members] == list(seeds)
+        kinds = {kind for _, props in members for kind in props.kinds}
+        assert kinds == set(FAMILY_PROPERTY_KINDS), (name, set(FAMILY_PROPERTY_KINDS) - kinds)
+    # the seeds follow from the documented rule, not from anybody's choice
+    assert covering_block(1000) == TUNING_SEEDS and covering_block(2000) == TEST_SEEDS
+    assert not covers(range(TEST_SEEDS[0] - 6, TEST_SEEDS[0]))
+    with pytest.raises(ValueError, match="unknown family set"):
+        family_set("validation")
+
+
+def test_family_properties_vary_with_the_seed():
+    props = [family_properties(seed) for seed in range(60)]
+    assert {p.capture for p in props} == {"360", "forward"}
+    assert {len(p.ring_elevations) for p in props if p.capture == "360"} == {1, 2, 3}
+    assert all(not p.ring_elevations for p in props if p.capture == "forward")
+    assert {p.cut_object for p in props} == {None, "carton", "monitor", "table"}
+    assert {p.background for p in props} == {"textured", "plain"}
+    assert family_properties(7) == family_properties(7)
+
+
+@pytest.mark.parametrize("seed", TUNING_SEEDS + TEST_SEEDS)
+def test_family_scenes_hold_their_properties(seed):
+    scene = make_scene("family", seed=seed, num_views=48, num_eval_views=6)
+    props = family_properties(seed)
+    assert scene.parameters["property_kinds"] == list(props.kinds)
+    kinds = [o.kind for o in scene.objects]
+    by_id = {o.id: o for o in scene.objects}
+    assert scene.touching and all(a < b for a, b in scene.touching)
+    for flat in props.flat:
+        assert flat in kinds
+    if props.container:
+        (bowl,) = [o for o in scene.objects if o.kind == "bowl"]
+        fruit = [o for o in scene.objects if o.kind in FRUITS]
+        assert len(fruit) >= 2 and all((bowl.id, f.id) in scene.touching for f in fruit)
+    else:
+        assert "bowl" not in kinds
+    if props.stacked:
+        # a box resting on the top of another box or carton
+        lows = {o.id: scene.object_bounds(o)[0][2] for o in scene.objects}
+        stacked = [
+            (a, b) for a, b in scene.touching
+            if by_id[a].kind in ("box", "carton") and by_id[b].kind == "box" and lows[b] > 0.02
+            and abs(lows[b] - scene.object_bounds(by_id[a])[1][2]) < 1e-9
+        ]
+        assert stacked
+    if props.cut_object is not None:
+        assert scene.objects[0].kind == props.cut_object and scene.parameters["cut_instance"] == 1
+    if props.background == "plain":
+        assert not scene.textures and all(part.material.texture is None for part in scene.background)
+    else:
+        assert all(part.material.texture in scene.textures for part in scene.background)
+    if props.capture == "forward":
+        forward_axis = np.array([c.c2w[:3, 2] for c in scene.cameras])
+        assert (forward_axis[:, 1] > 0.9).all()  # every view looks along +y, no orbit
+        depths = [o.interior_point[1] for o in scene.objects]
+        assert max(depths) - min(depths) > 1.0  # the objects spread in depth
+    else:
+        elevations = _camera_elevations(scene)
+        rings = np.asarray(scene.parameters["camera_rings"])
+        assert sorted(set(rings.tolist())) == list(range(len(props.ring_elevations)))
+        for ring, wanted in enumerate(props.ring_elevations):
+            assert np.abs(elevations[rings == ring] - wanted).max() < 2.5
+        # every ring gets held-out views
+        assert set(rings[list(scene.eval_indices)].tolist()) == set(rings.tolist())
+        eye_distance = np.linalg.norm([c.c2w[:3, 3] for c in scene.cameras], axis=1)
+        wall = next(p for p in scene.background if p.name == "wall").primitives[0]
+        assert eye_distance.max() < wall.pieces[0][0, 0] - 0.3  # every camera stands inside the room
+
+
+@pytest.mark.parametrize("seed", [s for s in TUNING_SEEDS + TEST_SEEDS if family_properties(s).cut_object is not None])
+def test_family_cut_object_leaves_the_frame_in_most_views(seed):
+    """Geometry only (the rendered labels are checked below): surface points of the cut object project
+    both inside and outside the image in most views, and every other object stays clear of the cameras."""
+    scene = make_scene("family", seed=seed, num_views=48, num_eval_views=6)
+    intr = scene.intrinsics
+    cut = scene.object_by_id(scene.parameters["cut_instance"])
+    verts = np.concatenate([primitive_mesh(p).vertices for part in cut.parts for p in part.primitives])
+    dense = np.concatenate([verts, verts[:-1] + 0.5 * np.diff(verts, axis=0)])  # vertices and edge midpoints
+    overflowing = 0
+    for camera in scene.cameras:
+        cam = dense @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
+        assert (cam[:, 2] > 0.05).all()  # the object is in front of the camera, never around it
+        u = intr.fx * cam[:, 0] / cam[:, 2] + intr.cx
+        v = intr.fy * cam[:, 1] / cam[:, 2] + intr.cy
+        inside = (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
+        overflowing += inside.any() and not inside.all()
+    assert overflowing >= 0.7 * len(scene.cameras)
+
+
+def test_family_refuses_an_object_count():
+    with pytest.raises(ValueError, match="num_objects"):
+        make_scene("family", seed=1, num_objects=5)
 
 
 def test_bad_recipe_arguments():
@@ -300,6 +431,65 @@ def test_other_recipes_render_consistent_labels(recipe, tmp_path):
     assert check_labels_and_depth_match_geometry(tmp_path, scene) > 300
     meta = json.loads((tmp_path / "transforms.json").read_text())
     assert "train_filenames" not in meta  # no held-out views: nerfstudio's own split applies
+
+
+@pytest.fixture(scope="module")
+def tiny_family(tmp_path_factory):
+    """A cut-by-frame family scene of the test set at 64x48, 1 sample per pixel, JPEG images."""
+    if not mitsuba_available():
+        pytest.skip(MITSUBA_MISSING)
+    from votesplat_ns.synthetic.render import RenderSettings, write_dataset
+
+    seed = next(s for s in TEST_SEEDS if family_properties(s).capture == "360" and family_properties(s).cut_object)
+    scene = make_scene("family", seed=seed, num_views=6, num_eval_views=2, width=64, height=48)
+    out = tmp_path_factory.mktemp("family") / "tiny"
+    write_dataset(scene, out, RenderSettings(spp=1, num_points=300, image_format="jpg", jpeg_quality=90))
+    return scene, out
+
+
+@needs_mitsuba
+def test_family_renders_consistent_labels(tiny_family, tmp_path):
+    from votesplat_ns.synthetic.render import RenderSettings, write_dataset
+
+    scene, out = tiny_family
+    meta = json.loads((out / "transforms.json").read_text())
+    assert all(f["file_path"].endswith(".jpg") and f["instance_mask_path"].endswith(".png") for f in meta["frames"])
+    info = meta["votesplat_synthetic"]
+    assert (info["recipe"], info["image_format"], info["jpeg_quality"]) == ("family", "jpg", 90)
+    assert info["eval_frames"] == [Path(p).name for p in meta["val_filenames"]]
+    with Image.open(out / meta["frames"][0]["file_path"]) as image:
+        assert (image.format, image.size, image.mode) == ("JPEG", (64, 48), "RGB")
+    rebuilt = scene_from_dataset(meta)
+    assert [o.name for o in rebuilt.objects] == [o.name for o in scene.objects]
+    assert check_labels_and_depth_match_geometry(out, rebuilt) > 300
+    hits, _ = check_interior_points_land_in_masks(out)
+    assert hits >= 4
+    # the same seed renders the same labels again
+    again = tmp_path / "again"
+    write_dataset(make_scene("family", seed=scene.seed, num_views=6, num_eval_views=2, width=64, height=48), again,
+                  RenderSettings(spp=1, num_points=300, image_format="jpg", jpeg_quality=90))
+    for frame in meta["frames"]:
+        for key in ("instance_mask_path", "part_mask_path", "depth_file_path"):
+            assert (out / frame[key]).read_bytes() == (again / frame[key]).read_bytes()
+    assert json.loads((again / "transforms.json").read_text()) == meta
+
+
+@needs_mitsuba
+@pytest.mark.parametrize("capture", ["360", "forward"])
+def test_family_cut_object_touches_the_border_in_most_rendered_views(capture):
+    """The labels themselves (ray cast at 64x48): the cut object's mask reaches the image border in most views."""
+    from votesplat_ns.synthetic.render import SceneRenderer
+
+    seed = next(s for s in TEST_SEEDS if family_properties(s).capture == capture and family_properties(s).cut_object)
+    scene = make_scene("family", seed=seed, num_views=48, num_eval_views=6, width=64, height=48)
+    renderer = SceneRenderer(scene)
+    cut_id = scene.parameters["cut_instance"]
+    touching_border = 0
+    for camera in scene.cameras:
+        ids = renderer.cast(camera)[0] == cut_id
+        border = np.concatenate([ids[0], ids[-1], ids[:, 0], ids[:, -1]])
+        touching_border += bool(border.any()) and ids.mean() > 0.02
+    assert touching_border >= 0.7 * len(scene.cameras), (seed, touching_border)
 
 
 @needs_mitsuba

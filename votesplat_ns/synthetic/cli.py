@@ -4,6 +4,10 @@ Example (the bundled demo scene)::
 
     votesplat-synth tabletop360 --seed 3 --views 30 --eval-views 4 --width 128 --height 128 \\
         --objects 5 --spp 64 --output-dir votesplat_ns/data/demo --overwrite
+
+A whole set of the ``family`` benchmark (votesplat_ns/synthetic/family.py: tuning or test seeds)::
+
+    votesplat-synth family-set --set test --output-dir build/family_test
 """
 
 from __future__ import annotations
@@ -15,13 +19,15 @@ from typing import List, Optional
 
 from votesplat_ns.synthetic.scenes import RECIPES
 
-_DEFAULT_VIEWS = {"tabletop360": 48, "nested": 48, "forward": 24}
+_DEFAULT_VIEWS = {"tabletop360": 48, "nested": 48, "forward": 24, "family": 48}
+FAMILY_SET_COMMAND = "family-set"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="votesplat-synth",
         description="Render a synthetic multi-view scene (mitsuba 3, CPU) with exact instance/part ids and depth.",
+        epilog=f"'votesplat-synth {FAMILY_SET_COMMAND} --help': render a whole tuning or test set of the family recipe.",
     )
     parser.add_argument("recipe", choices=sorted(RECIPES), help="scene recipe")
     parser.add_argument("--output-dir", required=True, help="dataset folder to write (transforms.json, images/, ...)")
@@ -35,12 +41,72 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
     parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
     parser.add_argument("--points", type=int, default=4000, help="points in sparse_pc.ply")
+    _add_image_arguments(parser, "png")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in --output-dir")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
 
 
+def _add_image_arguments(parser: argparse.ArgumentParser, default_format: str) -> None:
+    parser.add_argument(
+        "--image-format", choices=["png", "jpg"], default=default_format,
+        help=f"RGB image files (default {default_format}); instance/part labels and depth are always lossless PNG",
+    )
+    parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality 1-100 with --image-format jpg")
+
+
+def build_family_set_parser() -> argparse.ArgumentParser:
+    from votesplat_ns.synthetic.family import FAMILY_SETS, SET_OPTIONS
+
+    parser = argparse.ArgumentParser(
+        prog=f"votesplat-synth {FAMILY_SET_COMMAND}",
+        description=(
+            "Render every scene of a family set (votesplat_ns/synthetic/family.py) into <output-dir>/family_<seed>/ "
+            f"at {SET_OPTIONS['width']}x{SET_OPTIONS['height']}, {SET_OPTIONS['num_views']} train + "
+            f"{SET_OPTIONS['num_eval_views']} held-out views, plus family_set.json. No default may be tuned on the test set."
+        ),
+    )
+    parser.add_argument("--set", required=True, choices=sorted(FAMILY_SETS), help="tuning or test seeds")
+    parser.add_argument("--output-dir", required=True, help="folder for the set's scene folders")
+    parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
+    parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
+    parser.add_argument("--points", type=int, default=4000, help="points in each sparse_pc.ply")
+    _add_image_arguments(parser, "jpg")
+    parser.add_argument("--overwrite", action="store_true", help="replace a set already in --output-dir")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    return parser
+
+
+def family_set_main(argv: List[str]) -> int:
+    args = build_family_set_parser().parse_args(argv)
+    from votesplat_ns.synthetic.family import write_family_set
+    from votesplat_ns.synthetic.render import RenderSettings
+
+    start = time.time()
+
+    def progress(scene: int, scenes: int, done: int, total: int) -> None:
+        if not args.quiet:
+            print(f"\rscene {scene + 1}/{scenes}: rendered {done}/{total} views ({time.time() - start:.0f} s)", end="", file=sys.stderr, flush=True)
+
+    settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
+    try:
+        manifest = write_family_set(args.set, args.output_dir, settings, overwrite=args.overwrite, progress=progress)
+    except (ValueError, ImportError) as exc:
+        print(f"\nvotesplat-synth {FAMILY_SET_COMMAND}: error: {exc}", file=sys.stderr)
+        return 2
+    if not args.quiet:
+        import json
+
+        info = json.loads(manifest.read_text(encoding="utf-8"))
+        print(f"\nwrote {manifest}: {len(info['scenes'])} scenes, {info['total_bytes'] / 1e6:.1f} MB, "
+              f"{info['total_render_seconds']:.0f} s", file=sys.stderr)
+    return 0
+
+
 def main(argv: Optional[List[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == [FAMILY_SET_COMMAND]:
+        return family_set_main(argv[1:])
     args = build_parser().parse_args(argv)
     from votesplat_ns.synthetic.render import RenderSettings, write_dataset
     from votesplat_ns.synthetic.scenes import make_scene
@@ -61,7 +127,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             if not args.quiet:
                 print(f"\rrendered {done}/{total} views ({time.time() - start:.0f} s)", end="", file=sys.stderr, flush=True)
 
-        settings = RenderSettings(spp=args.spp, max_depth=args.max_depth, num_points=args.points)
+        settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
         out = write_dataset(scene, args.output_dir, settings, overwrite=args.overwrite, progress=progress)
     except (ValueError, ImportError) as exc:
         print(f"\nvotesplat-synth: error: {exc}", file=sys.stderr)

@@ -1,6 +1,7 @@
 """Render a :mod:`~votesplat_ns.synthetic.scenes` scene with mitsuba 3 and write a nerfstudio dataset.
 
-* RGB: mitsuba's path tracer (``scalar_rgb`` variant, CPU), box pixel filter, sRGB 8-bit PNG.
+* RGB: mitsuba's path tracer (``scalar_rgb`` variant, CPU), box pixel filter, sRGB 8-bit PNG (or JPEG
+  with ``RenderSettings(image_format="jpg")``: 4:4:4 chroma, for datasets that must travel small).
 * Instance ids, part ids and depth: ONE ray per pixel through the pixel centre (x + 0.5, y + 0.5)
   cast with ``scene.ray_intersect`` on the same mitsuba scene, so label edges are exact and agree with
   the depth. 16-bit single-channel PNGs; 0 = background/nothing.
@@ -11,7 +12,7 @@
 Dataset layout (``transforms.json`` is written last, so a folder without it is an unfinished run)::
 
     transforms.json   nerfstudio format + "instances", "touching", "votesplat_synthetic"
-    images/frame_00001.png  instances/frame_00001.png  parts/frame_00001.png  depth/frame_00001.png
+    images/frame_00001.png (.jpg)  instances/frame_00001.png  parts/frame_00001.png  depth/frame_00001.png
     sparse_pc.ply     surface points seen by >= 2 training views, RGB albedo (SfM stand-in)
 
 The reading helpers at the bottom need only numpy and Pillow, not mitsuba.
@@ -29,6 +30,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from votesplat_ns.ply_io import atomic_write
 from votesplat_ns.synthetic.scenes import (
     GENERATOR_VERSION,
     Camera,
@@ -72,18 +74,12 @@ def mitsuba_available() -> bool:
 # atomic writers
 
 
-def _atomic_write_bytes(path: Path, write: Callable[[str], None], suffix: str) -> None:
+def _atomic_write_bytes(path: Path, write: Callable[[object], None]) -> None:
+    """``write(handle)`` fills a binary file that replaces ``path`` in one rename (``ply_io.atomic_write``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "wb") as handle:
+        write(handle)
 
 
 def write_png(path: Path, array: np.ndarray) -> None:
@@ -97,17 +93,22 @@ def write_png(path: Path, array: np.ndarray) -> None:
         image = Image.fromarray(array)
     else:
         raise ValueError(f"write_png: expected uint8 [H,W(,3)] or uint16 [H,W], got {array.dtype} {array.shape}")
-    _atomic_write_bytes(path, lambda tmp: image.save(tmp, format="PNG"), ".png")
+    _atomic_write_bytes(path, lambda handle: image.save(handle, format="PNG"))
+
+
+def write_jpeg(path: Path, rgb: np.ndarray, quality: int) -> None:
+    """Atomic JPEG write of uint8 [H,W,3] RGB, without chroma subsampling (object edges keep their colour)."""
+    from PIL import Image
+
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"write_jpeg: expected uint8 [H,W,3], got {rgb.dtype} {rgb.shape}")
+    image = Image.fromarray(np.ascontiguousarray(rgb))
+    _atomic_write_bytes(path, lambda handle: image.save(handle, format="JPEG", quality=int(quality), subsampling=0))
 
 
 def write_json(path: Path, data: dict) -> None:
-    text = json.dumps(data, indent=2)
-
-    def write(tmp):
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text + "\n")
-
-    _atomic_write_bytes(path, write, ".json")
+    text = json.dumps(data, indent=2) + "\n"
+    _atomic_write_bytes(path, lambda handle: handle.write(text.encode("utf-8")))
 
 
 def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -> None:
@@ -118,7 +119,7 @@ def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -
     vertex["x"], vertex["y"], vertex["z"] = np.asarray(points, dtype=np.float32).T
     vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours_uint8, dtype=np.uint8).T
     data = PlyData([PlyElement.describe(vertex, "vertex")], text=False)
-    _atomic_write_bytes(path, lambda tmp: data.write(tmp), ".ply")
+    _atomic_write_bytes(path, lambda handle: data.write(handle))
 
 
 def _write_mesh_ply(path: str, mesh) -> None:
@@ -356,11 +357,16 @@ def sparse_point_cloud(scene: Scene, depths: Sequence[np.ndarray], num_points: i
 # dataset writer
 
 
+IMAGE_FORMATS = ("png", "jpg")
+
+
 @dataclass(frozen=True)
 class RenderSettings:
     spp: int = 64
     max_depth: int = 4
     num_points: int = 4000
+    image_format: str = "png"  # RGB images: "png" (lossless) or "jpg"; labels and depth are always PNG
+    jpeg_quality: int = 95
 
 
 def encode_depth_mm(depth_m: np.ndarray) -> np.ndarray:
@@ -370,8 +376,8 @@ def encode_depth_mm(depth_m: np.ndarray) -> np.ndarray:
     return mm.astype(np.uint16)
 
 
-def frame_name(index: int) -> str:
-    return f"frame_{index + 1:05d}.png"
+def frame_name(index: int, extension: str = "png") -> str:
+    return f"frame_{index + 1:05d}.{extension}"
 
 
 def _prepare_output(output_dir: Path, overwrite: bool) -> None:
@@ -399,6 +405,10 @@ def write_dataset(
     """Render every view of ``scene`` and write the dataset; returns the path of ``transforms.json``."""
     if settings.spp < 1:
         raise ValueError(f"spp must be at least 1 (got {settings.spp})")
+    if settings.image_format not in IMAGE_FORMATS:
+        raise ValueError(f"image format must be one of {', '.join(IMAGE_FORMATS)} (got {settings.image_format!r})")
+    if not 1 <= settings.jpeg_quality <= 100:
+        raise ValueError(f"JPEG quality must be between 1 and 100 (got {settings.jpeg_quality})")
     output_dir = Path(output_dir)
     mi = require_mitsuba()
     _prepare_output(output_dir, overwrite)
@@ -408,9 +418,13 @@ def write_dataset(
     eval_set = set(scene.eval_indices)
     for index, camera in enumerate(scene.cameras):
         name = frame_name(index)
+        image_name = frame_name(index, settings.image_format)
         instance, part, depth = renderer.cast(camera)
         rgb = renderer.render_rgb(camera, spp=settings.spp, seed=scene.seed * 100_003 + index)
-        write_png(output_dir / "images" / name, rgb)
+        if settings.image_format == "jpg":
+            write_jpeg(output_dir / "images" / image_name, rgb, settings.jpeg_quality)
+        else:
+            write_png(output_dir / "images" / image_name, rgb)
         write_png(output_dir / "instances" / name, instance)
         write_png(output_dir / "parts" / name, part)
         depth_mm = encode_depth_mm(depth)
@@ -418,7 +432,7 @@ def write_dataset(
         depths.append(depth_mm.astype(np.float64) * DEPTH_UNIT_METRES)
         frames.append(
             {
-                "file_path": f"images/{name}",
+                "file_path": f"images/{image_name}",
                 "transform_matrix": opencv_c2w_to_nerfstudio(camera.c2w).tolist(),
                 "instance_mask_path": f"instances/{name}",
                 "part_mask_path": f"parts/{name}",
@@ -479,9 +493,11 @@ def write_dataset(
         "mitsuba_variant": MITSUBA_VARIANT,
         "spp": settings.spp,
         "max_depth": settings.max_depth,
+        # PNG datasets keep the keys they always had
+        **({"image_format": "jpg", "jpeg_quality": settings.jpeg_quality} if settings.image_format == "jpg" else {}),
         "num_views": len(scene.cameras) - len(eval_set),
         "num_eval_views": len(eval_set),
-        "eval_frames": [frame_name(i) for i in sorted(eval_set)],
+        "eval_frames": [frame_name(i, settings.image_format) for i in sorted(eval_set)],
         "width": intr.width,
         "height": intr.height,
         "scene_options": _jsonable(scene.parameters.get("options", {})),

@@ -18,7 +18,7 @@ Conventions
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -277,6 +277,12 @@ class Quad:
         return np.sqrt(dx * dx + dy * dy + points[:, 2] ** 2)
 
 
+def _object_box(obj) -> Tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds (min, max) of a scene object's meshes."""
+    verts = np.concatenate([primitive_mesh(p).vertices for part in obj.parts for p in part.primitives])
+    return verts.min(axis=0), verts.max(axis=0)
+
+
 def _nondegenerate(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     tri = vertices[faces]
     area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -419,8 +425,7 @@ class Scene:
         raise KeyError(f"no object with instance id {instance_id}")
 
     def object_bounds(self, obj: SceneObject) -> Tuple[np.ndarray, np.ndarray]:
-        verts = np.concatenate([primitive_mesh(p).vertices for part in obj.parts for p in part.primitives])
-        return verts.min(axis=0), verts.max(axis=0)
+        return _object_box(obj)
 
     def part_surface_distance(self, part: Part, points_world: np.ndarray) -> np.ndarray:
         return np.min([primitive_surface_distance(p, points_world) for p in part.primitives], axis=0)
@@ -521,6 +526,7 @@ class Template:
     top: Optional[Tuple[float, float, float]]  # flat top for stacking: (half x, half y, height)
     interior_point: Tuple[float, float, float]
     height: float
+    cavity: Optional[Tuple[float, float]] = None  # container: (height of the bowl's sphere centre, inner radius)
 
 
 def _mug(rng, s, colour):
@@ -591,12 +597,17 @@ def _lamp(rng, s, colour):
 def _box(rng, s, colour):
     hx, hy = 0.06 * s * rng.uniform(0.8, 1.3), 0.05 * s * rng.uniform(0.8, 1.3)
     hz = 0.045 * s * rng.uniform(0.8, 1.4)
+    return _box_shape("box", hx, hy, hz, 0.012 * s, colour)
+
+
+def _box_shape(kind: str, hx: float, hy: float, hz: float, ht: float, colour) -> Template:
+    """A box body (half extents hx, hy, hz) under a lid of half height ``ht``."""
     # the lid is flush with the body so a neighbour touching the box touches both over their full height
-    e, ht = 0.0, 0.012 * s
+    e = 0.0
     body = Box((hx, hy, hz), pose=translate(0.0, 0.0, hz))
     lid = Box((hx + e, hy + e, ht), pose=translate(0.0, 0.0, 2 * hz + ht))
     return Template(
-        kind="box",
+        kind=kind,
         parts=(("body", (body,), colour), ("lid", (lid,), _shade(colour, 1.45))),
         footprint_radius=math.hypot(hx + e, hy + e),
         side=("box", (hx + e, hy + e, 2 * hz + 2 * ht)),
@@ -789,13 +800,18 @@ def _place_objects(
     min_touching: int,
     gap: float = 0.012,
     builders: Dict[str, Callable] = TABLETOP_KINDS,
+    existing: Sequence[_Placed] = (),
 ) -> Tuple[List[_Placed], List[Tuple[int, int]]]:
-    """Place objects on the table without overlap; some are put in contact with an earlier object."""
-    placed: List[_Placed] = []
+    """Place objects on the table without overlap; some are put in contact with an earlier object.
+
+    ``existing`` objects are already placed (the new ones avoid them and may touch them); the result
+    lists them first, and the touching pairs index that whole list.
+    """
+    placed: List[_Placed] = list(existing)
     touching: List[Tuple[int, int]] = []
     for index, (kind, size, colour) in enumerate(zip(kinds, sizes, colours)):
         template = builders[kind](rng, size, PALETTE[colour])
-        want_touch = index > 0 and (rng.random() < touch_probability or len(touching) < min_touching)
+        want_touch = len(placed) > 0 and (rng.random() < touch_probability or len(touching) < min_touching)
         pose = None
         partner = None
         if want_touch:
@@ -819,11 +835,11 @@ def _place_objects(
                     break
         if pose is None:
             raise ValueError(
-                f"could not place {len(kinds)} objects without overlap; use fewer objects (placed {len(placed)})"
+                f"could not place {len(kinds)} objects without overlap; use fewer objects (placed {len(placed) - len(existing)})"
             )
         placed.append(_Placed(template, pose, colour))
         if partner is not None:
-            touching.append((partner, index))
+            touching.append((partner, len(placed) - 1))
     return placed, touching
 
 
@@ -837,6 +853,26 @@ def _free(placed, pose, template, inside, gap, skip: Optional[int] = None) -> bo
         if np.linalg.norm(other.xy - xy) < other.template.footprint_radius + template.footprint_radius + gap:
             return False
     return True
+
+
+def _rest_balls_on_tops(rng, placed: List[_Placed], touching: List[Tuple[int, int]]) -> List[Tuple[int, int]]:
+    """Move some balls onto a flat top (box or can lid): a second, vertical kind of contact."""
+    for i, item in enumerate(placed):
+        if item.template.kind != "ball" or not item.on_table:
+            continue
+        bases = [j for j, other in enumerate(placed) if other.template.top is not None and (j, i) not in touching]
+        if bases and rng.random() < 0.5:
+            j = bases[int(rng.integers(len(bases)))]
+            pose = _stack_on(rng, placed[j], item.template)
+            clear = pose is not None and all(
+                np.linalg.norm(other.xy - pose[:2, 3]) >= other.template.footprint_radius + item.template.footprint_radius + 0.012
+                for k, other in enumerate(placed)
+                if k not in (i, j)
+            )
+            if clear:
+                item.pose, item.on_table = pose, False
+                touching = [t for t in touching if i not in t] + [(j, i)]
+    return touching
 
 
 def _stack_on(rng, base: _Placed, template: Template) -> Optional[np.ndarray]:
@@ -938,13 +974,18 @@ def _intrinsics(width: int, height: int, fov_x_degrees: float) -> Intrinsics:
 # recipes
 
 
-def _room_background(rng_tex, ground_half: float, wall_radius: float, wall_height: float):
-    ground_tex = make_texture(rng_tex, (256, 256), (180, 150, 110), (150, 120, 85), checks=8, dots=60)
-    wall_tex = make_texture(rng_tex, (256, 512), (120, 135, 150), (95, 110, 125), checks=6, dots=90)
-    ground = Part(0, "table", (Quad((ground_half, ground_half), uv_tiles=(ground_half, ground_half)),), Material(texture="table"))
+def _room_background(rng_tex, ground_half: float, wall_radius: float, wall_height: float, plain_colours=None):
+    """Table plane and a cylindrical wall: textured, or flat ``(table, wall)`` sRGB colours."""
+    if plain_colours is None:
+        ground_tex = make_texture(rng_tex, (256, 256), (180, 150, 110), (150, 120, 85), checks=8, dots=60)
+        wall_tex = make_texture(rng_tex, (256, 512), (120, 135, 150), (95, 110, 125), checks=6, dots=90)
+        materials, textures = (Material(texture="table"), Material(texture="wall")), {"table": ground_tex, "wall": wall_tex}
+    else:
+        materials, textures = (Material(srgb=plain_colours[0]), Material(srgb=plain_colours[1])), {}
+    ground = Part(0, "table", (Quad((ground_half, ground_half), uv_tiles=(ground_half, ground_half)),), materials[0])
     wall_profile = np.array([[wall_radius, 0.0], [wall_radius, wall_height]])
-    wall = Part(0, "wall", (Revolved((wall_profile,), segments=96),), Material(texture="wall"))
-    return (ground, wall), {"table": ground_tex, "wall": wall_tex}
+    wall = Part(0, "wall", (Revolved((wall_profile,), segments=96),), materials[1])
+    return (ground, wall), textures
 
 
 def _lighting(rng_light) -> Lighting:
@@ -997,22 +1038,7 @@ def tabletop360(
         return np.array([rho * math.cos(phi), rho * math.sin(phi)])
 
     placed, touching = _place_objects(rng, kinds, sizes, colours, inside, sample_xy, 0.35, min(1, count - 1))
-    # a ball resting on a box or can lid is a second, vertical kind of contact
-    for i, item in enumerate(placed):
-        if item.template.kind != "ball":
-            continue
-        bases = [j for j, other in enumerate(placed) if other.template.top is not None and (j, i) not in touching]
-        if bases and rng.random() < 0.5:
-            j = bases[int(rng.integers(len(bases)))]
-            pose = _stack_on(rng, placed[j], item.template)
-            clear = pose is not None and all(
-                np.linalg.norm(other.xy - pose[:2, 3]) >= other.template.footprint_radius + item.template.footprint_radius + 0.012
-                for k, other in enumerate(placed)
-                if k not in (i, j)
-            )
-            if clear:
-                item.pose, item.on_table = pose, False
-                touching = [t for t in touching if i not in t] + [(j, i)]
+    touching = _rest_balls_on_tops(rng, placed, touching)
     objects = _build_objects(placed)
     background, textures = _room_background(np.random.default_rng([seed, _STREAM_TEXTURES]), 3.0, 2.8, 1.8)
     total = num_views + num_eval_views
@@ -1077,6 +1103,38 @@ FRUITS = {"apple": 0.042, "orange": 0.045, "lime": 0.033, "plum": 0.032, "lemon"
 _FRUIT_COLOUR = {"orange": "orange", "lime": "green", "plum": "purple", "lemon": "yellow"}
 
 
+def _fill_bowl(rng, s, zc, ri, fruit_count: int, used_colours: set, bowl_pose: Optional[np.ndarray] = None) -> List[_Placed]:
+    """Up to ``fruit_count`` fruits resting on a bowl's inner wall (the first at the bottom), no two touching.
+
+    ``zc``/``ri``: the bowl's sphere centre height and inner radius (bowl-local); ``bowl_pose`` moves the
+    fruit with the bowl (None: the bowl stands at the origin). Picks and records the fruit colours in ``used_colours``.
+    """
+    fruit_kinds = [str(k) for k in rng.permutation(list(FRUITS))[:fruit_count]]
+    fruits: List[_Placed] = []
+    centres: List[Tuple[np.ndarray, float]] = []
+    for k, kind in enumerate(fruit_kinds):
+        free = [c for c in ("red", "green") if c not in used_colours] or ["red"]
+        colour = _FRUIT_COLOUR.get(kind) or str(rng.choice(free))
+        used_colours.add(colour)
+        tmpl = _fruit(kind, FRUITS[kind])(rng, s, PALETTE[colour])
+        rf = tmpl.side[1]
+        for _ in range(500):
+            theta = 0.0 if k == 0 else math.radians(rng.uniform(30.0, 62.0))
+            phi = rng.uniform(0.0, 2.0 * math.pi)
+            d = ri - rf
+            centre = np.array([d * math.sin(theta) * math.cos(phi), d * math.sin(theta) * math.sin(phi), zc - d * math.cos(theta)])
+            if all(np.linalg.norm(centre - c) >= rf + rc + 0.002 for c, rc in centres):
+                break
+        else:
+            continue
+        centres.append((centre, rf))
+        pose = translate(centre[0], centre[1], centre[2] - rf) @ rot_z(rng.uniform(0.0, 2.0 * math.pi))
+        if bowl_pose is not None:
+            pose = translate(*bowl_pose[:3, 3]) @ pose
+        fruits.append(_Placed(tmpl, pose, colour, on_table=False))
+    return fruits
+
+
 def nested(
     seed: int = 0,
     num_views: int = 48,
@@ -1094,27 +1152,8 @@ def nested(
     template, (zc, ri) = _bowl(rng, s, PALETTE[bowl_colour])
     bowl = _Placed(template, translate(0.0, 0.0, 0.0) @ rot_z(rng.uniform(0, 2 * math.pi)), bowl_colour)
     fruit_count = int(rng.integers(2, 5))
-    fruit_kinds = [str(k) for k in rng.permutation(list(FRUITS))[:fruit_count]]
     used_colours = {bowl_colour}
-    fruits: List[_Placed] = []
-    centres: List[Tuple[np.ndarray, float]] = []
-    for k, kind in enumerate(fruit_kinds):
-        colour = _FRUIT_COLOUR.get(kind) or str(rng.choice([c for c in ("red", "green") if c not in used_colours]))
-        used_colours.add(colour)
-        tmpl = _fruit(kind, FRUITS[kind])(rng, s, PALETTE[colour])
-        rf = tmpl.side[1]
-        for _ in range(500):
-            theta = 0.0 if k == 0 else math.radians(rng.uniform(30.0, 62.0))
-            phi = rng.uniform(0.0, 2.0 * math.pi)
-            d = ri - rf
-            centre = np.array([d * math.sin(theta) * math.cos(phi), d * math.sin(theta) * math.sin(phi), zc - d * math.cos(theta)])
-            if all(np.linalg.norm(centre - c) >= rf + rc + 0.002 for c, rc in centres):
-                break
-        else:
-            continue
-        centres.append((centre, rf))
-        pose = translate(centre[0], centre[1], centre[2] - rf) @ rot_z(rng.uniform(0.0, 2.0 * math.pi))
-        fruits.append(_Placed(tmpl, pose, colour, on_table=False))
+    fruits = _fill_bowl(rng, s, zc, ri, fruit_count, used_colours)
     extra = int(rng.integers(2, 4)) if num_objects is None else max(0, int(num_objects) - 1 - len(fruits))
     others = [k for k in TABLETOP_KINDS if k not in ("lamp",)]
     kinds = _pick_kinds(rng, extra, others)
@@ -1171,6 +1210,36 @@ def _place_objects_after(rng, existing: List[_Placed], kinds, sizes, colours, in
     return placed[start:], []
 
 
+def _forward_background(rng_tex, plain_colours: Optional[Tuple[Tuple[int, int, int], Tuple[int, int, int]]] = None):
+    """Ground and back wall of a forward-facing capture: textured, or flat ``(ground, wall)`` sRGB colours."""
+    if plain_colours is None:
+        ground_tex = make_texture(rng_tex, (256, 256), (170, 160, 120), (140, 130, 95), checks=8, dots=70)
+        wall_tex = make_texture(rng_tex, (256, 512), (150, 120, 120), (120, 95, 100), checks=6, dots=120)
+        materials, textures = (Material(texture="ground"), Material(texture="wall")), {"ground": ground_tex, "wall": wall_tex}
+    else:
+        materials, textures = (Material(srgb=plain_colours[0]), Material(srgb=plain_colours[1])), {}
+    ground = Part(0, "ground", (Quad((4.5, 4.0), pose=translate(0.0, 2.5, 0.0), uv_tiles=(9.0, 8.0)),), materials[0])
+    wall = Part(0, "wall", (Quad((4.5, 1.8), pose=translate(0.0, 5.5, 1.8) @ rot_x(math.pi / 2), uv_tiles=(3.0, 1.2)),), materials[1])
+    return (ground, wall), textures
+
+
+def _forward_cameras(cam_rng, total: int) -> List[Camera]:
+    """A grid of views on a 0.6 x 0.25 m vertical patch at y = 0, all looking +y and 14 degrees down."""
+    cols = max(1, int(math.ceil(math.sqrt(total * 1.5))))
+    rows = int(math.ceil(total / cols))
+    cameras = []
+    pitch = math.radians(-14.0)
+    for i in range(total):
+        r, c = divmod(i, cols)
+        x = -0.3 + 0.6 * (c + 0.5) / cols + cam_rng.uniform(-0.02, 0.02)
+        z = 0.75 - 0.25 * (r + 0.5) / rows + cam_rng.uniform(-0.02, 0.02)
+        yaw = cam_rng.uniform(-0.03, 0.03)
+        direction = np.array([math.sin(yaw) * math.cos(pitch), math.cos(yaw) * math.cos(pitch), math.sin(pitch)])
+        eye = np.array([x, 0.0, z])
+        cameras.append(Camera(look_at(eye, eye + direction)))
+    return cameras
+
+
 def forward(
     seed: int = 0,
     num_views: int = 24,
@@ -1205,31 +1274,15 @@ def forward(
 
     placed, touching = _place_objects(rng, kinds, sizes, colours, inside, sample_xy, 0.2, min(1, count - 1), gap=0.03)
     objects = _build_objects(placed)
-    rng_tex = np.random.default_rng([seed, _STREAM_TEXTURES])
-    ground_tex = make_texture(rng_tex, (256, 256), (170, 160, 120), (140, 130, 95), checks=8, dots=70)
-    wall_tex = make_texture(rng_tex, (256, 512), (150, 120, 120), (120, 95, 100), checks=6, dots=120)
-    ground = Part(0, "ground", (Quad((4.5, 4.0), pose=translate(0.0, 2.5, 0.0), uv_tiles=(9.0, 8.0)),), Material(texture="ground"))
-    wall = Part(0, "wall", (Quad((4.5, 1.8), pose=translate(0.0, 5.5, 1.8) @ rot_x(math.pi / 2), uv_tiles=(3.0, 1.2)),), Material(texture="wall"))
+    background, textures = _forward_background(np.random.default_rng([seed, _STREAM_TEXTURES]))
     total = num_views + num_eval_views
-    cam_rng = np.random.default_rng([seed, _STREAM_CAMERAS])
-    cols = max(1, int(math.ceil(math.sqrt(total * 1.5))))
-    rows = int(math.ceil(total / cols))
-    cameras = []
-    pitch = math.radians(-14.0)
-    for i in range(total):
-        r, c = divmod(i, cols)
-        x = -0.3 + 0.6 * (c + 0.5) / cols + cam_rng.uniform(-0.02, 0.02)
-        z = 0.75 - 0.25 * (r + 0.5) / rows + cam_rng.uniform(-0.02, 0.02)
-        yaw = cam_rng.uniform(-0.03, 0.03)
-        direction = np.array([math.sin(yaw) * math.cos(pitch), math.cos(yaw) * math.cos(pitch), math.sin(pitch)])
-        eye = np.array([x, 0.0, z])
-        cameras.append(Camera(look_at(eye, eye + direction)))
+    cameras = _forward_cameras(np.random.default_rng([seed, _STREAM_CAMERAS]), total)
     return Scene(
         recipe="forward",
         seed=seed,
         objects=objects,
-        background=(ground, wall),
-        textures={"ground": ground_tex, "wall": wall_tex},
+        background=background,
+        textures=textures,
         cameras=tuple(cameras),
         eval_indices=_interleaved_eval(total, num_eval_views),
         intrinsics=_intrinsics(width, height, fov_x_degrees),
@@ -1239,7 +1292,532 @@ def forward(
     )
 
 
-RECIPES: Dict[str, Callable[..., Scene]] = {"tabletop360": tabletop360, "nested": nested, "forward": forward}
+# --------------------------------------------------------------------------------------------
+# the randomised family (votesplat_ns/synthetic/family.py names its tuning and test seeds)
+
+_STREAM_FAMILY = 6
+SCREEN_SRGB = (28, 32, 40)
+
+
+def _monitor(rng, s, colour):
+    """A flat screen on a stand (screen, housing, stand); the screen faces local -y."""
+    hw = rng.uniform(0.21, 0.3) * s  # half width
+    hh = hw * rng.uniform(0.55, 0.65)  # half height
+    ht = 0.015 * s  # half thickness of the housing
+    foot_hx, foot_hy, foot_hz = 0.09 * s, 0.07 * s, 0.006 * s
+    zc = 2 * foot_hz + rng.uniform(0.06, 0.1) * s + hh  # housing centre
+    housing = Box((hw, ht, hh), pose=translate(0.0, 0.0, zc))
+    pane = 0.0015 * s
+    bezel = 0.012 * s
+    screen = Box((hw - bezel, pane, hh - bezel), pose=translate(0.0, -(ht + pane), zc))
+    foot = Box((foot_hx, foot_hy, foot_hz), pose=translate(0.0, 0.0, foot_hz))
+    neck_hy = 0.01 * s
+    neck_hz = 0.5 * (zc - 2 * foot_hz)
+    neck = Box((0.025 * s, neck_hy, neck_hz), pose=translate(0.0, ht + neck_hy, 2 * foot_hz + neck_hz))
+    return Template(
+        kind="monitor",
+        parts=(("screen", (screen,), SCREEN_SRGB), ("housing", (housing,), colour), ("stand", (neck, foot), _shade(colour, 0.6))),
+        footprint_radius=math.hypot(hw, foot_hy),
+        side=None,
+        avoid_direction=None,
+        top=None,
+        interior_point=(0.0, 0.0, zc),
+        height=zc + hh,
+    )
+
+
+def _table(rng, s, colour):
+    """A low table: a top on four legs; things can stand on its top."""
+    hx, hy = rng.uniform(0.28, 0.36) * s, rng.uniform(0.18, 0.24) * s
+    height = rng.uniform(0.22, 0.3) * s
+    tt, leg = 0.012 * s, 0.018 * s  # half thickness of the top, half width of a leg
+    top = Box((hx, hy, tt), pose=translate(0.0, 0.0, height - tt))
+    leg_hz = 0.5 * (height - 2 * tt)
+    inset = 0.03 * s + leg
+    legs = tuple(
+        Box((leg, leg, leg_hz), pose=translate(sx * (hx - inset), sy * (hy - inset), leg_hz)) for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)
+    )
+    return Template(
+        kind="table",
+        parts=(("top", (top,), colour), ("legs", legs, _shade(colour, 0.55))),
+        footprint_radius=math.hypot(hx, hy),
+        side=None,
+        avoid_direction=None,
+        top=(hx, hy, height),
+        interior_point=(0.0, 0.0, height - tt),
+        height=height,
+    )
+
+
+def _board(rng, s, colour):
+    """A thin board lying flat (a tray or cutting board); things can lie on it."""
+    hx, hy = rng.uniform(0.16, 0.24) * s, rng.uniform(0.1, 0.15) * s
+    hz = rng.uniform(0.006, 0.01) * s
+    body = Box((hx, hy, hz), pose=translate(0.0, 0.0, hz))
+    return Template(
+        kind="board",
+        parts=(("board", (body,), colour),),
+        footprint_radius=math.hypot(hx, hy),
+        side=("box", (hx, hy, 2 * hz)),
+        avoid_direction=None,
+        top=(hx, hy, 2 * hz),
+        interior_point=(0.0, 0.0, hz),
+        height=2 * hz,
+    )
+
+
+def _carton(rng, s, colour):
+    """A large lidded box (body, lid)."""
+    hx, hy = rng.uniform(0.14, 0.2) * s, rng.uniform(0.12, 0.18) * s
+    return _box_shape("carton", hx, hy, rng.uniform(0.16, 0.26) * s, 0.015 * s, colour)
+
+
+def _bowl_template(rng, s, colour):
+    template, cavity = _bowl(rng, s, colour)
+    return replace(template, cavity=cavity)
+
+
+FAMILY_KINDS: Dict[str, Callable] = {
+    **TABLETOP_KINDS,
+    "monitor": _monitor,
+    "table": _table,
+    "board": _board,
+    "carton": _carton,
+    "bowl": _bowl_template,
+}
+FAMILY_FLAT_KINDS = ("monitor", "table", "board")
+# what each flat kind is called among the property kinds
+_FLAT_PROPERTY = {"monitor": "screen", "table": "table top", "board": "board"}
+FAMILY_PROPERTY_KINDS = (
+    "360",
+    "forward",
+    "low ring",
+    "several rings",
+    "cut by frame",
+    "stacked",
+    "container",
+    "screen",
+    "table top",
+    "board",
+    "textured background",
+    "plain background",
+)
+# camera ring elevation bands (degrees above the look-at point): low, middle, high
+_RING_BANDS = ((4.0, 12.0), (18.0, 32.0), (38.0, 58.0))
+LOW_RING_DEGREES = 15.0
+# nominal footprint radius (metres at size 1) of each kind, to size the table before the objects exist
+_NOMINAL_RADIUS = {"monitor": 0.27, "table": 0.4, "board": 0.24, "carton": 0.24, "bowl": 0.14}
+_SMALL_KINDS = ("mug", "lamp", "box", "ball", "bottle", "can", "snowman")
+_ON_TOP_KINDS = ("mug", "box", "ball", "bottle", "can", "snowman")
+# the share of views in which the cut object must overflow the image frame
+CUT_VIEW_SHARE = 0.8
+
+
+@dataclass(frozen=True)
+class FamilyProperties:
+    """What a ``family`` scene holds; drawn from its seed alone (:func:`family_properties`)."""
+
+    capture: str  # "360" (camera rings around the table) or "forward" (forward-facing, objects 1.3-4 m away)
+    ring_elevations: Tuple[float, ...]  # degrees, one per camera ring (360 only)
+    cut_object: Optional[str]  # kind of the large object cut by the image frame in most views, or None
+    stacked: bool  # a box stands on a larger box
+    container: bool  # a bowl holding fruit
+    flat: Tuple[str, ...]  # large flat objects among "monitor", "table", "board"
+    background: str  # "textured" or "plain"
+
+    @property
+    def kinds(self) -> Tuple[str, ...]:
+        """The property kinds (:data:`FAMILY_PROPERTY_KINDS`) this scene covers."""
+        kinds = [self.capture]
+        if any(e < LOW_RING_DEGREES for e in self.ring_elevations):
+            kinds.append("low ring")
+        if len(self.ring_elevations) > 1:
+            kinds.append("several rings")
+        if self.cut_object is not None:
+            kinds.append("cut by frame")
+        if self.stacked:
+            kinds.append("stacked")
+        if self.container:
+            kinds.append("container")
+        kinds += [_FLAT_PROPERTY[k] for k in self.flat]
+        kinds.append(f"{self.background} background")
+        return tuple(kinds)
+
+
+def family_properties(seed: int) -> FamilyProperties:
+    """The properties of the ``family`` scene of ``seed`` (every scene also has objects touching side by side)."""
+    rng = np.random.default_rng([seed, _STREAM_FAMILY])
+    capture = "forward" if rng.random() < 1.0 / 3.0 else "360"
+    rings: Tuple[float, ...] = ()
+    if capture == "360":
+        bands = sorted(int(b) for b in rng.permutation(len(_RING_BANDS))[: int(rng.integers(1, 4))])
+        rings = tuple(round(float(rng.uniform(*_RING_BANDS[b])), 1) for b in bands)
+    flat = [k for k in FAMILY_FLAT_KINDS if rng.random() < 0.4]
+    if len(flat) > 2:
+        flat.pop(int(rng.integers(len(flat))))
+    cut = None
+    if rng.random() < 0.45:
+        candidates = [k for k in flat if k in ("monitor", "table")] or ["carton"]
+        cut = candidates[int(rng.integers(len(candidates)))]
+    stacked = bool(rng.random() < 0.5)
+    container = bool(rng.random() < 0.5)
+    background = "plain" if rng.random() < 0.4 else "textured"
+    return FamilyProperties(capture, rings, cut, stacked, container, tuple(flat), background)
+
+
+def _rings_cameras(rng, total: int, distance: float, elevations: Sequence[float], target, jitter: float = 0.03):
+    """Views on one ring per elevation (degrees), each ring a consecutive block of views so that interleaved
+    held-out views fall on every ring; golden-angle azimuths within a ring. Returns (cameras, ring of each view)."""
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    n = len(elevations)
+    start = rng.uniform(0.0, 2.0 * math.pi)
+    cams, rings = [], []
+    for i in range(total):
+        ring = min(n - 1, i * n // total)
+        k = i - (-(-ring * total // n))  # index within the ring
+        azimuth = start + 0.9 * ring + k * golden + rng.uniform(-0.05, 0.05)
+        elevation = math.radians(elevations[ring] + rng.uniform(-1.5, 1.5))
+        dist = distance * (1.0 + rng.uniform(-jitter, jitter))
+        eye = np.array(
+            [dist * math.cos(elevation) * math.cos(azimuth), dist * math.cos(elevation) * math.sin(azimuth), dist * math.sin(elevation)]
+        ) + np.asarray(target)
+        aim = np.asarray(target) + rng.uniform(-0.015, 0.015, size=3)
+        cams.append(Camera(look_at(eye, aim)))
+        rings.append(ring)
+    return cams, rings
+
+
+def surface_samples(obj: SceneObject, count: int = 2000) -> np.ndarray:
+    """``count`` area-uniform points on an object's surface (fixed sampling; for framing checks)."""
+    meshes = [primitive_mesh(p) for part in obj.parts for p in part.primitives]
+    tris = np.concatenate([m.vertices[m.faces] for m in meshes])
+    areas = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(tris), size=count, p=areas / areas.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    flip = r1 + r2 > 1.0
+    r1[flip], r2[flip] = 1.0 - r1[flip], 1.0 - r2[flip]
+    t = tris[pick]
+    return t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
+
+
+def frame_overflow(camera: Camera, intrinsics: Intrinsics, points: np.ndarray, margin: float = 0.0) -> Tuple[float, bool]:
+    """(share of ``points`` that project into the image, whether others fall outside it or behind the camera);
+    ``margin``: a border of this share of the image width that counts as outside."""
+    viewmat = camera.viewmat
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    front = z > 1e-6
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = intrinsics.fx * cam[:, 0] / z + intrinsics.cx
+        v = intrinsics.fy * cam[:, 1] / z + intrinsics.cy
+    m = margin * intrinsics.width
+    inside = front & (u >= m) & (u <= intrinsics.width - m) & (v >= m) & (v <= intrinsics.height - m)
+    return float(inside.mean()), bool((~inside).any())
+
+
+def cut_view_share(cameras: Sequence[Camera], intrinsics: Intrinsics, points: np.ndarray, min_visible: float = 0.05) -> float:
+    """Share of views that see at least ``min_visible`` of the points while others overflow the frame."""
+    cut = 0
+    for camera in cameras:
+        visible, overflows = frame_overflow(camera, intrinsics, points)
+        cut += visible >= min_visible and overflows
+    return cut / max(1, len(cameras))
+
+
+def _camera_clear(cameras: Sequence[Camera], boxes: Sequence[Tuple[np.ndarray, np.ndarray]], clearance: float) -> bool:
+    for camera in cameras:
+        eye = camera.c2w[:3, 3]
+        if eye[2] < 0.03:
+            return False
+        for lo, hi in boxes:
+            if np.linalg.norm(np.maximum(0.0, np.maximum(lo - eye, eye - hi))) < clearance:
+                return False
+    return True
+
+
+def _place_on_top(rng, placed: List[_Placed], base_index: int, items, touching: List[Tuple[int, int]], margin: float = 0.01):
+    """Stand ``items`` ((kind, size, colour) ...) on the flat top of ``placed[base_index]``, apart from each other.
+
+    Each one placed touches the base; one that finds no room is left out.
+    """
+    base = placed[base_index]
+    hx, hy, top_z = base.template.top
+    on_top: List[Tuple[np.ndarray, float]] = []
+    for kind, size, colour in items:
+        template = FAMILY_KINDS[kind](rng, size, PALETTE[colour])
+        r = template.footprint_radius
+        if r + margin > min(hx, hy):
+            continue
+        for _ in range(200):
+            xy = rng.uniform(-1.0, 1.0, size=2) * (hx - r - margin, hy - r - margin)
+            if all(np.linalg.norm(xy - other) >= r + ro + 0.012 for other, ro in on_top):
+                break
+        else:
+            continue
+        on_top.append((xy, r))
+        pose = base.pose @ translate(xy[0], xy[1], top_z) @ rot_z(rng.uniform(0.0, 2.0 * math.pi))
+        placed.append(_Placed(template, pose, colour, on_table=False))
+        touching.append((base_index, len(placed) - 1))
+
+
+def _stack_box(rng, placed: List[_Placed], base_index: int, colour: str, touching: List[Tuple[int, int]]) -> bool:
+    """Stand a smaller box on the top of box ``placed[base_index]`` (aligned with it, at least 5 mm inside its edges)."""
+    base = placed[base_index]
+    hx_b, hy_b, top_z = base.template.top
+    # _box's half extents are at most 0.078 s and 0.065 s
+    size = 0.85 * min(hx_b / 0.078, hy_b / 0.065)
+    template = _box(rng, size, PALETTE[colour])
+    hx_t, hy_t, _ = template.top
+    room = np.array([hx_b - hx_t - 0.005, hy_b - hy_t - 0.005])
+    if (room < 0).any():
+        return False
+    offset = rng.uniform(-1.0, 1.0, size=2) * room
+    turn = math.pi * int(rng.integers(2))
+    pose = base.pose @ translate(offset[0], offset[1], top_z) @ rot_z(turn)
+    placed.append(_Placed(template, pose, colour, on_table=False))
+    touching.append((base_index, len(placed) - 1))
+    return True
+
+
+def _family_ground(rng, props: FamilyProperties, palette: List[str], small_size: Tuple[float, float], large_size: Tuple[float, float]):
+    """The objects standing on the table/ground, in placing order: (kind, size, colour) for the large ones and the rest."""
+    large = [k for k in props.flat if k != props.cut_object]
+    bowl_on_table = props.container and "table" in props.flat and rng.random() < 0.5
+    # sizes are relative to the capture's small objects (small_size 1.1-1.5 at 360, 2-3 forward-facing)
+    rest: List[Tuple[str, float]] = []
+    if props.container and not bowl_on_table:
+        rest.append(("bowl", 1.3 * small_size[0] / 1.1 * rng.uniform(0.95, 1.1)))
+    if props.stacked and props.cut_object != "carton":
+        rest.append(("box", rng.uniform(1.45, 1.6) * small_size[1] / 1.5))  # a box big enough to carry another
+    for kind in _pick_kinds(rng, max(2, int(rng.integers(5, 8)) - len(large) - len(rest)), list(_SMALL_KINDS)):
+        rest.append((kind, rng.uniform(*small_size)))
+    large_items = [(k, rng.uniform(*large_size), palette.pop()) for k in large]
+    rest_items = [(k, size, palette.pop()) for k, size in rest]
+    return large_items, rest_items, bowl_on_table
+
+
+def _family_dress(rng, placed, touching, props: FamilyProperties, palette: List[str], small_size, bowl_on_table: bool):
+    """Stacks, things on the table top or board, balls on flat tops and fruit in the bowl (in this order)."""
+    if props.stacked:
+        bases = [i for i, item in enumerate(placed) if item.template.kind in ("carton", "box") and item.on_table]
+        base = max(bases, key=lambda i: min(placed[i].template.top[:2]))
+        if not _stack_box(rng, placed, base, palette.pop(), touching):
+            raise ValueError("family: the stack's base box is too small for another box")
+    for index in [i for i, item in enumerate(placed) if item.template.kind in ("table", "board")]:
+        kind = placed[index].template.kind
+        count = int(rng.integers(1, 3)) if kind == "table" else int(rng.random() < 0.6)
+        bowl_here = kind == "table" and bowl_on_table
+        count = max(0, min(count, len(palette) - bowl_here))  # every object other than fruit has a colour of its own
+        items = [("bowl", 0.9 * small_size[0] * rng.uniform(1.05, 1.2), palette.pop())] if bowl_here else []
+        items += [(k, rng.uniform(0.9, 1.0) * small_size[0], palette.pop()) for k in _pick_kinds(rng, count, list(_ON_TOP_KINDS))]
+        _place_on_top(rng, placed, index, items, touching)
+    touching = _rest_balls_on_tops(rng, placed, touching)
+    if props.container:
+        (bowl_index,) = [i for i, item in enumerate(placed) if item.template.kind == "bowl"]
+        bowl = placed[bowl_index]
+        zc, ri = bowl.template.cavity
+        bowl_scale = bowl.template.footprint_radius / 0.14  # _bowl's outer radius is 0.14 s
+        used = {item.colour for item in placed}
+        fruits = _fill_bowl(rng, bowl_scale, zc, ri, int(rng.integers(2, 5)), used, bowl_pose=bowl.pose)
+        for fruit in fruits:
+            placed.append(fruit)
+            touching.append((bowl_index, len(placed) - 1))
+    return touching
+
+
+def _plain_colours(rng_tex) -> Tuple[Tuple[int, int, int], Tuple[int, int, int]]:
+    """Flat (ground, wall) sRGB colours: a light ground and a wall of another hue."""
+    ground = tuple(int(v) for v in rng_tex.uniform(150, 215, size=3))
+    wall = tuple(int(v) for v in rng_tex.uniform(110, 200, size=3))
+    return ground, wall
+
+
+def _retry_layout(build, attempts: int = 8):
+    """Run ``build(grow)`` with a layout grown by 12 % per failed attempt (deterministic: same seed, same tries)."""
+    for attempt in range(attempts):
+        try:
+            return build(1.12**attempt)
+        except ValueError as error:
+            last = error
+    raise ValueError(f"family: could not lay the scene out ({last})")
+
+
+def _family_360(seed: int, props: FamilyProperties, total: int, intrinsics: Intrinsics):
+    rng = np.random.default_rng([seed, _STREAM_OBJECTS])
+    small_size = (1.1, 1.5)
+    boost = 1.0
+
+    def build(grow: float):
+        palette = [str(c) for c in rng.permutation(list(PALETTE))]
+        existing: List[_Placed] = []
+        if props.cut_object is not None:
+            # the cut object stands in the middle, larger than life
+            template = FAMILY_KINDS[props.cut_object](rng, boost * rng.uniform(1.35, 1.6), PALETTE[palette[-1]])
+            existing.append(_Placed(template, rot_z(rng.uniform(0.0, 2.0 * math.pi)), palette.pop()))
+        large, rest, bowl_on_table = _family_ground(rng, props, palette, small_size, (1.0, 1.15))
+        nominal = [(_NOMINAL_RADIUS.get(k, 0.08) * size) ** 2 for k, size, _ in large + rest]
+        nominal += [item.template.footprint_radius**2 for item in existing]
+        radius = grow * max(0.3, math.sqrt(sum(nominal) / 0.5))
+
+        def inside(xy, r):
+            return np.linalg.norm(xy) + r <= radius
+
+        def sample_xy(index=0):
+            rho = radius * math.sqrt(rng.random())
+            phi = rng.uniform(0.0, 2.0 * math.pi)
+            return np.array([rho * math.cos(phi), rho * math.sin(phi)])
+
+        kinds, sizes, colours = (list(v) for v in zip(*(large + rest))) if large + rest else ([], [], [])
+        placed, touching = _place_objects(
+            rng, kinds, sizes, colours, inside, sample_xy, 0.35, 1, builders=FAMILY_KINDS, existing=existing
+        )
+        touching = _family_dress(rng, placed, touching, props, palette, small_size, bowl_on_table)
+        return placed, touching, radius
+
+    cam_seed = [seed, _STREAM_CAMERAS]
+    for _ in range(8):
+        placed, touching, radius = _retry_layout(build)
+        objects = _build_objects(placed)
+        parameters: Dict[str, object] = dict(layout_radius=radius)
+        if props.cut_object is None:
+            # move the cameras in while every view still holds every object whole
+            target, distance = _framing(objects, intrinsics)
+            points = np.concatenate([surface_samples(obj, 400) for obj in objects])
+            cameras, rings = _rings_cameras(np.random.default_rng(cam_seed), total, distance, props.ring_elevations, target)
+            while True:
+                closer = 0.96 * distance
+                trial, trial_rings = _rings_cameras(np.random.default_rng(cam_seed), total, closer, props.ring_elevations, target)
+                if not all(frame_overflow(camera, intrinsics, points, margin=0.04)[0] == 1.0 for camera in trial):
+                    break
+                distance, cameras, rings = closer, trial, trial_rings
+            break
+        # move the cameras in until the cut object overflows the frame in most views, keeping them clear of
+        # every object; if they must stop first, lay the scene out again with a larger cut object
+        cut = objects[0]
+        lo, hi = _object_box(cut)
+        target = np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, 0.45 * hi[2]])
+        points = surface_samples(cut)
+        boxes = [_object_box(obj) for obj in objects]
+        distance = _framing(objects, intrinsics)[1]
+        cameras, rings = _rings_cameras(np.random.default_rng(cam_seed), total, distance, props.ring_elevations, target)
+        while cut_view_share(cameras, intrinsics, points) < CUT_VIEW_SHARE:
+            closer = 0.95 * distance
+            trial, trial_rings = _rings_cameras(np.random.default_rng(cam_seed), total, closer, props.ring_elevations, target)
+            if not _camera_clear(trial, boxes, 0.12):
+                break
+            distance, cameras, rings = closer, trial, trial_rings
+        parameters["cut_view_share"] = cut_view_share(cameras, intrinsics, points)
+        if parameters["cut_view_share"] >= CUT_VIEW_SHARE:
+            break
+        boost *= 1.15
+    parameters.update(camera_distance=distance, camera_target=np.asarray(target).tolist(), camera_rings=rings)
+    wall_radius = max(2.8, 1.3 * distance + 0.5)
+    return objects, touching, cameras, parameters, dict(ground_half=wall_radius + 0.2, wall_radius=wall_radius, wall_height=2.5)
+
+
+def _family_forward(seed: int, props: FamilyProperties, total: int, intrinsics: Intrinsics):
+    rng = np.random.default_rng([seed, _STREAM_OBJECTS])
+    small_size = (2.0, 3.0)
+    near, far = 1.3, 4.0
+    tan_half = intrinsics.width / (2.0 * intrinsics.fx)
+    half_tan = 0.8 * tan_half
+
+    def build(grow: float):
+        palette = [str(c) for c in rng.permutation(list(PALETTE))]
+        existing: List[_Placed] = []
+        if props.cut_object is not None:
+            # near the cameras, across the side of the view: the outer part leaves the frame in every view
+            template = FAMILY_KINDS[props.cut_object](rng, rng.uniform(1.6, 1.9), PALETTE[palette[-1]])
+            half_x = max(np.abs(primitive_mesh(p).vertices[:, 0]).max() for _, prims, _ in template.parts for p in prims)
+            y = rng.uniform(1.3, 1.7)
+            side = 1.0 if rng.random() < 0.5 else -1.0
+            # the cameras span x in [-0.32, 0.32]: reach 0.12 m past the farthest frame edge
+            x = side * (tan_half * y + 0.32 + 0.12 - half_x)
+            existing.append(_Placed(template, translate(x, y, 0.0) @ rot_z(rng.uniform(-0.08, 0.08)), palette.pop()))
+        large, rest, bowl_on_table = _family_ground(rng, props, palette, small_size, (1.5, 1.8))
+        bands = rng.permutation(max(1, len(rest)))
+        depth = far * grow
+
+        def inside(xy, r):
+            x, y = xy
+            return near <= y - r and y + r <= depth and abs(x) + r <= half_tan * (y - 0.3)
+
+        def sample_xy(index):
+            if index < len(large):  # the large ones anywhere in depth
+                y = rng.uniform(near, depth)
+            else:  # the others each in their own depth band, so the scene spans near to far
+                y = near + (depth - near) * (bands[index - len(large)] + rng.random()) / len(bands)
+            return np.array([rng.uniform(-1.0, 1.0) * half_tan * y, y])
+
+        kinds, sizes, colours = (list(v) for v in zip(*(large + rest)))
+        placed, touching = _place_objects(
+            rng, kinds, sizes, colours, inside, sample_xy, 0.35, 1, gap=0.03, builders=FAMILY_KINDS, existing=existing
+        )
+        touching = _family_dress(rng, placed, touching, props, palette, small_size, bowl_on_table)
+        return placed, touching, depth
+
+    placed, touching, depth = _retry_layout(build)
+    objects = _build_objects(placed)
+    cameras = _forward_cameras(np.random.default_rng([seed, _STREAM_CAMERAS]), total)
+    parameters: Dict[str, object] = dict(depth_range=[near, depth])
+    if props.cut_object is not None:
+        parameters["cut_view_share"] = cut_view_share(cameras, intrinsics, surface_samples(objects[0]))
+    return objects, touching, cameras, parameters, None
+
+
+def family(
+    seed: int = 0,
+    num_views: int = 48,
+    num_eval_views: int = 6,
+    width: int = 256,
+    height: int = 192,
+    num_objects: Optional[int] = None,
+    fov_x_degrees: Optional[float] = None,
+) -> Scene:
+    """A randomised scene whose seed picks its properties (:func:`family_properties`): 360 rings (low, several)
+    or forward-facing views, a large object cut by the frame, stacked boxes, a bowl of fruit, screens, tables,
+    boards, textured or plain background; some objects always touch side by side."""
+    _check_counts(num_views, num_eval_views)
+    if num_objects is not None:
+        raise ValueError("the family recipe draws its objects from the seed; leave out num_objects (--objects)")
+    props = family_properties(seed)
+    if fov_x_degrees is None:
+        fov_x_degrees = 55.0 if props.capture == "360" else 60.0
+    intrinsics = _intrinsics(width, height, fov_x_degrees)
+    total = num_views + num_eval_views
+    build = _family_360 if props.capture == "360" else _family_forward
+    objects, touching, cameras, parameters, room = build(seed, props, total, intrinsics)
+    rng_tex = np.random.default_rng([seed, _STREAM_TEXTURES])
+    plain = _plain_colours(rng_tex) if props.background == "plain" else None
+    if room is None:
+        background, textures = _forward_background(rng_tex, plain)
+    else:
+        background, textures = _room_background(rng_tex, room["ground_half"], room["wall_radius"], room["wall_height"], plain)
+    large = [o.id for o in objects if o.kind in ("monitor", "table", "board", "carton")]
+    parameters.update(
+        properties=asdict(props),
+        property_kinds=list(props.kinds),
+        num_objects=len(objects),
+        large_instances=large,
+        cut_instance=objects[0].id if props.cut_object is not None else None,
+    )
+    return Scene(
+        recipe="family",
+        seed=seed,
+        objects=objects,
+        background=background,
+        textures=textures,
+        cameras=tuple(cameras),
+        eval_indices=_interleaved_eval(total, num_eval_views),
+        intrinsics=intrinsics,
+        lighting=_lighting(np.random.default_rng([seed, _STREAM_LIGHTS])),
+        touching=tuple(sorted((min(a, b) + 1, max(a, b) + 1) for a, b in touching)),
+        parameters=parameters,
+    )
+
+
+RECIPES: Dict[str, Callable[..., Scene]] = {"tabletop360": tabletop360, "nested": nested, "forward": forward, "family": family}
 
 
 def make_scene(recipe: str, seed: int = 0, **options) -> Scene:
