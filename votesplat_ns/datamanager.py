@@ -92,11 +92,15 @@ def check_vote_schedule(model, start_step: int, num_steps: int) -> None:
     """Raise :class:`VoteSplatInputError` when no step in ``start_step .. start_step + num_steps - 1`` runs the vote loss.
 
     Such a run trains splatfacto only and ends with every Gaussian's vote support at zero. A
-    retrofit run (vote-only) votes on every step.
+    retrofit run (vote-only) votes on every step; a run with both vote loss weights at 0 trains
+    without votes on purpose (e.g. the splatfacto base of a retrofit benchmark).
     """
+    config = model.config
     if getattr(model, "vote_only", False) or num_steps <= 0:
         return
-    start, every = int(model.config.vote_start_step), max(1, int(model.config.vote_every_n_steps))
+    if config.vote_loss_weight == 0 and config.distortion_loss_weight == 0:
+        return
+    start, every = int(config.vote_start_step), max(1, int(config.vote_every_n_steps))
     first_vote = start if start_step <= start else start + -(-(start_step - start) // every) * every
     last_step = start_step + num_steps - 1
     if first_vote > last_step:
