@@ -11,6 +11,8 @@ from votesplat_ns.clustering import (
     cluster_votes,
     cluster_votes_detailed,
     default_min_cluster_size,
+    fill_from_neighbours,
+    merge_spread_clusters,
 )
 
 
@@ -208,3 +210,69 @@ def test_cluster_levels_bad_inputs():
         cluster_levels(means, offsets, support[:, :1], ("a", "b"))
     with pytest.raises(ValueError, match="vote offsets must have shape"):
         cluster_levels(means, offsets[:-1], support, ("a", "b"))
+
+
+def surface_scene(seed=0):
+    """Two touching boxes' surfaces (Gaussian centres) and one small cube far away."""
+    rng = np.random.default_rng(seed)
+    left = rng.uniform([0, 0, 0], [1, 1, 1], size=(1500, 3))
+    right = rng.uniform([1, 0, 0], [2, 1, 1], size=(1500, 3))
+    far = rng.uniform([6, 6, 6], [6.2, 6.2, 6.2], size=(4, 3))
+    points = np.concatenate([left, right, far])
+    truth = np.repeat([0, 1, 2], [1500, 1500, 4])
+    return points, truth
+
+
+def test_fill_closes_holes_and_leaves_far_strays():
+    points, truth = surface_scene()
+    labels = truth.copy()
+    rng = np.random.default_rng(1)
+    holes = rng.choice(3000, size=600, replace=False)  # 20% of both boxes left as noise by the vote clustering
+    labels[holes] = -1
+    stray = np.array([[20.0, 20.0, 20.0]])
+    filled = fill_from_neighbours(np.concatenate([points, stray]), np.concatenate([labels, [-1]]))
+    assert filled[-1] == -1  # far from everything: stays unassigned
+    filled = filled[:-1]
+    assert (filled[:3000] >= 0).all()
+    assert agreement(filled, truth) > 0.99
+    # the far small cube is below min_instance_fraction but nothing can absorb it: it stays itself
+    assert len(set(filled[3000:])) == 1 and filled[3000] not in set(filled[:3000])
+
+
+def test_fill_dissolves_fragments_into_their_object():
+    points, truth = surface_scene(seed=2)
+    labels = truth.copy()
+    inside_left = np.flatnonzero((truth == 0) & (points[:, 0] < 0.3))[:5]
+    labels[inside_left] = 3  # a 5-Gaussian fragment cluster inside the left box
+    filled = fill_from_neighbours(points, labels, min_instance_fraction=0.01)
+    assert len(np.unique(filled)) == 3
+    assert (filled[inside_left] == filled[np.flatnonzero(truth == 0)[~np.isin(np.flatnonzero(truth == 0), inside_left)][0]]).all()
+    # without dissolution the fragment stays a fifth... fourth instance
+    kept = fill_from_neighbours(points, labels, min_instance_fraction=0.0)
+    assert len(np.unique(kept)) == 4
+
+
+def test_cluster_levels_fill_is_reported_and_switchable():
+    means, offsets, support, object_of, _ = two_level_scene()
+    filled = cluster_levels(means, offsets, support, ("instance", "part"))
+    plain = cluster_levels(means, offsets, support, ("instance", "part"), fill=False)
+    assert filled.level(0).clustering["fill"] == "spatial"
+    assert "fill" not in plain.level(0).clustering
+    assert filled.level(0).num_noise <= plain.level(0).num_noise
+
+
+def test_merge_joins_a_spread_object_and_keeps_converged_neighbours_apart():
+    rng = np.random.default_rng(4)
+    # a flat object's votes smeared along a 1.0-long bar, cut in three pieces; two converged
+    # objects 0.2 apart (closer than the bar's pieces) with tight votes
+    bar = np.concatenate(
+        [np.column_stack([rng.uniform(lo, lo + 1 / 3, 300), rng.normal(0.0, 0.02, (300, 2))]) for lo in (-0.5, -1 / 6, 1 / 6)]
+    )
+    tight = np.concatenate([rng.normal(c, 0.01, size=(300, 3)) for c in ([3.0, 0.0, 0.0], [3.2, 0.0, 0.0])])
+    votes = np.concatenate([bar, tight])
+    labels = np.repeat([0, 1, 2, 3, 4], 300)
+    for scale in (1.0, 50.0):  # the rule does not depend on the scene's units
+        merged = merge_spread_clusters(votes * scale, labels, separation=2.5)
+        assert len(set(merged[:900])) == 1
+        assert len({merged[900], merged[1200], merged[0]}) == 3
+    assert len(np.unique(merge_spread_clusters(votes, labels, separation=0.0))) == 5

@@ -112,7 +112,7 @@ def dataset(tmp_path_factory):
 
 
 def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
-    manager = setup_manager(dataset, tmp_path / "cache")
+    manager = setup_manager(dataset, tmp_path / "cache", border_masks="drop")
     assert manager.vote_levels == ("instance", "part")
     seen = set()
     for step in range(FRAMES):
@@ -125,7 +125,7 @@ def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
         assert labels.device.type == "cpu" and centroids.device.type == "cpu"
         assert labels.shape == (2, *data["image"].shape[:2]) == (2, HEIGHT, WIDTH)
         instance, part = frame_labels(frame_number(manager, index))
-        # ids 1, 2 keep their numbers; the border-touching id 3 is dropped
+        # ids 1, 2 keep their numbers; the border-touching id 3 is dropped (border_masks="drop")
         assert np.array_equal(labels[0].numpy(), np.where(instance == BORDER_ID, 0, instance))
         # part ids {1, 2, 4} are renumbered compactly to {1, 2, 3}
         assert np.array_equal(labels[1].numpy(), renumbered_parts(part))
@@ -159,7 +159,7 @@ def test_vote_maps_in_memory_bounds_the_views_kept_and_reuses_them(dataset, tmp_
 
 
 def test_downscaled_images_get_downscaled_vote_maps(dataset, tmp_path):
-    manager = setup_manager(dataset, tmp_path / "cache", downscale=2, drop_border_masks=False)
+    manager = setup_manager(dataset, tmp_path / "cache", downscale=2, border_masks="vote")
     assert "images_2" in str(manager.train_dataset.image_filenames[0])
     for step in range(FRAMES):
         camera, data = manager.next_train(step)

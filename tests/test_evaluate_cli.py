@@ -13,6 +13,7 @@ import torch
 from PIL import Image
 
 from votesplat_ns.cameras import PinholeView
+from votesplat_ns.evaluation import match_instances
 import votesplat_ns.evaluate_cli as evaluate_cli
 from votesplat_ns.evaluate_cli import (
     GroundTruthDataset,
@@ -22,6 +23,7 @@ from votesplat_ns.evaluate_cli import (
     gaussian_ground_truth,
     points_to_dataset_frame,
     projected_majority_labels,
+    score_level,
     select_views,
     surface_labels,
     write_noisy_masks,
@@ -101,6 +103,38 @@ def test_geometric_and_projected_gaussian_labels_agree_on_the_demo_surface(demo_
     assert hidden.tolist() == [0]
 
 
+def test_score_level_repeats_the_2d_scores_over_the_valid_views():
+    gt = [np.zeros((6, 8), np.int64) for _ in range(3)]
+    gt[0][1:4, 1:4] = 1
+    gt[0][3:6, 5:8] = 2
+    gt[1][0:3, 0:3] = 1
+    gt[2][2:6, 2:6] = 2
+    pred = [np.full((6, 8), -1, np.int64) for _ in range(3)]
+    pred[0][1:4, 1:4] = 0  # exact
+    pred[0][3:6, 5:8] = 1
+    pred[1][0:3, 0:3] = 0
+    pred[2][0:2, 0:8] = 1  # a wall of the wrong instance in the failed view
+    gaussians = np.array([0, 1, 1, 2]), np.array([-1, 0, 0, 1])
+
+    everything = score_level(gt, pred, *gaussians)
+    assert everything["num_valid_views"] == 3 and everything["miou_valid_views"] == everything["miou"]
+    valid = score_level(gt, pred, *gaussians, view_ok=[True, True, False])
+    expected = match_instances(gt[:2], [p + 1 for p in pred[:2]])
+    assert expected.miou == 1.0 and valid["miou"] < 0.7  # view 2 drags the all-view score down
+    assert valid["num_valid_views"] == 2
+    assert valid["miou_valid_views"] == expected.miou
+    assert valid["precision_valid_views"] == expected.precision and valid["recall_valid_views"] == expected.recall
+    assert {k: valid[k] for k in ("miou", "precision", "recall")} == {k: everything[k] for k in ("miou", "precision", "recall")}
+    # no valid view (or none showing a GT instance): nothing to score, not a crash
+    gt_in_view_2_only = [np.zeros_like(gt[0]), np.zeros_like(gt[1]), gt[2]]
+    for view_ok, count in (([False, False, False], 0), ([True, True, False], 2)):
+        none = score_level(gt_in_view_2_only, pred, *gaussians, view_ok=view_ok)
+        assert none["miou_valid_views"] is None and none["precision_valid_views"] is None
+        assert none["num_valid_views"] == count
+    with pytest.raises(ValueError, match="view_ok has 2 entries for 3 views"):
+        score_level(gt, pred, *gaussians, view_ok=[True, False])
+
+
 # ----------------------------------------------------------------------------- the eval command
 
 
@@ -140,9 +174,105 @@ def test_eval_command_writes_consistent_metrics(demo_eval):
         with Image.open(output_dir / level["comparison_png"]) as picture:
             # 4 views, each GT | prediction of 128 px, gap 4, scale 2
             assert picture.size == (2 * (128 * 2 + 4), 2 * (4 * 128 + 3 * 4))
+    # a clean run: every held-out view is a real reconstruction, so the valid-view scores are the scores
+    assert [view["name"] for view in metrics["per_view"]] == EVAL_VIEWS
+    assert all(view["reconstruction_ok"] and view["psnr"] > view["flat_psnr"] for view in metrics["per_view"]), metrics["per_view"]
+    assert metrics["reconstruction"]["num_valid_views"] == 4
+    for level in metrics["levels"].values():
+        assert level["num_valid_views"] == 4 and level["miou_valid_views"] == level["miou"]
+        assert (level["precision_valid_views"], level["recall_valid_views"]) == (level["precision"], level["recall"])
     # the demo run is short, but its instances are real objects, not noise
     assert metrics["levels"]["instance"]["miou"] > 0.2
     assert metrics["levels"]["instance"]["purity"] > 0.5
+
+
+def _grey_wall_of_floaters(model, camera, count: int = 24) -> None:
+    """Append an opaque grey sheet of Gaussians just in front of ``camera``, filling its whole view.
+
+    This is the failure seen on low orbit rings: floaters between the camera and the scene. The
+    sheet sits at a tenth of the camera's distance from the scene centre; its Gaussians carry no
+    vote support (they are no instance), and their colour is SH 0, i.e. grey 0.5.
+    """
+    c2w = camera.camera_to_worlds[0].float()  # OpenGL: the camera looks along -z
+    right, up, forward, origin = c2w[:, 0], c2w[:, 1], -c2w[:, 2], c2w[:, 3]
+    depth = 0.1 * float(origin.norm())
+    half_width = 1.5 * depth * float(camera.width) / 2 / float(camera.fx)
+    half_height = 1.5 * depth * float(camera.height) / 2 / float(camera.fy)
+    u, v = torch.meshgrid(torch.linspace(-1, 1, count), torch.linspace(-1, 1, count), indexing="ij")
+    means = origin + depth * forward + u.reshape(-1, 1) * half_width * right + v.reshape(-1, 1) * half_height * up
+    spacing = 2 * max(half_width, half_height) / (count - 1)
+    params = model.gauss_params
+    new = {name: torch.zeros((len(means), *value.shape[1:]), dtype=value.dtype) for name, value in params.items()}
+    new["means"] = means.to(params["means"].dtype)
+    new["scales"][:] = float(np.log(spacing))
+    new["quats"][:, 0] = 1.0
+    new["opacities"][:] = 5.0  # sigmoid: 0.993
+    for name, value in new.items():
+        params[name] = torch.nn.Parameter(torch.cat([params[name].detach(), value.to(params[name].device)]), requires_grad=False)
+
+
+def test_views_with_a_failed_reconstruction_are_flagged_and_scored_apart(trained_demo, tmp_path, monkeypatch, capsys):
+    """Real renders: a wall of floaters in front of one held-out camera, another camera moved into the scene.
+
+    Those two views (and only those) are flagged from their RGB PSNR; the valid-view scores are the
+    scores recomputed over the other views; metrics.json and the printed summary carry both.
+    """
+    from nerfstudio.utils import eval_utils
+
+    walled, inside = EVAL_VIEWS[0], EVAL_VIEWS[2]
+    real_eval_setup = eval_utils.eval_setup
+
+    def eval_setup_with_failures(*args, **kwargs):
+        config, pipeline, path, step = real_eval_setup(*args, **kwargs)
+        dataset = pipeline.datamanager.eval_dataset
+        names = [Path(f).name for f in dataset.image_filenames]
+        index = names.index(walled)
+        _grey_wall_of_floaters(pipeline.model, dataset.cameras[index : index + 1])
+        dataset.cameras.camera_to_worlds[names.index(inside), :, 3] *= 0.1  # nine tenths of the way to the scene centre
+        return config, pipeline, path, step
+
+    monkeypatch.setattr(eval_utils, "eval_setup", eval_setup_with_failures)
+    output_dir = tmp_path / "eval"
+    results, run = [], evaluate_cli.evaluate_run
+
+    def keep_result(*args, **kwargs):
+        results.append(run(*args, **kwargs))
+        return results[-1]
+
+    monkeypatch.setattr(evaluate_cli, "evaluate_run", keep_result)
+    code, out, err = run_cli(monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", trained_demo, "--output-dir", output_dir)
+    assert code == 0, err
+    metrics = json.loads((output_dir / "metrics.json").read_text())
+    maps = results[0].maps
+
+    per_view = {view["name"]: view for view in metrics["per_view"]}
+    assert list(per_view) == EVAL_VIEWS
+    assert {name for name, view in per_view.items() if not view["reconstruction_ok"]} == {walled, inside}, per_view
+    good = [per_view[name]["psnr"] for name in EVAL_VIEWS if name not in (walled, inside)]
+    assert all(per_view[name]["psnr"] < min(good) - 3 for name in (walled, inside))
+    assert metrics["reconstruction"]["num_valid_views"] == 2
+    ok = [per_view[name]["reconstruction_ok"] for name in metrics["view_names"]]
+    for name in ("instance", "part"):
+        level = metrics["levels"][name]
+        gt_maps, pred_maps = maps[name]
+        shifted = [m + 1 for m in pred_maps]
+        # the maps are the scored ones, and the valid-view score is theirs over the unflagged views
+        assert match_instances(gt_maps, shifted).miou == pytest.approx(level["miou"])
+        valid = match_instances([g for g, k in zip(gt_maps, ok) if k], [p for p, k in zip(shifted, ok) if k])
+        assert level["miou_valid_views"] == pytest.approx(valid.miou)
+        assert level["precision_valid_views"] == pytest.approx(valid.precision)
+        assert level["recall_valid_views"] == pytest.approx(valid.recall)
+        assert level["num_valid_views"] == 2
+        assert metrics["summary"][name]["miou_valid_views"] == level["miou_valid_views"]
+        # the failed views render no instance where the GT has them: the all-view score pays for it
+        assert level["miou_valid_views"] > level["miou"]
+    # the summary prints both scores and names the flagged views with their PSNR
+    assert "mIoU valid" in out and "2 of 4 views flagged" in out
+    instance = metrics["levels"]["instance"]
+    row = next(line for line in out.splitlines() if line.startswith("| instance |"))
+    assert f"| {instance['miou']:.3f} |" in row and f"| 2/4 | {instance['miou_valid_views']:.3f} |" in row
+    for name in (walled, inside):
+        assert f"{name}: PSNR {per_view[name]['psnr']:.2f} dB" in out
 
 
 def test_rendering_gt_gaussian_ids_through_the_eval_path_scores_high(trained_demo, tmp_path):
@@ -216,11 +346,15 @@ def test_eval_rejects_a_dataset_without_gt_masks(trained_demo, tmp_path, monkeyp
     assert "no ground-truth masks" in err and len(err.strip().splitlines()) == 1
 
 
-def test_eval_rejects_bad_options(trained_demo, tmp_path):
+def test_eval_rejects_bad_options(trained_demo, tmp_path, monkeypatch, capsys):
     with pytest.raises(ValueError, match="views must be"):
         evaluate_run(trained_demo, tmp_path / "a", views="test")
     with pytest.raises(ValueError, match="min_weight"):
         evaluate_run(trained_demo, tmp_path / "b", min_weight=0.0)
+    for flag, value in (("--max-psnr-drop-db", "0"), ("--max-psnr-drop-db", "nan"), ("--min-gain-db", "inf")):
+        code, _, err = run_cli(monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", trained_demo, "--output-dir", tmp_path / "c", flag, value)
+        assert code == 1 and flag in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "c").exists()
     with pytest.raises(ValueError, match="--gt-level needs --level"):
         evaluate_cli._levels_to_score(("instance", "part"), ("instance", "part"), None, "part")
     with pytest.raises(ValueError, match="unknown vote level"):

@@ -3,10 +3,13 @@ import pytest
 from PIL import Image
 
 from votesplat_ns.evaluation import (
+    check_reconstruction,
     contingency,
+    flat_image_psnr,
     gaussian_purity,
     instance_palette,
     match_instances,
+    psnr,
     save_comparison_png,
 )
 
@@ -202,3 +205,87 @@ def test_save_comparison_png(tmp_path):
     row1 = picture[(h + 4) * 2 : (2 * h + 4) * 2]
     extra = row1[0, (w + 4) * 2 + 2 * 7]
     assert tuple(extra) not in {tuple(c) for c in palette} | {(255, 255, 255)}
+
+
+# ----------------------------------------------------------------------------- reconstruction check
+
+
+def test_psnr_and_flat_image_psnr_on_hand_images():
+    target = np.zeros((4, 6, 3))
+    target[:, :3] = 1.0  # half black, half white
+    assert psnr(target + 0.1, target) == pytest.approx(20.0)  # MSE 0.01
+    assert psnr(target, target) == float("inf")
+    assert psnr(target * 255 + 25.5, target * 255, data_range=255) == pytest.approx(20.0)
+    # the best constant image is the mean colour 0.5: MSE 0.25 -> 10 log10(4) dB
+    assert flat_image_psnr(target) == pytest.approx(10 * np.log10(4))
+    for grey in (0.3, 0.45, 0.55, 0.8):
+        assert psnr(np.full_like(target, grey), target) < flat_image_psnr(target)
+    # per channel: a red/green image's best constant is its mean colour, not one grey
+    colour = np.zeros((2, 2, 3))
+    colour[0, :, 0] = 1.0
+    colour[1, :, 1] = 1.0
+    assert flat_image_psnr(colour) == pytest.approx(psnr(np.broadcast_to([0.5, 0.5, 0.0], colour.shape), colour))
+    with pytest.raises(ValueError, match="render at the image's size"):
+        psnr(np.zeros((4, 6, 3)), np.zeros((4, 5, 3)))
+
+
+def test_reconstruction_check_flags_a_view_far_below_the_median_or_no_better_than_a_flat_image():
+    flat = [14.0, 14.0, 15.0, 13.0, 14.0, 14.0]
+    check = check_reconstruction([30.0, 29.0, 31.0, 18.0, 30.5, 24.25], flat)
+    assert check.median_psnr == pytest.approx(29.5)
+    # 18 dB is 11.5 dB below the median; 24.25 is 5.25 below: kept
+    assert check.ok.tolist() == [True, True, True, False, True, True]
+    assert check.num_valid == 5
+    # a threshold is inclusive: exactly 6 dB below the median, or exactly 2 dB above the flat image, passes
+    assert check_reconstruction([30.0, 30.0, 24.0], [10.0, 10.0, 10.0]).ok.all()
+    assert check_reconstruction([20.0, 20.0, 16.0], [10.0, 10.0, 14.0]).ok.all()
+    assert check_reconstruction([20.0, 20.0, 15.99], [10.0, 10.0, 14.0]).ok.tolist() == [True, True, False]
+    assert check_reconstruction([20.0, 20.0, 15.99], [10.0, 10.0, 14.0], min_gain_db=1.0).ok.all()
+
+    # every view a grey wall: the median rule sees nothing wrong, the flat-image rule flags them all
+    walls = check_reconstruction([13.0, 12.5, 13.9], [14.0, 13.0, 12.0])
+    assert walls.ok.tolist() == [False, False, False]
+    assert check_reconstruction([13.0, 12.5, 13.9], [14.0, 13.0, 12.0], min_gain_db=float("-inf")).ok.all()
+    assert check_reconstruction([30.0, 29.0, 18.0], [14.0] * 3, max_psnr_drop_db=float("inf")).ok.all()
+
+    # a NaN render is flagged and does not move the median; a perfect (infinite PSNR) one passes
+    odd = check_reconstruction([float("nan"), 30.0, 28.0, float("inf")], [14.0] * 4)
+    assert odd.ok.tolist() == [False, True, True, True]
+    assert odd.median_psnr == 30.0
+    summary = odd.to_dict()
+    assert summary["num_views"] == 4 and summary["num_valid_views"] == 3 and summary["max_psnr_drop_db"] == 6.0
+    entries = odd.per_view(["a", "b", "c", "d"])
+    assert entries[1] == {"name": "b", "psnr": 30.0, "flat_psnr": 14.0, "reconstruction_ok": True}
+    assert entries[0]["psnr"] is None and entries[3]["psnr"] is None  # JSON has no NaN / inf
+    with pytest.raises(ValueError, match="3 view names for 4"):
+        odd.per_view(["a", "b", "c"])
+
+    for bad in (dict(max_psnr_drop_db=0.0), dict(max_psnr_drop_db=float("nan")), dict(min_gain_db=float("inf"))):
+        with pytest.raises(ValueError):
+            check_reconstruction([30.0], [14.0], **bad)
+    with pytest.raises(ValueError, match="one PSNR and one flat-image PSNR per view"):
+        check_reconstruction([30.0, 20.0], [14.0])
+
+
+def test_reconstruction_check_is_scale_free():
+    """Scaling the renders and images of every view by one factor (darker capture) changes no verdict."""
+    rng = np.random.default_rng(0)
+    targets = [rng.uniform(0.2, 0.8, size=(16, 16, 3)) for _ in range(5)]
+    renders = [t + rng.normal(0, 0.03, size=t.shape) for t in targets]
+    renders[2] = np.full_like(targets[2], 0.5) + rng.normal(0, 0.02, size=targets[2].shape)  # a grey wall
+    renders[4] = targets[4] + rng.normal(0, 0.05, size=targets[4].shape)  # ~4.4 dB worse, still valid
+
+    def verdict(factor):
+        return check_reconstruction(
+            [psnr(r * factor, t * factor) for r, t in zip(renders, targets)],
+            [flat_image_psnr(t * factor) for t in targets],
+        )
+
+    base = verdict(1.0)
+    assert base.ok.tolist() == [True, True, False, True, True]
+    for factor in (0.25, 0.5):
+        scaled = verdict(factor)
+        assert scaled.ok.tolist() == base.ok.tolist()
+        # every PSNR moves by the same -20 log10(factor) dB (errors shrink with the contrast)
+        np.testing.assert_allclose(scaled.psnr - base.psnr, -20 * np.log10(factor), atol=1e-9)
+        np.testing.assert_allclose(scaled.flat_psnr - base.flat_psnr, -20 * np.log10(factor), atol=1e-9)

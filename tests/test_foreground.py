@@ -82,3 +82,51 @@ def test_foreground_rule_and_bad_input():
         mask_exposure(rasterize_torch, *scene, [])
     with pytest.raises(ValueError, match=r"\[L, H, W\]"):
         mask_exposure(rasterize_torch, *scene, [(*camera(0.0), torch.zeros(HEIGHT, WIDTH))])
+
+
+def test_object_cut_by_the_frame_in_all_views_but_one_stays_foreground():
+    """A large object touching the image border in every view but one: border masks must not make it background."""
+    import numpy as np
+
+    from votesplat_ns.clustering import cluster_levels
+    from votesplat_ns.vote_maps import mask_centroids
+
+    generator = torch.Generator().manual_seed(5)
+    # a 2 x 1.6 slab of small opaque Gaussians in front of the camera, at depth 4 +- 0.3
+    n = 400
+    means = torch.rand(n, 3, generator=generator, dtype=torch.float64) * torch.tensor([2.0, 1.6, 0.6], dtype=torch.float64)
+    means -= torch.tensor([1.0, 0.8, -3.7], dtype=torch.float64)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64).repeat(n, 1)
+    scales = torch.full((n, 3), 0.08, dtype=torch.float64)
+    opacities = torch.full((n,), 0.9, dtype=torch.float64)
+    scene = (means, quats, scales, opacities)
+    views, touching = [], []
+    for yaw in (0.0, 0.3, -0.3, 0.45, -0.45):
+        viewmat, K = camera(yaw)
+        K = K.clone()
+        # the first view sees the whole slab; the others are zoomed in so that it overflows the frame
+        K[0, 0] = K[1, 1] = 12.0 if yaw == 0.0 else 40.0
+        alpha = rasterize_torch(*scene, torch.ones(n, 1, dtype=torch.float64), viewmat[None], K[None], WIDTH, HEIGHT)[1][0, ..., 0]
+        object_mask = (alpha > 0.5).numpy().astype(np.int32)
+        views.append((viewmat, K, object_mask))
+        touching.append(bool(object_mask[0].any() or object_mask[-1].any() or object_mask[:, 0].any() or object_mask[:, -1].any()))
+    assert touching == [False, True, True, True, True]
+
+    def foreground_share(rule: str) -> float:
+        rule_views = [(v, k, torch.from_numpy(mask_centroids(m, rule)[0])[None]) for v, k, m in views]
+        return float(foreground_from_exposure(mask_exposure(rasterize_torch, *scene, rule_views))[:, 0].double().mean())
+
+    assert foreground_share("drop") < 0.5  # the old rule: the slab is mostly background
+    for rule in ("vote", "mask_only"):
+        share = foreground_share(rule)
+        assert share > 0.95, (rule, share)
+    # foreground Gaussians whose votes reached the slab's centre are one instance (beside a second object:
+    # HDBSCAN never returns a single cluster)
+    rng = np.random.default_rng(0)
+    other = rng.uniform([4.0, 0.0, 3.0], [4.5, 0.5, 3.5], size=(200, 3))
+    all_means = np.concatenate([means.numpy(), other])
+    centres = np.concatenate([np.tile([0.0, 0.0, 4.0], (n, 1)), np.tile([4.25, 0.25, 3.25], (200, 1))])
+    offsets = (centres - all_means + rng.normal(0.0, 0.01, all_means.shape))[:, None, :]
+    instances = cluster_levels(all_means, offsets, np.ones((n + 200, 1)), ("instance",))
+    slab_ids = instances.level(0).ids[:n]
+    assert instances.level(0).num_instances == 2 and (slab_ids >= 0).all() and len(set(slab_ids)) == 1

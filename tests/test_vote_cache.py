@@ -78,7 +78,7 @@ def test_changed_arguments_or_inputs_miss(tmp_path):
     assert len(other_threshold.calls) == 2
 
     keep_border = ThresholdMaskSource()
-    VoteCache(tmp_path / "cache", keep_border, VoteOptions(drop_border_masks=False)).build_all(views, progress=False)
+    VoteCache(tmp_path / "cache", keep_border, VoteOptions(border_masks="drop")).build_all(views, progress=False)
     assert len(keep_border.calls) == 2
 
     # the original arguments again: still cached

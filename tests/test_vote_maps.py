@@ -24,7 +24,7 @@ def test_centroids_hand_computed_with_rounding_and_renumbering():
     labels[2:4, 2:4] = 9
     # id 4: pixels (x=1,y=4), (x=2,y=4), (x=4,y=4): mean column 7/3 -> 2, row 4
     labels[4, [1, 2, 4]] = 4
-    labels_out, centroids = mask_centroids(labels, drop_border_masks=True)
+    labels_out, centroids = mask_centroids(labels, border_masks="drop")
 
     assert labels_out.dtype == np.int32 and centroids.dtype == np.float32
     # compact renumbering in increasing order of the input id: 4 -> 1, 9 -> 2
@@ -41,19 +41,33 @@ def test_rounding_rule_is_half_away_from_zero():
     np.testing.assert_array_equal(round_half_away_from_zero(values), [1, 2, 3, 2, 4, -3, 2])
 
 
-def test_border_masks_dropped_only_when_asked():
+def test_border_mask_rules():
     labels = np.zeros((5, 6), dtype=np.int32)
     labels[0:2, 2:4] = 1  # touches the top row
     labels[2:4, 2:4] = 2  # interior
     labels[2, 5] = 3  # touches the right column
-    dropped, dropped_centroids = mask_centroids(labels, drop_border_masks=True)
+    dropped, dropped_centroids = mask_centroids(labels, border_masks="drop")
     assert set(np.unique(dropped)) == {0, 1}
     assert np.array_equal(dropped == 1, labels == 2)
     np.testing.assert_array_equal(dropped_centroids[1], [3.0, 3.0])  # mean (2.5, 2.5) rounds up
 
-    kept, kept_centroids = mask_centroids(labels, drop_border_masks=False)
+    kept, kept_centroids = mask_centroids(labels, border_masks="vote")
     assert np.array_equal(kept, labels)
     np.testing.assert_array_equal(kept_centroids[1:], [[3.0, 1.0], [3.0, 3.0], [5.0, 2.0]])
+
+    # mask_only: every mask stays a mask, only the interior one has a vote target
+    masks, masks_centroids = mask_centroids(labels, border_masks="mask_only")
+    assert np.array_equal(masks, labels)
+    assert np.isnan(masks_centroids[[0, 1, 3]]).all()
+    np.testing.assert_array_equal(masks_centroids[2], [3.0, 3.0])
+    maps = vote_maps_from_labels([labels], border_masks="mask_only")
+    votes, valid = maps.targets(0)
+    assert np.array_equal(valid, labels == 2)
+    targets, valid_t = gather_vote_targets(torch.from_numpy(maps.labels.astype(np.int32)), torch.from_numpy(maps.padded_centroids()))
+    assert torch.equal(valid_t[0], torch.from_numpy(labels == 2))
+
+    with pytest.raises(ValueError, match="border_masks must be one of"):
+        mask_centroids(labels, border_masks="keep")
 
 
 def test_empty_view_is_valid():
@@ -172,7 +186,7 @@ def test_vote_maps_validation():
     many = np.arange(70000, dtype=np.int64).reshape(1, 70000) % 70000 + 1
     padded = np.zeros((3, 70002), dtype=np.int64)
     padded[1, 1:-1] = many
-    assert vote_maps_from_labels([padded], drop_border_masks=False).labels.dtype == np.int32
+    assert vote_maps_from_labels([padded], border_masks="vote").labels.dtype == np.int32
 
 
 def test_huge_sparse_ids_are_renumbered_without_a_huge_table():

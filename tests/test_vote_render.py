@@ -230,6 +230,11 @@ def brute_force(scene, pixel_xy, options):
         pairs = [(z[i], z[j]) for i in range(m) for j in range(i + 1, m)]
         if options.distortion == "l1":
             distortions.append(sum(abs(zi - zj) for zi, zj in pairs))
+        elif options.distortion == "l1_pixels":
+            # mean pairwise depth gap, in pixels at the members' mean vote depth
+            mean_gap = sum(abs(zi - zj) for zi, zj in pairs) / max(len(pairs), 1)
+            focal = math.sqrt(K[0][0] * K[1][1])
+            distortions.append(mean_gap * focal / max(sum(z) / m, options.vote_near_plane))
         elif options.distortion == "squared":
             distortions.append(sum((zi - zj) ** 2 for zi, zj in pairs))
         else:
@@ -253,7 +258,7 @@ def assert_render_close(actual, expected, rtol=1e-9, atol=1e-9):
 
 ALL_OPTIONS = [
     VoteRenderOptions(weighting=w, blend_space=b, distortion=d, vote_transmittance=t)
-    for w, b, d, t in itertools.product(("uniform", "alpha_t"), ("3d", "2d"), ("l1", "squared", "none"), (0.01, 0.0))
+    for w, b, d, t in itertools.product(("uniform", "alpha_t"), ("3d", "2d"), ("l1", "l1_pixels", "squared", "none"), (0.01, 0.0))
 ]
 
 
@@ -1055,3 +1060,26 @@ def test_votes_converge_to_object_centres():
         # targets are rounded to whole pixels (paper Eq. 5); one pixel spans 3 / 60 = 0.05 at the objects
         assert error < 0.05
         assert end < start / 5
+
+
+def test_pixel_distortion_is_scale_free():
+    """l1_pixels gives the same value when the whole scene (votes and camera) is scaled; l1 does not."""
+    torch.manual_seed(3)
+    n = 12
+    means2d = torch.rand(n, 2, dtype=torch.float64) * 4 + 2
+    conics = torch.tensor([[0.2, 0.0, 0.2]], dtype=torch.float64).repeat(n, 1)
+    opacities = torch.full((n,), 0.3, dtype=torch.float64)
+    depths = torch.linspace(1.0, 2.0, n, dtype=torch.float64)
+    votes = torch.randn(n, 3, dtype=torch.float64) * 0.2 + torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    K = torch.tensor([[20.0, 0.0, 4.0], [0.0, 20.0, 4.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    pixel_xy = torch.tensor([[4.5, 4.5], [3.5, 5.5]], dtype=torch.float64)
+    results = {}
+    for mode in ("l1", "l1_pixels"):
+        options = VoteRenderOptions(distortion=mode, vote_transmittance=0.0)
+        for scale in (1.0, 7.0):
+            render = render_votes_reference(means2d, conics, opacities, depths * scale, votes * scale, viewmat, K, pixel_xy, options)
+            results[mode, scale] = render.distortion
+    assert (results["l1", 1.0] > 0).all()
+    torch.testing.assert_close(results["l1", 7.0], 7.0 * results["l1", 1.0])
+    torch.testing.assert_close(results["l1_pixels", 7.0], results["l1_pixels", 1.0])

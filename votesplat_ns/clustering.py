@@ -24,6 +24,23 @@ Noise rule (``noise``):
     spread, i.e. of the 1-99 percentile bounding-box diagonal); otherwise it stays -1. Exports then
     carry whole objects (HDBSCAN labels a blob's sparse fringe as noise) while true strays stay out.
 
+Holes and fragments (``fill``, in :func:`cluster_levels`): every foreground Gaussian votes, so a
+foreground Gaussian that the vote clustering leaves as noise (a badly converged vote inside an
+object), or that sits in a fragment smaller than ``min_instance_fraction`` of the foreground, takes
+the instance that most of its spatial neighbours (Gaussian centres, not votes) hold, when they lie
+within ``fill_radius_factor`` times the foreground's typical spacing (median distance of a
+Gaussian to its ``fill_neighbours``-th nearest foreground neighbour). Repeated until nothing
+changes, so a hole fills from its rim inwards. A Gaussian with no labelled neighbour that close
+stays noise, and a fragment that nothing reaches stays an instance of its own (a small object
+far from everything else). Both scales are relative to the scene's own spacing.
+
+Over-split objects (``merge_separation``, in :func:`cluster_levels`): an object whose votes did not
+converge to one point (large, flat or seen from one side) spreads them, and HDBSCAN may cut the
+spread into several clusters. Two clusters merge when their vote centres (medians) are closer than
+``merge_separation`` times the sum of their vote spreads (median distance of a cluster's votes to
+its centre); merges are transitive. The test compares the gap with the clusters' own spread, so it
+holds at any scene scale: converged neighbours (small spreads) stay apart however close they are.
+
 Labels are renumbered 0..K-1 by decreasing cluster size (ties: smallest first member), so the
 result is deterministic for a fixed seed and independent of HDBSCAN's internal numbering.
 """
@@ -46,6 +63,11 @@ DEFAULT_MAX_POINTS = 50_000
 DEFAULT_MIN_CLUSTER_FRACTION = 5e-4
 DEFAULT_NOISE_RADIUS_FRACTION = 0.02
 DEFAULT_SMOOTHING_FRACTION = 1e-3
+# Spatial fill of noise and fragments (module docstring, "Holes and fragments").
+DEFAULT_FILL_NEIGHBOURS = 8
+DEFAULT_FILL_RADIUS_FACTOR = 3.0
+DEFAULT_MIN_INSTANCE_FRACTION = 0.002
+_FILL_MAX_ROUNDS = 64
 
 
 @dataclass
@@ -231,6 +253,95 @@ def cluster_votes(
     ).labels
 
 
+def fill_from_neighbours(
+    points: np.ndarray,
+    labels: np.ndarray,
+    neighbours: int = DEFAULT_FILL_NEIGHBOURS,
+    radius_factor: float = DEFAULT_FILL_RADIUS_FACTOR,
+    min_instance_fraction: float = DEFAULT_MIN_INSTANCE_FRACTION,
+) -> np.ndarray:
+    """Labels [M] after the spatial fill of the module docstring ("Holes and fragments").
+
+    points [M, 3]: the foreground Gaussians' centres; labels [M] int: clusters 0..K-1, -1 noise.
+    Returns new labels renumbered by decreasing size; -1 only where no labelled Gaussian is near.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64)
+    labels = np.asarray(labels, dtype=np.int64).copy()
+    if points.shape[0] != labels.shape[0]:
+        raise ValueError(f"{points.shape[0]} points but {labels.shape[0]} labels")
+    if neighbours < 1 or radius_factor < 0 or not 0.0 <= min_instance_fraction < 1.0:
+        raise ValueError("fill needs neighbours >= 1, radius_factor >= 0 and min_instance_fraction in [0, 1)")
+    m = points.shape[0]
+    if m <= neighbours or not (labels >= 0).any():
+        return _relabel_by_size(labels)
+    tree = cKDTree(points)
+    distance, _ = tree.query(points, k=neighbours + 1)
+    radius = radius_factor * float(np.median(distance[:, -1]))
+    if radius <= 0:
+        return _relabel_by_size(labels)
+
+    original = labels.copy()
+    sizes = np.bincount(labels[labels >= 0])
+    fragments = np.flatnonzero(sizes < min_instance_fraction * m)
+    if fragments.size < sizes.size:  # a fragment dissolves only into a larger instance
+        labels[np.isin(labels, fragments)] = -1
+    for _ in range(_FILL_MAX_ROUNDS):
+        open_index = np.flatnonzero(labels < 0)
+        labelled = np.flatnonzero(labels >= 0)
+        if open_index.size == 0 or labelled.size == 0:
+            break
+        k = min(neighbours, labelled.size)
+        near_distance, near = cKDTree(points[labelled]).query(points[open_index], k=k, distance_upper_bound=radius)
+        near_distance, near = near_distance.reshape(open_index.size, k), near.reshape(open_index.size, k)
+        found = np.isfinite(near_distance)
+        reached = found.any(axis=1)
+        if not reached.any():
+            break
+        near_labels = np.where(found, labels[labelled[np.minimum(near, labelled.size - 1)]], -1)
+        # majority of the labelled neighbours found; the query sorts them nearest first and argmax
+        # takes the first maximum, so a tie goes to the nearest of the tied labels
+        votes = ((near_labels[:, :, None] == near_labels[:, None, :]) & found[:, None, :]).sum(axis=2)
+        votes = np.where(found, votes, -1)
+        winner = near_labels[np.arange(open_index.size), votes.argmax(axis=1)]
+        labels[open_index] = np.where(reached, winner, -1)
+    # a fragment that nothing reached stays an instance of its own
+    unreached = (labels < 0) & np.isin(original, fragments)
+    labels[unreached] = original[unreached]
+    return _relabel_by_size(labels)
+
+
+def merge_spread_clusters(votes: np.ndarray, labels: np.ndarray, separation: float) -> np.ndarray:
+    """Labels [M] after merging clusters whose vote centres are closer than ``separation`` times
+    the sum of their vote spreads (module docstring, "Over-split objects"); renumbered by size."""
+    votes = np.asarray(votes, dtype=np.float64)
+    labels = np.asarray(labels, dtype=np.int64)
+    if separation < 0:
+        raise ValueError(f"merge separation must be >= 0, got {separation}")
+    ids = np.unique(labels[labels >= 0])
+    if ids.size < 2 or separation == 0:
+        return _relabel_by_size(labels)
+    centres = np.stack([np.median(votes[labels == k], axis=0) for k in ids])
+    spreads = np.array([np.median(np.linalg.norm(votes[labels == k] - c, axis=1)) for k, c in zip(ids, centres)])
+    gap = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    close = gap < separation * (spreads[:, None] + spreads[None, :])
+    root = np.arange(ids.size)
+
+    def find(i: int) -> int:
+        while root[i] != i:
+            root[i] = root[root[i]]
+            i = root[i]
+        return i
+
+    for a, b in zip(*np.nonzero(np.triu(close, k=1))):
+        root[find(a)] = find(b)
+    mapping = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
+    mapping[ids] = [find(i) for i in range(ids.size)]
+    merged = np.where(labels >= 0, mapping[np.maximum(labels, 0)], -1)
+    return _relabel_by_size(merged)
+
+
 def background_mask(vote_support, level: int) -> np.ndarray:
     """[N] bool, True for Gaussians that received no vote supervision at ``level`` (background).
 
@@ -262,6 +373,9 @@ def cluster_levels(
     noise_radius: Optional[float] = None,
     coarse_to_fine: bool = True,
     on_level: Optional[Callable[[int, str], None]] = None,
+    fill: bool = True,
+    min_instance_fraction: float = DEFAULT_MIN_INSTANCE_FRACTION,
+    merge_separation: Optional[float] = None,
     **cluster_kwargs,
 ) -> InstanceSet:
     """Instances of every vote level, linked parent -> child between consecutive levels.
@@ -272,7 +386,10 @@ def cluster_levels(
     the parent of an instance at level l is the level l-1 instance holding most of its Gaussians;
     otherwise the parent level is l+1. A level without foreground gets no instances (no error
     here: the exporter decides which levels it needs). ``on_level(index, name)`` is called before
-    each level is clustered (progress reporting).
+    each level is clustered (progress reporting). ``fill`` gives foreground noise and fragments
+    smaller than ``min_instance_fraction`` of the level's foreground the instance of their spatial
+    neighbours (:func:`fill_from_neighbours`). ``merge_separation`` (None: off) first merges
+    clusters of spread votes (:func:`merge_spread_clusters`).
     """
     means = _to_numpy(means)
     offsets = _to_numpy(offsets)
@@ -311,8 +428,24 @@ def cluster_levels(
                 noise_radius=noise_radius,
                 **cluster_kwargs,
             )
-            ids[fg_index] = result.labels
-            params = result.params
+            labels = result.labels
+            params = dict(result.params)
+            if merge_separation is not None:
+                labels = merge_spread_clusters(votes, labels, merge_separation)
+                params.update(merge_separation=float(merge_separation), num_clusters_before_merge=int(result.params["num_clusters"]))
+            if fill:
+                labels = fill_from_neighbours(means[fg_index], labels, min_instance_fraction=min_instance_fraction)
+                params.update(
+                    fill="spatial",
+                    fill_neighbours=DEFAULT_FILL_NEIGHBOURS,
+                    fill_radius_factor=DEFAULT_FILL_RADIUS_FACTOR,
+                    min_instance_fraction=float(min_instance_fraction),
+                    num_clusters=int(labels.max()) + 1 if (labels >= 0).any() else 0,
+                    num_noise=int((labels < 0).sum()),
+                    num_noise_before_fill=int(result.params["num_noise"]),
+                )
+            params["num_clusters"] = int(labels.max()) + 1 if (labels >= 0).any() else 0
+            ids[fg_index] = labels
         else:
             params = {"algorithm": "hdbscan", "num_votes": 0, "num_clusters": 0, "num_noise": 0}
         vote_points = np.full((n, 3), np.nan)

@@ -56,7 +56,13 @@ from votesplat_ns.mask_sources import (
     read_image_rgb,
 )
 from votesplat_ns.vote_cache import VoteCache, VoteOptions
-from votesplat_ns.vote_maps import VoteMaps, resize_label_images, resize_vote_maps, vote_maps_from_labels
+from votesplat_ns.vote_maps import (
+    DEFAULT_BORDER_MASKS,
+    VoteMaps,
+    resize_label_images,
+    resize_vote_maps,
+    vote_maps_from_labels,
+)
 
 DEFAULT_OUTPUT_DIR = Path("outputs")
 DATASET_LEVELS = ("instance", "part")
@@ -293,8 +299,8 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
     """SAM automatic mask generator: smallest mask region kept, in pixels."""
     sam_max_long_side: Optional[int] = 1080
     """Images are shrunk to this long side before SAM (None: full size); LangSplat uses 1080."""
-    drop_border_masks: bool = True
-    """Drop masks touching the image border: their pixel centroid is not the object's centre."""
+    border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
+    """A mask touching the image border: vote (its visible part's centroid), mask_only (no vote target) or drop."""
     cache_dir: Optional[Path] = None
     """Where masks and 2D votes are cached (default: outputs/<dataset folder name>/votesplat_cache)."""
     vote_maps_in_memory: int = 128
@@ -406,16 +412,16 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         cache_dir = self.vote_cache_dir
         views = [(index, Path(path)) for index, path in enumerate(self.train_dataset.image_filenames)]
         with writing_into(cache_dir, CACHE_DIR_FLAG):
-            cache = VoteCache(cache_dir, source, VoteOptions(drop_border_masks=self.config.drop_border_masks))
+            cache = VoteCache(cache_dir, source, VoteOptions(border_masks=self.config.border_masks))
             CONSOLE.log(f"Vote maps: {source.name} masks, levels {list(source.levels)}, cache {cache.entry_dir}")
             self._vote_keys = cache.build_all(views, description=f"Making vote maps ({source.name} masks)")
         self._vote_cache = cache
         if not any(self._view_has_votes(key) for key in self._vote_keys):
             # training would run to the end without a single vote; only the export would notice
-            dropped = ", or touches the image border and is dropped (--pipeline.datamanager.drop-border-masks)"
+            border = f", or touches the image border (--pipeline.datamanager.border-masks {self.config.border_masks})"
             CONSOLE.print(
                 f"Warning: no mask of the {len(views)} training views gives a vote (every mask is empty"
-                f"{dropped if self.config.drop_border_masks else ''}), so this run learns no instances; "
+                f"{border if self.config.border_masks != 'vote' else ''}), so this run learns no instances; "
                 f"look at the masks with: votesplat-masks --data {self.config.dataset_path} --preview 4",
                 style="bold yellow",
                 soft_wrap=True,
@@ -425,7 +431,8 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
     def _view_has_votes(self, key: str) -> bool:
         assert self._vote_cache is not None
         stored = self._vote_cache.load(key)
-        return stored is not None and any(table.shape[0] > 1 for table in stored.centroids)
+        # a mask votes when its centroid is finite (border_masks=mask_only keeps masks without one)
+        return stored is not None and any(bool(np.isfinite(table[1:]).any()) for table in stored.centroids)
 
     def get_training_callbacks(self, training_callback_attributes) -> List:
         callbacks = super().get_training_callbacks(training_callback_attributes)
@@ -469,7 +476,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
                 f"undistorted vote labels of {image_path} are {warped[0].shape[1]}x{warped[0].shape[0]} "
                 f"but nerfstudio's undistorted image is {width}x{height}"
             )
-        return vote_maps_from_labels(warped, self.config.drop_border_masks, stored.level_names)
+        return vote_maps_from_labels(warped, self.config.border_masks, stored.level_names)
 
     # ------------------------------------------------------------------ batches
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:

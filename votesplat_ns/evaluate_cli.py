@@ -10,6 +10,12 @@ dataset's exact label images:
   and recall at IoU 0.5). Views are the pipeline's own cameras (nerfstudio's split, orientation and
   scale), so they are exactly the frames nerfstudio would render; the GT label image of a view is
   found through its transforms.json frame (``<level>_mask_path``) by image file name.
+* Reconstruction check: each scored view is also rendered in RGB by the model itself (as
+  nerfstudio's eval renders it) and its PSNR against the dataset image is recorded;
+  :func:`~votesplat_ns.evaluation.check_reconstruction` flags views where the reconstruction failed
+  (far below the run's median PSNR, or no better than a flat image of the view's mean colour). Every
+  2D score is reported over all views and again over the valid views only (``*_valid_views``),
+  so a broken render shows as what it is instead of silently lowering the instance score.
 * 3D: :func:`~votesplat_ns.evaluation.gaussian_purity` of the per-Gaussian instance ids. The GT
   label of a Gaussian comes from the scene's exact geometry when the dataset was written by
   ``votesplat-synth`` (see :func:`surface_labels`): its mean is mapped back from nerfstudio's
@@ -19,8 +25,9 @@ dataset's exact label images:
   projected mean in the training views where the mean is not hidden behind the GT depth
   (:func:`projected_majority_labels`).
 
-Output folder: ``metrics.json`` (atomic) and ``comparison_<level>.png`` (GT | prediction per view,
-a matched prediction shown in its GT instance's colour), plus a short table on stdout.
+Output folder: ``metrics.json`` (atomic; per level the scores, ``per_view`` the PSNR and verdict of
+each view) and ``comparison_<level>.png`` (GT | prediction per view, a matched prediction shown in
+its GT instance's colour), plus a short table and the flagged views on stdout.
 
 ``votesplat-noisy-masks --data <dataset> --output <folder>`` writes the dataset's GT label images
 corrupted by :class:`~votesplat_ns.mask_noise.MaskNoise` in the folder mask source's layout
@@ -47,8 +54,18 @@ import numpy as np
 import torch
 
 from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.cli_errors import VoteSplatInputError
 from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.evaluation import gaussian_purity, match_instances, save_comparison_png
+from votesplat_ns.evaluation import (
+    DEFAULT_MAX_PSNR_DROP_DB,
+    DEFAULT_MIN_GAIN_DB,
+    check_reconstruction,
+    flat_image_psnr,
+    gaussian_purity,
+    match_instances,
+    psnr,
+    save_comparison_png,
+)
 from votesplat_ns.instances import render_instance_ids
 from votesplat_ns.mask_noise import MaskNoise
 from votesplat_ns.mask_sources import read_label_png
@@ -56,7 +73,7 @@ from votesplat_ns.ply_io import atomic_write
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"
-METRICS_VERSION = 1
+METRICS_VERSION = 2  # 2: per_view PSNR, reconstruction check, *_valid_views scores
 NOISE_MANIFEST_NAME = "noise.json"
 DEFAULT_OUTPUT_FOLDER = "votesplat_eval"
 DATAPARSER_TRANSFORMS_NAME = "dataparser_transforms.json"
@@ -375,6 +392,21 @@ def render_id_maps(
     return maps
 
 
+def render_rgb_psnr(model, dataset, index: int) -> Tuple[float, float]:
+    """(PSNR, flat-image PSNR) of the model's RGB render of ``dataset`` view ``index``.
+
+    The render and the target are the ones nerfstudio's splatfacto eval compares: the model's
+    ``get_outputs_for_camera`` and the dataset image composited over the render's background.
+    """
+    camera = dataset.cameras[index : index + 1]
+    with torch.no_grad():
+        outputs = model.get_outputs_for_camera(camera)
+        target = model.composite_with_background(model.get_gt_img(dataset.get_image_float32(index)), outputs["background"])
+    rendered = outputs["rgb"].detach().float().cpu().numpy()
+    target = target.detach().float().cpu().numpy()
+    return psnr(rendered, target), flat_image_psnr(target)
+
+
 def score_level(
     gt_maps: Sequence[np.ndarray],
     pred_maps: Sequence[np.ndarray],
@@ -382,11 +414,15 @@ def score_level(
     pred_gaussians: np.ndarray,
     names: Optional[Dict[int, str]] = None,
     iou_threshold: float = 0.5,
+    view_ok: Optional[Sequence[bool]] = None,
 ) -> dict:
     """2D and 3D scores of one level. Predicted ids are 0..K-1 with -1 = none (clustering's ids).
 
     The scorer treats ids <= 0 as "none", so predictions are shifted by one before scoring; the
-    reported ``matched_prediction`` is the clustering's own id again.
+    reported ``matched_prediction`` is the clustering's own id again. The 2D scores are repeated
+    over the views where ``view_ok`` is true (default: all) as ``miou_valid_views``,
+    ``precision_valid_views``, ``recall_valid_views``, ``f1_valid_views`` (None when those views
+    show no GT instance) and ``num_valid_views``.
     """
     shifted_maps = [np.asarray(m).astype(np.int64) + 1 for m in pred_maps]
     gt_maps = [np.asarray(m).astype(np.int64) for m in gt_maps]
@@ -421,6 +457,12 @@ def score_level(
     three_d = scores3d.to_dict()
     three_d["per_cluster_purity"] = {str(int(k) - 1): v for k, v in scores3d.per_cluster_purity.items()}
     three_d["cluster_majority"] = {str(int(k) - 1): v for k, v in scores3d.cluster_majority.items()}
+    if view_ok is not None and len(view_ok) != len(gt_maps):
+        raise ValueError(f"view_ok has {len(view_ok)} entries for {len(gt_maps)} views")
+    valid = [i for i in range(len(gt_maps)) if view_ok is None or view_ok[i]]
+    valid_scores = None
+    if any((gt_maps[i] > 0).any() for i in valid):
+        valid_scores = match_instances([gt_maps[i] for i in valid], [shifted_maps[i] for i in valid], iou_threshold)
     return {
         "miou": scores2d.miou,
         "precision": scores2d.precision,
@@ -430,6 +472,11 @@ def score_level(
         "completeness": scores3d.completeness,
         "miou_3d": scores3d.miou_3d,
         "num_predicted_instances": max(pred_count, 0),
+        "miou_valid_views": None if valid_scores is None else valid_scores.miou,
+        "precision_valid_views": None if valid_scores is None else valid_scores.precision,
+        "recall_valid_views": None if valid_scores is None else valid_scores.recall,
+        "f1_valid_views": None if valid_scores is None else valid_scores.f1,
+        "num_valid_views": len(valid),
         "scores_2d": two_d,
         "scores_3d": three_d,
         "per_instance": per_instance,
@@ -500,6 +547,22 @@ def _views_of(dataset) -> List[PinholeView]:
     return views
 
 
+def _view_sources(datamanager) -> Dict[str, tuple]:
+    """Image file name -> (nerfstudio dataset, index), held-out views first (as select_views orders them)."""
+    sources: Dict[str, tuple] = {}
+    for dataset in (datamanager.eval_dataset, datamanager.train_dataset):
+        for index, filename in enumerate(dataset.image_filenames):
+            sources.setdefault(Path(filename).name, (dataset, index))
+    return sources
+
+
+def _check_reconstruction_options(max_psnr_drop_db: float, min_gain_db: float) -> None:
+    if np.isnan(max_psnr_drop_db) or not max_psnr_drop_db > 0:
+        raise VoteSplatInputError(f"--max-psnr-drop-db must be > 0 dB (inf turns the rule off), got {max_psnr_drop_db}")
+    if np.isnan(min_gain_db) or min_gain_db == float("inf"):
+        raise VoteSplatInputError(f"--min-gain-db must be a number of dB (-inf turns the rule off), got {min_gain_db}")
+
+
 def _levels_to_score(model_levels: Sequence[str], gt_levels: Sequence[str], level: Optional[str], gt_level: Optional[str]) -> List[Tuple[str, str]]:
     if level is None:
         if gt_level is not None:
@@ -537,6 +600,8 @@ class EvaluationResult:
     metrics: dict
     output_dir: Path
     table: str
+    # level -> (GT label maps, rendered id maps with -1 = none), one per scored view in metrics["view_names"] order
+    maps: Dict[str, Tuple[List[np.ndarray], List[np.ndarray]]] = dataclasses.field(default_factory=dict)
 
 
 def evaluate_run(
@@ -554,6 +619,8 @@ def evaluate_run(
     gaussian_gt: Literal["auto", "geometry", "projection"] = "auto",
     surface_tolerance_px: float = 3.0,
     iou_threshold: float = 0.5,
+    max_psnr_drop_db: float = DEFAULT_MAX_PSNR_DROP_DB,
+    min_gain_db: float = DEFAULT_MIN_GAIN_DB,
     gaussian_ids_override: Optional[Callable[[GaussianScene, Dict[str, np.ndarray]], Dict[str, np.ndarray]]] = None,
 ) -> EvaluationResult:
     """Score a votesplat run (see the module doc); writes metrics.json and comparison PNGs.
@@ -571,6 +638,7 @@ def evaluate_run(
         raise ValueError(f"min_weight must be in (0, 1] (got {min_weight})")
     if not surface_tolerance_px > 0:
         raise ValueError(f"surface_tolerance_px must be > 0 (got {surface_tolerance_px})")
+    _check_reconstruction_options(max_psnr_drop_db, min_gain_db)
     load_config = Path(load_config)
     config = load_votesplat_config(load_config)
     data_path = Path(data) if data is not None else _dataset_of(config)
@@ -601,6 +669,9 @@ def evaluate_run(
             f"nerfstudio's eval split {sorted(v.name for v in chosen)} is not the dataset's held-out views {sorted(held_out)}; "
             "check the run's dataparser settings (eval_mode)"
         )
+    sources = _view_sources(datamanager)
+    rgb = [render_rgb_psnr(pipeline.model, *sources[v.name]) for v in chosen]
+    check = check_reconstruction([p for p, _ in rgb], [f for _, f in rgb], max_psnr_drop_db, min_gain_db)
 
     instance_set = cluster_levels(
         scene.means.cpu().numpy(),
@@ -622,14 +693,18 @@ def evaluate_run(
 
     output_dir.mkdir(parents=True, exist_ok=True)
     levels_out: Dict[str, dict] = {}
+    maps: Dict[str, Tuple[List[np.ndarray], List[np.ndarray]]] = {}
     for name, gt in pairs:
         gt_maps = [dataset.labels(v.name, gt) for v in chosen]
         pred_maps = render_id_maps(scene, predicted[name], chosen, rasterize, [m.shape for m in gt_maps], min_weight)
-        result = score_level(gt_maps, pred_maps, gt_gaussians[gt], predicted[name], dataset.named_ids(gt), iou_threshold)
+        result = score_level(
+            gt_maps, pred_maps, gt_gaussians[gt], predicted[name], dataset.named_ids(gt), iou_threshold, view_ok=check.ok.tolist()
+        )
         picture = output_dir / f"comparison_{name}.png"
         save_comparison_png(gt_maps, [m + 1 for m in pred_maps], picture, scale=2)
         result.update(gt_level=gt, comparison_png=picture.name, clustering=instance_set.level(name).clustering)
         levels_out[name] = result
+        maps[name] = (gt_maps, pred_maps)
 
     metrics = {
         "format": METRICS_FORMAT,
@@ -643,31 +718,67 @@ def evaluate_run(
         "min_weight": min_weight,
         "iou_threshold": iou_threshold,
         "gaussian_gt": gt_info,
-        "summary": {
-            name: {k: levels_out[name][k] for k in ("miou", "precision", "recall", "f1", "purity", "completeness", "num_predicted_instances")}
-            for name in levels_out
-        },
+        "reconstruction": check.to_dict(),
+        "per_view": check.per_view(v.name for v in chosen),
+        "summary": {name: {k: levels_out[name][k] for k in SUMMARY_KEYS} for name in levels_out},
         "levels": levels_out,
     }
     write_json_atomic(output_dir / METRICS_NAME, metrics)
-    return EvaluationResult(metrics, output_dir, format_table(metrics))
+    return EvaluationResult(metrics, output_dir, format_table(metrics), maps)
+
+
+SUMMARY_KEYS = (
+    "miou", "precision", "recall", "f1", "purity", "completeness", "num_predicted_instances",
+    "miou_valid_views", "precision_valid_views", "recall_valid_views", "num_valid_views",
+)
+
+
+def _fmt(value: Optional[float]) -> str:
+    return "-" if value is None else f"{value:.3f}"
 
 
 def format_table(metrics: dict) -> str:
-    rows = ["| level | views | mIoU | precision | recall | purity | completeness | #GT | #pred |", "|---|---|---|---|---|---|---|---|---|"]
+    """The summary: scores over all views and over the views whose reconstruction is ok, then the flagged views."""
+    num_views = len(metrics["view_names"])
+    rows = [
+        "| level | views | mIoU | precision | recall | valid views | mIoU valid | precision valid | recall valid | purity | completeness | #GT | #pred |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, level in metrics["levels"].items():
         num_gt = level["scores_2d"]["num_gt"]
         rows.append(
-            f"| {name} | {metrics['views']} ({len(metrics['view_names'])}) | {level['miou']:.3f} | {level['precision']:.3f} | "
-            f"{level['recall']:.3f} | {level['purity']:.3f} | {level['completeness']:.3f} | {num_gt} | {level['num_predicted_instances']} |"
+            f"| {name} | {metrics['views']} ({num_views}) | {level['miou']:.3f} | {level['precision']:.3f} | {level['recall']:.3f} | "
+            f"{level['num_valid_views']}/{num_views} | {_fmt(level['miou_valid_views'])} | {_fmt(level['precision_valid_views'])} | "
+            f"{_fmt(level['recall_valid_views'])} | {level['purity']:.3f} | {level['completeness']:.3f} | {num_gt} | {level['num_predicted_instances']} |"
         )
-    return "\n".join(rows)
+    check = metrics["reconstruction"]
+    median = check["median_psnr"]
+    flagged = [view for view in metrics["per_view"] if not view["reconstruction_ok"]]
+    line = (
+        f"reconstruction check: median RGB PSNR {'-' if median is None else f'{median:.2f}'} dB; "
+        f"{len(flagged)} of {num_views} views flagged "
+        f"(PSNR more than {_fmt_rule(check['max_psnr_drop_db'])} dB below the median "
+        f"or less than {_fmt_rule(check['min_gain_db'])} dB above a flat image of the view's mean colour)"
+    )
+    details = [
+        f"  {view['name']}: PSNR {_fmt_db(view['psnr'])} dB, flat image {_fmt_db(view['flat_psnr'])} dB" for view in flagged
+    ]
+    return "\n".join(rows + [line] + details)
+
+
+def _fmt_db(value: Optional[float]) -> str:
+    return "-" if value is None else f"{value:.2f}"  # null: an infinite or NaN PSNR
+
+
+def _fmt_rule(value: Optional[float]) -> str:
+    return "off" if value is None else f"{value:g}"
 
 
 @dataclass
 class EvaluateVoteSplat:
     """Score a VoteSplat run's instances against a synthetic dataset's exact labels (2D mIoU,
-    precision/recall at IoU 0.5 on the held-out views; 3D per-Gaussian purity)."""
+    precision/recall at IoU 0.5 on the held-out views; 3D per-Gaussian purity). Each view's RGB PSNR
+    flags views where the reconstruction itself failed; the 2D scores are also given over the valid views."""
 
     load_config: Path
     """Path to the run's config.yml."""
@@ -693,6 +804,13 @@ class EvaluateVoteSplat:
     """GT label per Gaussian: scene geometry (exact, needs votesplat-synth's generator) or the majority label in the training views."""
     surface_tolerance_px: float = 3.0
     """geometry: a Gaussian farther than this many pixels (at the median camera distance) from every surface is background."""
+    max_psnr_drop_db: float = DEFAULT_MAX_PSNR_DROP_DB
+    """Reconstruction check: a view whose RGB PSNR is more than this many dB below the median of the scored views
+    is a failed reconstruction (6 dB = four times the squared error); inf turns this rule off."""
+    min_gain_db: float = DEFAULT_MIN_GAIN_DB
+    """Reconstruction check: a view whose RGB PSNR is less than this many dB above that of a flat image of the view's
+    mean colour is a failed reconstruction (e.g. a wall of floaters; 2 dB: squared error above 63% of the flat
+    image's); -inf turns this rule off."""
 
     def main(self) -> None:
         try:
@@ -709,6 +827,8 @@ class EvaluateVoteSplat:
                 min_weight=self.min_weight,
                 gaussian_gt=self.gaussian_gt,
                 surface_tolerance_px=self.surface_tolerance_px,
+                max_psnr_drop_db=self.max_psnr_drop_db,
+                min_gain_db=self.min_gain_db,
             )
         except ValueError as err:
             print(f"votesplat-eval: error: {err}", file=sys.stderr)

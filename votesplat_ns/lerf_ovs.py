@@ -5,13 +5,17 @@ Label files are the per-frame JSONs LangSplat prepared for the LERF scenes (ISAT
 [[x, y], ...], area, layer, bbox [x1, y1, x2, y2], iscrowd, note}``. ``area`` is the shoelace area of
 the polygon and ``bbox`` its vertex extremes.
 
-Pixel convention of the polygons: a vertex (x, y) names pixel column trunc(x), row trunc(y) (the
-vertices are traced along the object's boundary pixels), and a pixel belongs to the mask if it is
-inside the polygon or on its outline. This is how LangSplat's evaluation rasterises the labels
-(``cv2.fillPoly`` on int32-cast vertices); here PIL's ImageDraw does it. In the project's continuous
-frame the polygon therefore runs through pixel centres (trunc(x) + 0.5, trunc(y) + 0.5), so a mask has
-about area + perimeter/2 pixels (Pick's theorem: exactly area + boundary_lattice_points/2 + 1 for an
-integer polygon rasterised exactly).
+Pixel convention of the polygons: exactly LangSplat's evaluation (``eval/utils.py``
+``polygon_to_mask``): the vertices are cast with ``np.asarray(points, dtype=np.int32)`` (fractional
+coordinates truncate toward zero) and filled with ``cv2.fillPoly(mask, [points], 1)`` (8-connected
+edges, no sub-pixel shift), so a vertex (x, y) names pixel column trunc(x), row trunc(y) and the
+outline pixels belong to the mask. OpenGaussian's ``compute_lerf_iou.py`` reads these masks after
+LangSplat saved them as JPEG (0/255, read back with a threshold of 10); on the 22 published frames
+that round trip changes no pixel, so the masks here are the ones both papers score against. In the
+project's continuous frame the polygon runs through pixel centres (trunc(x) + 0.5, trunc(y) + 0.5),
+so a mask has about area + perimeter/2 pixels (Pick's theorem gives area + boundary_points/2 + 1
+lattice points on or inside an integer polygon; cv2 adds a few more where an 8-connected slanted
+edge steps outside the exact polygon).
 
 Protocol (OpenGaussian, ``scripts/compute_lerf_iou.py``): every (frame, category) pair of a scene is
 one query; objects of one category in a frame are merged into one ground-truth mask; the predicted
@@ -20,7 +24,7 @@ zero union counts 0, a missing prediction counts 0; a scene's mIoU is the mean I
 and mAcc@0.25 the fraction of queries with IoU strictly above 0.25; the benchmark number is the
 mean over scenes.
 
-Pure numpy + PIL (cv2 only for turning masks into polygons in :func:`mask_to_polygons`).
+numpy + OpenCV (``cv2``, a nerfstudio dependency) for the label rasteriser and :func:`mask_to_polygons`.
 """
 
 from __future__ import annotations
@@ -125,21 +129,23 @@ def polygon_bbox(polygon: Union[Polygon, np.ndarray]) -> Tuple[float, float, flo
 
 
 def rasterise_polygon(polygon: Union[Polygon, np.ndarray], width: int, height: int) -> np.ndarray:
-    """Bool [height, width] mask of one label polygon (convention in the module docstring)."""
-    from PIL import Image, ImageDraw
+    """Bool [height, width] mask of one label polygon, pixel for pixel as LangSplat draws it (module doc)."""
+    import cv2
 
     vertices = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
     if vertices.shape[0] == 0:
         raise ValueError("rasterise_polygon got a polygon with no vertices")
     if not np.isfinite(vertices).all():
         raise ValueError("rasterise_polygon got a polygon with non-finite vertices")
+    if np.abs(vertices).max() >= 2**31:
+        raise ValueError("rasterise_polygon got vertices outside the int32 range the reference casts them to")
     if width < 1 or height < 1:
         raise ValueError(f"image size must be positive, got {width}x{height}")
-    # Truncation (not rounding) of fractional vertices matches LangSplat's np.int32 cast.
-    points = [(int(x), int(y)) for x, y in np.trunc(vertices)]
-    canvas = Image.new("1", (int(width), int(height)), 0)
-    ImageDraw.Draw(canvas).polygon(points, fill=1, outline=1)
-    return np.asarray(canvas, dtype=bool).copy()
+    # astype(int32) truncates toward zero, as np.asarray(points, dtype=np.int32) does in LangSplat.
+    points = vertices.astype(np.int32)
+    canvas = np.zeros((int(height), int(width)), dtype=np.uint8)
+    cv2.fillPoly(canvas, [points], 1)
+    return canvas.astype(bool)
 
 
 def category_masks(frame: LabelFrame) -> Dict[str, np.ndarray]:

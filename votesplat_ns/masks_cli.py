@@ -20,7 +20,7 @@ import numpy as np
 
 from votesplat_ns.cli_errors import VoteSplatInputError, one_line_errors, writing_into
 from votesplat_ns.vote_cache import VoteCache, VoteOptions, atomic_write_bytes, load_image_rgb
-from votesplat_ns.vote_maps import VoteMaps
+from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps
 
 PREVIEW_FOLDER_NAME = "votesplat_previews"
 
@@ -59,8 +59,8 @@ class MasksConfig:
     """SAM automatic mask generator: smallest mask region kept, in pixels."""
     sam_max_long_side: Optional[int] = 1080
     """Images are shrunk to this long side before SAM (None: full size)."""
-    drop_border_masks: bool = True
-    """Drop masks touching the image border."""
+    border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
+    """A mask touching the image border: vote, mask_only (no vote target) or drop, as ns-train's flag."""
     downscale_factor: Optional[int] = None
     """nerfstudio's --downscale-factor (images_N/); give training's for the cache to be reused."""
     preview: int = 0
@@ -160,7 +160,7 @@ def main(config: MasksConfig) -> Dict[str, object]:
         sam_crop_n_layers=config.sam_crop_n_layers,
         sam_min_mask_region_area=config.sam_min_mask_region_area,
         sam_max_long_side=config.sam_max_long_side,
-        drop_border_masks=config.drop_border_masks,
+        border_masks=config.border_masks,
     )
     manager_config.dataparser.downscale_factor = config.downscale_factor
     check_data_input(manager_config, where=f"--data {config.data}", mask_source_flag="--source")
@@ -172,7 +172,7 @@ def main(config: MasksConfig) -> Dict[str, object]:
     images = dataset_images(config.data, config.downscale_factor)
     views = list(enumerate(images))
     with writing_into(folder, flag):
-        cache = VoteCache(cache_dir, source, VoteOptions(drop_border_masks=config.drop_border_masks))
+        cache = VoteCache(cache_dir, source, VoteOptions(border_masks=config.border_masks))
         keys = cache.build_all(views)
     print(f"vote maps of {len(views)} views ({source.name} masks, levels {list(source.levels)}) in {cache.entry_dir}")
     if cache.rebuilt_damaged:

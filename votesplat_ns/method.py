@@ -11,7 +11,7 @@ from __future__ import annotations
 import gc
 import warnings
 from pathlib import Path
-from typing import Optional
+from typing import Any, Dict, Optional
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -121,6 +121,7 @@ def train_in_process(
     timestamp: str = "run",
     mask_folder: Optional[Path] = None,
     seed: int = 42,
+    datamanager_overrides: Optional[Dict[str, Any]] = None,
     **model_overrides,
 ) -> Path:
     """Train votesplat in this process (tests, benchmarks/quality.py); returns the run's config.yml.
@@ -128,6 +129,7 @@ def train_in_process(
     No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
     ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields.
     ``seed`` seeds Python, NumPy and torch as ns-train does (``--machine.seed``).
+    ``datamanager_overrides`` set datamanager config fields (e.g. ``border_masks``).
     """
     import random
 
@@ -153,10 +155,11 @@ def train_in_process(
         config.pipeline.datamanager.mask_folder = mask_folder
     model = config.pipeline.model
     model.vote_start_step = vote_start
-    for name, value in model_overrides.items():
-        if not hasattr(model, name):
-            raise ValueError(f"votesplat's model config has no field {name!r}")
-        setattr(model, name, value)
+    for target, overrides in ((model, model_overrides), (config.pipeline.datamanager, datamanager_overrides or {})):
+        for name, value in overrides.items():
+            if not hasattr(target, name):
+                raise ValueError(f"votesplat's {type(target).__name__} has no field {name!r}")
+            setattr(target, name, value)
     config.set_timestamp()
     config.save_config()
     # nerfstudio keeps its event writers in module globals: a second run in this process must not log into the first's

@@ -64,7 +64,8 @@ def _pixels_and_targets(
     """Pixel centres [P,2], their 2D votes per level [P,L,2] (continuous frame, scaled to the
     render resolution) and whether each level carries a vote there [P,L].
 
-    flat_labels [L, H*W] mask labels (0 = no vote), centroids [L, K+1, 2] pixel-index centroids.
+    flat_labels [L, H*W] mask labels (0 = no mask), centroids [L, K+1, 2] pixel-index centroids
+    (NaN: no vote, e.g. row 0 and masks cut by the image border under ``border_masks=mask_only``).
     """
     rows = torch.div(pixel_index, width, rounding_mode="floor")
     cols = pixel_index - rows * width
@@ -72,7 +73,13 @@ def _pixels_and_targets(
     pixel_labels = flat_labels[:, pixel_index].long()  # [L, P]
     level_index = torch.arange(flat_labels.shape[0], device=pixel_index.device)[:, None]
     target_xy = (centroids[level_index, pixel_labels] + 0.5) * scale  # [L, P, 2]
-    return pixel_xy, target_xy.transpose(0, 1), (pixel_labels > 0).transpose(0, 1)
+    return pixel_xy, target_xy.transpose(0, 1), torch.isfinite(target_xy[..., 0]).transpose(0, 1)
+
+
+def pixels_carrying_votes(flat_labels: torch.Tensor, centroids: torch.Tensor) -> torch.Tensor:
+    """[H*W] bool: the pixel carries a 2D vote at some level (its mask there has a finite centroid)."""
+    level_index = torch.arange(flat_labels.shape[0], device=flat_labels.device)[:, None]
+    return torch.isfinite(centroids[level_index, flat_labels.long(), 0]).any(dim=0)
 
 
 def vote_step_due(step: int, start: int, every: int) -> bool:
@@ -105,7 +112,7 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Ablation: 'alpha_t' blends votes with alpha*T weights instead of the paper's uniform mean."""
     vote_blend_space: Literal["3d", "2d"] = "3d"
     """Ablation: '2d' projects each Gaussian's vote first, then blends (the paper blends in 3D)."""
-    vote_distortion: Literal["l1", "squared", "none"] = "l1"
+    vote_distortion: Literal["l1", "l1_pixels", "squared", "none"] = "l1"
     """Depth distortion of the votes: the paper's pairwise L1, its squared form, or none (ablation)."""
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
@@ -319,7 +326,7 @@ class VoteSplatModel(SplatfactoModel):
         # continuous pixel frame (pixel centre = index + 0.5) scale by exactly 1/d.
         scale = 1.0 / self._get_downscale_factor()
         flat_labels = labels.reshape(labels.shape[0], -1)
-        carries_vote = (flat_labels > 0).any(dim=0)
+        carries_vote = pixels_carrying_votes(flat_labels, centroids)
         if not bool(carries_vote.any()):  # a view with no masks: no vote supervision here
             # zero but connected to the offsets, so the backward stays valid
             zero = self.gauss_params["vote_offsets"].sum() * 0.0
@@ -361,7 +368,7 @@ class VoteSplatModel(SplatfactoModel):
         labels, centroids = self._vote_maps(batch)
         self.get_outputs(camera.to(self.device))
         flat_labels = labels.reshape(labels.shape[0], -1)
-        pixel_index = torch.nonzero((flat_labels > 0).any(dim=0)).squeeze(-1)
+        pixel_index = torch.nonzero(pixels_carrying_votes(flat_labels, centroids)).squeeze(-1)
         pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, 1.0)
         render = self.render_votes(pixel_xy)
         used = valid & (render.count > 0)[:, None]  # [P, L]

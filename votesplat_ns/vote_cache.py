@@ -37,7 +37,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from votesplat_ns.mask_sources import MaskSource, file_digest, read_image_rgb
-from votesplat_ns.vote_maps import VoteMaps, vote_maps_from_labels
+from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps, vote_maps_from_labels
 
 PathLike = Union[str, Path]
 ImageLoader = Callable[[int, Path], np.ndarray]
@@ -51,8 +51,8 @@ _STALE_TEMP_SECONDS = 3600.0
 class VoteOptions:
     """Options of the 2D vote construction that change the cached result."""
 
-    drop_border_masks: bool = True
-    """Drop masks touching the image border (the paper filters masks leaving the field of view)."""
+    border_masks: str = DEFAULT_BORDER_MASKS
+    """What a mask touching the image border becomes: "vote", "mask_only" or "drop" (vote_maps.mask_centroids)."""
 
 
 def load_image_rgb(path: PathLike) -> np.ndarray:
@@ -223,7 +223,7 @@ class VoteCache:
                 f"expected one per level {list(self.source.levels)}"
             )
         vote_maps = vote_maps_from_labels(
-            label_images, drop_border_masks=self.vote_options.drop_border_masks, level_names=self.source.levels
+            label_images, border_masks=self.vote_options.border_masks, level_names=self.source.levels
         )
         self._write_entry(key, vote_maps)
         return vote_maps

@@ -27,6 +27,10 @@ import torch
 LABEL_DTYPE_COMPACT = np.uint16
 """Label stacks whose largest label fits in uint16 are stored as uint16 (half the size of int32)."""
 
+BORDER_MASK_RULES = ("vote", "mask_only", "drop")
+"""What a mask touching the image border becomes (see :func:`mask_centroids`)."""
+DEFAULT_BORDER_MASKS = "vote"
+
 
 def round_half_away_from_zero(values: np.ndarray) -> np.ndarray:
     """Round to the nearest integer; exact halves go away from zero (2.5 -> 3, -2.5 -> -3)."""
@@ -87,20 +91,29 @@ def labels_from_binary_masks(
     return labels
 
 
-def mask_centroids(labels: np.ndarray, drop_border_masks: bool = True) -> Tuple[np.ndarray, np.ndarray]:
+def mask_centroids(labels: np.ndarray, border_masks: str = DEFAULT_BORDER_MASKS) -> Tuple[np.ndarray, np.ndarray]:
     """Per-mask centroids of a label image (paper Eq. 3-4).
 
     Args:
         labels: integer label image [H, W], 0 = no mask.
-        drop_border_masks: drop masks that touch the first/last row or column (the paper filters
-            masks extending beyond the field of view: their centroid would not be the object's).
+        border_masks: what a mask touching the first/last row or column becomes. The centroid
+            of its visible part is not the object's, but the object is still an object:
+            - "vote": kept, its visible part's centroid is the vote target (the official
+              VoteSplat preprocessing);
+            - "mask_only": kept as a mask (its pixels count as inside a mask, e.g. for the
+              foreground rule) with no vote target: its centroid is NaN;
+            - "drop": removed, its pixels become 0 (the paper's text filters masks that leave
+              the field of view; an object cut by the frame in most views then looks like
+              background there).
 
     Returns:
         labels_out: int32 [H, W], masks renumbered 1..K in increasing order of their input id;
             dropped masks become 0.
         centroids: float32 [K+1, 2], (column, row) in pixel-index coordinates, each rounded
-            half away from zero; row 0 is NaN.
+            half away from zero; row 0 is NaN, and so is the row of a "mask_only" border mask.
     """
+    if border_masks not in BORDER_MASK_RULES:
+        raise ValueError(f"border_masks must be one of {', '.join(BORDER_MASK_RULES)}, got {border_masks!r}")
     labels = _check_label_image(labels)
     height, width = labels.shape
     max_id = int(labels.max()) if labels.size else 0
@@ -112,9 +125,12 @@ def mask_centroids(labels: np.ndarray, drop_border_masks: bool = True) -> Tuple[
     else:
         ids = np.unique(labels)
     ids = ids[ids > 0]
-    if drop_border_masks and ids.size and labels.size:
+    touching = np.zeros(0, dtype=ids.dtype)
+    if border_masks != "vote" and ids.size and labels.size:
         border = np.concatenate([labels[0, :], labels[-1, :], labels[:, 0], labels[:, -1]])
-        ids = np.setdiff1d(ids, np.unique(border), assume_unique=False)
+        touching = np.intersect1d(ids, border)
+        if border_masks == "drop":
+            ids = np.setdiff1d(ids, touching, assume_unique=True)
     num_masks = int(ids.size)
     if ids.size and dense_ids:
         # lookup table from input id to compact id (0 for dropped / absent ids)
@@ -137,6 +153,8 @@ def mask_centroids(labels: np.ndarray, drop_border_masks: bool = True) -> Tuple[
         sum_y = np.bincount(flat, weights=rows, minlength=num_masks + 1)[1:]
         centroids[1:, 0] = round_half_away_from_zero(sum_x / counts)
         centroids[1:, 1] = round_half_away_from_zero(sum_y / counts)
+        if border_masks == "mask_only" and touching.size:
+            centroids[1 + np.searchsorted(ids, touching)] = np.nan
     return labels_out, centroids
 
 
@@ -196,8 +214,9 @@ class VoteMaps:
         """Dense vote map of one level in pixel-index coordinates.
 
         Returns:
-            votes: float32 [H, W, 2], (column, row) of the pixel's mask centroid; NaN outside masks.
-            valid: bool [H, W], True where the pixel belongs to a mask.
+            votes: float32 [H, W, 2], (column, row) of the pixel's mask centroid; NaN outside masks
+                and in masks without a vote target.
+            valid: bool [H, W], True where the pixel carries a vote (a mask with a finite centroid).
         """
         labels = np.asarray(self.labels[level]).astype(np.int64)
         table = self.centroids[level]
@@ -205,7 +224,8 @@ class VoteMaps:
             raise ValueError(
                 f"level {level} has label {int(labels.max())} but only {table.shape[0] - 1} centroids; the vote map is inconsistent"
             )
-        return table[labels], labels > 0
+        votes = table[labels]
+        return votes, np.isfinite(votes[..., 0])
 
     def targets_continuous(self, level: int) -> Tuple[np.ndarray, np.ndarray]:
         """Like :meth:`targets` but in gsplat's continuous pixel frame (pixel centre = index + 0.5)."""
@@ -238,12 +258,14 @@ def stack_labels(label_images: Sequence[np.ndarray]) -> np.ndarray:
 
 def vote_maps_from_labels(
     label_images: Sequence[np.ndarray],
-    drop_border_masks: bool = True,
+    border_masks: str = DEFAULT_BORDER_MASKS,
     level_names: Sequence[str] = (),
 ) -> VoteMaps:
     """Build a view's vote maps from one label image per level (runs :func:`mask_centroids` per level)."""
-    outputs = [mask_centroids(_check_label_image(im, f"label image of level {i}"), drop_border_masks)
-               for i, im in enumerate(label_images)]
+    outputs = [
+        mask_centroids(_check_label_image(im, f"label image of level {i}"), border_masks)
+        for i, im in enumerate(label_images)
+    ]
     labels = stack_labels([lab for lab, _ in outputs])
     return VoteMaps(labels=labels, centroids=[c for _, c in outputs], level_names=tuple(level_names))
 
@@ -298,7 +320,8 @@ def gather_vote_targets(
         continuous: return targets in the continuous frame (index + 0.5).
 
     Returns:
-        targets [L, H, W, 2] (NaN where no mask) and valid [L, H, W] bool.
+        targets [L, H, W, 2] (NaN where no vote) and valid [L, H, W] bool (the pixel carries a vote:
+        a mask with a finite centroid; masks without a vote target are not valid).
     """
     squeeze = vote_labels.dim() == 2
     if squeeze:
@@ -317,7 +340,7 @@ def gather_vote_targets(
     targets = vote_centroids[level_index, labels]
     if continuous:
         targets = targets + 0.5
-    valid = labels > 0
+    valid = torch.isfinite(targets[..., 0])
     if squeeze:
         return targets[0], valid[0]
     return targets, valid

@@ -74,7 +74,7 @@ AUTO_MIN_CHUNK = 32
 
 _WEIGHTINGS = ("uniform", "alpha_t")
 _BLEND_SPACES = ("3d", "2d")
-_DISTORTIONS = ("l1", "squared", "none")
+_DISTORTIONS = ("l1", "l1_pixels", "squared", "none")
 
 
 @dataclass(frozen=True)
@@ -88,9 +88,16 @@ class VoteRenderOptions:
         "2d" (project each vote, then average the 2D points with the same
         weights).
     distortion: "l1" (sum over pairs i<j in M of |z_i - z_j|, Eq. 12),
+        "l1_pixels" (the same pairs, scale-free: their mean |z_i - z_j| times
+        f / z_mean, i.e. in pixels, the unit of the vote loss: the lateral
+        error that a vote displacement of that size would make at the
+        members' mean depth z_mean; f = sqrt(fx fy), and f / z_mean is held
+        constant in the gradient so moving votes away cannot shrink it),
         "squared" (sum over pairs of (z_i - z_j)^2) or "none". z is the
-        camera-space depth of each Gaussian's vote; the sum is unweighted in
-        every weighting mode.
+        camera-space depth of each Gaussian's vote; every form is unweighted
+        in every weighting mode. The pair sum of "l1" grows with |M|^2 and
+        with the scene's units, so one lambda_d means different things on
+        different captures; "l1_pixels" does not.
     vote_transmittance: voting threshold on the transmittance in front of a
         Gaussian; 0 disables the cut-off.
     detach_geometry: True: gradients reach the votes only, never means2d,
@@ -225,7 +232,7 @@ def render_votes_reference(
         count = member.sum(dim=1)
         value_sum = (weights @ blend_values).view(xy.shape[0], levels, -1)
         z = vote_z.unsqueeze(0).expand(xy.shape[0], n, levels)
-        distortion = _distortion(z, member, count, value_sum, options)
+        distortion = _distortion(z, member, count, value_sum, options, K_)
         parts.append((count, weights.sum(dim=1), value_sum, distortion))
 
     count, weight_sum, value_sum, distortion = (torch.cat(x, dim=0) for x in zip(*parts))
@@ -356,7 +363,7 @@ def render_votes_tiled(
         weights = filled.to(votes.dtype)
         weight_sum = count.to(votes.dtype)
     value_sum = (weights[:, :, None, None] * member_votes[..., :-1]).sum(dim=1)
-    distortion = _distortion(member_votes[..., -1], filled, count, value_sum, options)
+    distortion = _distortion(member_votes[..., -1], filled, count, value_sum, options, K_)
     return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options, votes.ndim == 2)
 
 
@@ -695,10 +702,19 @@ def _weights(member: Tensor, alpha: Tensor, t_before: Tensor, options: VoteRende
     return member.to(alpha.dtype)
 
 
-def _distortion(z: Tensor, member: Tensor, count: Tensor, value_sum: Tensor, options: VoteRenderOptions) -> Tensor:
+def _distortion(
+    z: Tensor, member: Tensor, count: Tensor, value_sum: Tensor, options: VoteRenderOptions, K: Tensor
+) -> Tensor:
     """[p, L] spread of the member vote depths z [p, M, L] (member [p, M], count [p] = its row sums)."""
     if options.distortion == "l1":
         return _pairwise_l1(z, member, count)
+    if options.distortion == "l1_pixels":
+        n = count.to(z.dtype)[:, None]
+        pairs = (n * (n - 1.0) / 2.0).clamp_min(1.0)
+        with torch.no_grad():
+            mean_z = torch.where(member[..., None], z, 0.0).sum(dim=1) / n.clamp_min(1.0)
+            pixels_per_unit = torch.sqrt(K[0, 0] * K[1, 1]) / mean_z.clamp_min(options.vote_near_plane)
+        return _pairwise_l1(z, member, count) / pairs * pixels_per_unit
     if options.distortion == "squared":
         # sum over pairs of (z_i - z_j)^2 = n * sum_i (z_i - mean)^2
         mask = member.to(z.dtype)[..., None]

@@ -23,6 +23,8 @@
 #                     then mean ± std), every run its own process,
 #                     all at once (the GPU is mostly idle in one small-scene run); QUALITY_STEPS
 #                     (3000), QUALITY_VOTE_START (500). Output quality.md (merged tables), quality.tar.gz
+#   sweep             benchmarks/sweep.py: training x clustering variants on $SWEEP_SCENES ($SWEEP_ARGS),
+#                     all trainings in parallel worker processes; sweep.md, sweep.json, sweep.log
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
 #                     with votesplat/splatfacto ratios; prints it
 #
@@ -62,6 +64,8 @@ ABLATION_SEEDS=${ABLATION_SEEDS:-"0 1 2"}                  # one run per variant
 QUALITY_STEPS=${QUALITY_STEPS:-3000}
 QUALITY_VOTE_START=${QUALITY_VOTE_START:-500}
 QUALITY_MASKS=${QUALITY_MASKS:-"gt noisy"}
+SWEEP_SCENES=${SWEEP_SCENES:-}
+SWEEP_ARGS=${SWEEP_ARGS:-}
 QUALITY_ARGS=${QUALITY_ARGS:-}                            # extra benchmarks/quality.py flags, e.g. --vote-every 4
 SITE=${SITE:-/tmp/site}                                  # carried wheels are installed here
 RUNS=/tmp/votesplat_runs
@@ -340,6 +344,21 @@ stage_quality() {
   return "$rc"
 }
 
+# benchmarks/sweep.py on $SWEEP_SCENES (carried folders of votesplat-synth scenes) with $SWEEP_ARGS
+# (training/clustering variants, masks, steps, --jobs); sweep.md / sweep.json come back, rewritten
+# after every finished run, so a call cut short still reports what finished.
+stage_sweep() {
+  ensure_setup || return 1
+  local work=$RUNS/sweep
+  rm -rf "$work"; mkdir -p "$work"
+  # shellcheck disable=SC2086
+  timeout "$(limit_s)" "$PY" benchmarks/sweep.py --scenes $SWEEP_SCENES --work-dir "$work" $SWEEP_ARGS >"$OUT/sweep.log" 2>&1
+  local rc=$?
+  cp "$work/sweep.md" "$work/sweep.json" "$OUT/" 2>/dev/null || log "sweep: no run finished (see sweep.log)"
+  grep -h -i -E "error|Traceback" "$work"/*/*/worker.log 2>/dev/null | sort | uniq -c | head -20 >>"$OUT/sweep.log"
+  return "$rc"
+}
+
 # ----------------------------------------------------------------------------------- training
 # train_one EXPERIMENT METHOD DATA DOWNSCALE LOG [votesplat args...]: trains, evaluates and
 # writes $RUNS/result_<experiment>_<method>.json.
@@ -527,6 +546,7 @@ while [ "$#" -gt 0 ]; do
     bench-vote) stage_bench_vote || rc=1 ;;
     bench-sam) stage_bench_sam || rc=1 ;;
     quality) stage_quality || rc=1 ;;
+    sweep) stage_sweep || rc=1 ;;
     train-fox) train_compare fox "$FOX" 2 || rc=1 ;;
     train-synthetic)
       data=.gpu/synthetic
