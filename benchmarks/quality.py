@@ -167,8 +167,9 @@ def train_base_scene(scene: Path, args) -> Path:
             return config_path
         except ValueError:  # an interrupted training: train again
             pass
-    # vote start after the last step: plain splatfacto training (the vote cache is still built)
-    return train_in_process(scene, base_dir, args.base_steps, args.base_steps + 1, args.device, "run", num_downscales=0)
+    # vote start after the last step, vote losses off: plain splatfacto training (the vote cache is still built)
+    return train_in_process(scene, base_dir, args.base_steps, args.base_steps + 1, args.device, "run", num_downscales=0,
+                            vote_loss_weight=0.0, distortion_loss_weight=0.0)
 
 
 def level_row(metrics: dict, level: str) -> dict:

@@ -1,75 +1,35 @@
-"""Bad input to ns-train votesplat ends with one actionable line on stderr, not a traceback (issue #2)."""
+"""The one-line error path (cli_errors) and the dataset checks, in process (issue #2); commands: test_bad_inputs.py."""
 
 from __future__ import annotations
 
-import json
-import os
+import errno
 import shutil
-import subprocess
 import sys
+from types import SimpleNamespace
 from pathlib import Path
 
 import pytest
 import torch
 
 from votesplat_ns import cli_errors
-from votesplat_ns.cli_errors import VoteSplatInputError, check_device_available, install_excepthook, one_line_message
-from votesplat_ns.datamanager import VoteDataManagerConfig, check_data_input
+from votesplat_ns.cli_errors import (
+    VoteSplatInputError,
+    check_device_available,
+    check_writable_folder,
+    input_error_for_write,
+    install_excepthook,
+    load_failure_reason,
+    one_line_errors,
+    one_line_message,
+    writing_into,
+)
+from votesplat_ns.datamanager import VoteDataManagerConfig, check_data_input, check_vote_schedule
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
-NS_TRAIN = Path(sys.executable).parent / "ns-train"
-PREFIX = "ns-train votesplat: error: "
 
 
-def ns_train(data: Path, tmp_path: Path, device: str = "cpu") -> subprocess.CompletedProcess:
-    command = [
-        str(NS_TRAIN), "votesplat", "--data", str(data), "--vis", "tensorboard", "--max-num-iterations", "1",
-        "--output-dir", str(tmp_path / "runs"), "--machine.device-type", device,
-    ]
-    return subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=600, env=dict(os.environ, COLUMNS="200"))
-
-
-def assert_one_line_error(result: subprocess.CompletedProcess, *needles: str) -> str:
-    assert result.returncode != 0, result.stdout[-2000:]
-    assert "Traceback" not in result.stderr, result.stderr[-4000:]
-    last = [line for line in result.stderr.splitlines() if line.strip()][-1]
-    assert last.startswith(PREFIX), result.stderr[-4000:]
-    for needle in needles:
-        assert needle in last, last
-    return last
-
-
-def demo_transforms_without_images(folder: Path) -> Path:
-    folder.mkdir()
-    shutil.copy(DEMO_SCENE / "transforms.json", folder / "transforms.json")
-    return folder
-
-
-# ------------------------------------------------------------------ ns-train subprocesses (~15 s each)
-def test_missing_data_folder(tmp_path):
-    result = ns_train(tmp_path / "nonexistent", tmp_path)
-    assert_one_line_error(result, f"--data {tmp_path / 'nonexistent'}: folder not found", "transforms.json", "ns-process-data")
-
-
-def test_folder_without_transforms_json(tmp_path):
-    (tmp_path / "photos").mkdir()
-    result = ns_train(tmp_path / "photos", tmp_path)
-    assert_one_line_error(result, "this folder holds no transforms.json", "ns-process-data")
-
-
-def test_transforms_json_whose_images_are_missing(tmp_path):
-    data = demo_transforms_without_images(tmp_path / "scene")
-    frames = len(json.loads((data / "transforms.json").read_text())["frames"])
-    result = ns_train(data, tmp_path)
-    assert_one_line_error(
-        result, f"{frames} of {frames} images listed in transforms.json are missing", f"(first: {data / 'images' / 'frame_00001.png'})"
-    )
-
-
-@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here, so --machine.device-type cuda is valid input")
-def test_cuda_requested_without_cuda(tmp_path):
-    result = ns_train(DEMO_SCENE, tmp_path, device="cuda")
-    assert_one_line_error(result, "CUDA is not available on this machine", "--machine.device-type cpu")
+# The ns-train subprocess cases (missing data, no transforms.json, missing images, CUDA) are in the
+# bad-input catalogue, tests/test_bad_inputs.py.
 
 
 # ------------------------------------------------------------------ in-process
@@ -103,8 +63,104 @@ def test_excepthook_shortens_only_input_errors(restore_excepthook, capsys, monke
 def test_program_name():
     assert cli_errors.program_name(["/v/bin/ns-train", "votesplat", "--data", "x"]) == "ns-train votesplat"
     assert cli_errors.program_name(["/v/bin/ns-viewer", "--load-config", "c.yml"]) == "ns-viewer"
+    assert cli_errors.program_name(["/v/bin/ns-export", "votesplat-instances", "--load-config", "c"]) == "ns-export votesplat-instances"
+    assert cli_errors.program_name(["/v/bin/ns-export", "gaussian-splat"]) == "ns-export"
+    assert cli_errors.program_name(["/v/bin/votesplat", "click", "--view", "1"]) == "votesplat click"
+    assert cli_errors.program_name(["/v/bin/votesplat-masks", "--data", "x"]) == "votesplat-masks"
     assert cli_errors.program_name(["pytest"]) == "votesplat"
     assert one_line_message(VoteSplatInputError(""), ["ns-eval"]) == "ns-eval: error: VoteSplatInputError"
+    assert one_line_message(ValueError("a\nb"), prog="votesplat query") == "votesplat query: error: a; b"
+
+
+def test_one_line_errors_catches_only_what_it_is_told(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        with one_line_errors(catch=(ValueError,), prog="votesplat-masks"):
+            raise ValueError("--preview must be >= 0\n  got -1")
+    assert exit_info.value.code == 1
+    assert capsys.readouterr().err == "votesplat-masks: error: --preview must be >= 0; got -1\n"
+    with pytest.raises(RuntimeError, match="a bug"):
+        with one_line_errors(prog="votesplat-masks"):
+            raise RuntimeError("a bug")
+    with pytest.raises(ValueError):  # only VoteSplatInputError by default
+        with one_line_errors(prog="votesplat-masks"):
+            raise ValueError("not ours")
+
+
+def test_writable_folder_check(tmp_path, monkeypatch):
+    check_writable_folder(tmp_path / "new" / "deeper", "--output-dir")  # created later: its parent is writable
+    assert not (tmp_path / "new").exists()  # the check writes nothing
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(VoteSplatInputError, match=r"^--output-dir .*file/sub: .*file is a file, not a folder"):
+        check_writable_folder(tmp_path / "file" / "sub", "--output-dir")
+    # os.access answers for this process: refuse where it says no (root may write anywhere, so simulate it)
+    monkeypatch.setattr(cli_errors.os, "access", lambda path, mode: Path(path) != tmp_path)
+    with pytest.raises(VoteSplatInputError, match=rf"^--cache-dir {tmp_path}/c: cannot write in {tmp_path} \(permission denied"):
+        check_writable_folder(tmp_path / "c", "--cache-dir")
+    with pytest.raises(VoteSplatInputError, match=r"^--output-dir out/x: cannot write in"):
+        check_writable_folder(tmp_path / "x", "--output-dir", given="out/x")
+
+
+def test_write_errors_become_input_errors_only_for_the_folder(tmp_path):
+    denied = PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "cache" / "entry" / "config.json"))
+    error = input_error_for_write(denied, tmp_path / "cache", "--cache-dir")
+    assert str(error) == (
+        f"--cache-dir {tmp_path / 'cache'}: cannot write {tmp_path / 'cache' / 'entry' / 'config.json'} (Permission denied); "
+        "make it writable or choose another --cache-dir"
+    )
+    assert input_error_for_write(PermissionError(errno.EACCES, "x", str(tmp_path / "elsewhere")), tmp_path / "cache", "f") is None
+    assert input_error_for_write(FileNotFoundError(errno.ENOENT, "x", str(tmp_path / "cache" / "a")), tmp_path / "cache", "f") is None
+    assert input_error_for_write(PermissionError(errno.EACCES, "no file name"), tmp_path / "cache", "f") is None
+    assert input_error_for_write(OSError(errno.EROFS, "Read-only file system", str(tmp_path)), tmp_path / "cache", "f") is not None
+    with pytest.raises(VoteSplatInputError, match="No space left"):
+        with writing_into(tmp_path / "cache", "--cache-dir"):
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "cache" / "x.npy"))
+    with pytest.raises(PermissionError):
+        with writing_into(tmp_path / "cache", "--cache-dir"):
+            raise denied.__class__(errno.EACCES, "Permission denied", "/etc/shadow")
+
+
+def test_load_failure_reasons_never_relay_torch_advice(tmp_path):
+    garbage = tmp_path / "weights.bin"
+    garbage.write_bytes(b"<html>not found</html>" * 10)
+    with pytest.raises(Exception) as error:
+        torch.load(garbage, map_location="cpu")
+    assert load_failure_reason(error.value) == "it is not a PyTorch weights file"
+    torch.save({"w": torch.zeros(100)}, tmp_path / "good.pt")
+    data = (tmp_path / "good.pt").read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(Exception) as error:
+        torch.load(tmp_path / "cut.pt", map_location="cpu")
+    assert load_failure_reason(error.value) == "the file is truncated or damaged"
+    model = torch.nn.Linear(2, 2)
+    with pytest.raises(Exception) as error:
+        model.load_state_dict({"weight": torch.zeros(3, 3)})
+    assert load_failure_reason(error.value) == "it holds weights of another model"
+    assert "weights_only" not in load_failure_reason(RuntimeError("Weights only load failed ... weights_only=False"))
+
+
+@pytest.mark.parametrize(
+    "start, every, start_step, steps, ok",
+    [
+        (500, 4, 0, 30000, True),
+        (500, 4, 0, 500, False),  # steps 0..499
+        (500, 4, 0, 501, True),  # step 500 votes
+        (0, 1, 0, 1, True),
+        (5, 4, 20, 1, False),  # resumed at step 20: 5, 9, ..., 21 vote, 20 does not
+        (5, 4, 20, 2, True),
+        (5, 4, 21, 1, True),
+    ],
+)
+def test_vote_schedule(start, every, start_step, steps, ok):
+    config = SimpleNamespace(vote_start_step=start, vote_every_n_steps=every, vote_loss_weight=1.0, distortion_loss_weight=0.1)
+    model = SimpleNamespace(vote_only=False, config=config)
+    if ok:
+        check_vote_schedule(model, start_step, steps)
+    else:
+        with pytest.raises(VoteSplatInputError, match=rf"^--pipeline.model.vote-start-step {start} is past the last training step"):
+            check_vote_schedule(model, start_step, steps)
+    check_vote_schedule(SimpleNamespace(vote_only=True, config=model.config), start_step, steps)  # a retrofit votes every step
+    votes_off = SimpleNamespace(**{**vars(config), "vote_loss_weight": 0.0, "distortion_loss_weight": 0.0})
+    check_vote_schedule(SimpleNamespace(vote_only=False, config=votes_off), start_step, steps)  # no votes, on purpose
 
 
 def test_input_error_is_a_value_error():

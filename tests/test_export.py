@@ -238,6 +238,56 @@ def test_output_dir_that_is_a_file_or_a_foreign_folder(tmp_path):
     assert (tmp_path / "empty" / "instances.json").is_file()
 
 
+def test_a_previous_export_is_replaced_only_without_user_files(tmp_path, monkeypatch):
+    params, _ = vote_scene()
+    out = tmp_path / "out"
+    export(params, out, remove=[1])
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    (out / "NOTES.txt").write_text("the mug is instance 2")
+    with pytest.raises(ValueError, match=rf"^output_dir {out} holds NOTES.txt, which an instance export does not write"):
+        export(params, out)
+    (out / "instances" / "mine").mkdir()
+    with pytest.raises(ValueError, match=r"holds NOTES.txt \(and 1 more\)"):
+        export(params, out)
+    assert (out / "NOTES.txt").read_text() == "the mug is instance 2"
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != "NOTES.txt"} == before
+    (out / "NOTES.txt").unlink()
+    (out / "instances" / "mine").rmdir()
+
+    # a previous export whose folders this process may not write could not be deleted once replaced
+    real_access = os.access
+    monkeypatch.setattr(export_module.os, "access", lambda path, mode: Path(path) != out / "instances" and real_access(path, mode))
+    with pytest.raises(ValueError, match=rf"the previous export's folder {out / 'instances'} is not writable"):
+        export(params, out)
+    monkeypatch.setattr(export_module.os, "access", real_access)
+    assert no_leftovers(tmp_path, keep=["out"])
+    export(params, out)  # replaces it: scene_without_1.ply is gone, nothing hidden is left beside it
+    assert not (out / "scene_without_1.ply").exists() and no_leftovers(tmp_path, keep=["out"])
+
+
+def test_an_old_export_that_cannot_be_deleted_is_reported(tmp_path, monkeypatch):
+    params, _ = vote_scene()
+    export(params, tmp_path / "out")
+
+    def refuse(path, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(export_module.shutil, "rmtree", refuse)
+    with pytest.warns(UserWarning, match=r"could not be deleted .*Permission denied.*; delete .*\.out\.old\..* yourself"):
+        export(params, tmp_path / "out")
+
+
+def test_non_finite_votes_are_counted(tmp_path):
+    params, object_of = vote_scene()
+    params["vote_offsets"][:5, 0] = float("nan")  # supported foreground Gaussians
+    params["means"][10, 2] = float("inf")
+    params["vote_offsets"][-1, 1] = float("nan")  # background (no support): not counted
+    manifest = export(params, tmp_path / "out")
+    assert manifest["export"]["nonfinite_votes"] == {"instance": 6, "part": 1}
+    instance_level = InstanceSet.load(tmp_path / "out").levels[0]
+    assert (instance_level.ids[:5] == -1).all() and not instance_level.foreground[:5].any()  # background, as reported
+
+
 def test_viewmat_matches_splatfacto():
     from nerfstudio.models.splatfacto import get_viewmat
 
@@ -270,11 +320,9 @@ def stub_pipeline(model, width=40, height=30, views=3):
 
 
 def test_cli_main_with_a_loaded_pipeline(tmp_path, monkeypatch):
-    import nerfstudio.utils.eval_utils as eval_utils
-
     params, _ = vote_scene(num_background=0)
     model = SimpleNamespace(gauss_params=params, config=SimpleNamespace(vote_levels=LEVELS, sh_degree=3))
-    monkeypatch.setattr(eval_utils, "eval_setup", lambda *a, **k: (None, stub_pipeline(model), None, None))
+    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: (None, stub_pipeline(model), None, None))
     command = ExportVoteSplatInstances(load_config=tmp_path / "config.yml", output_dir=tmp_path / "out", level="part", remove=(2,), num_views=2, picture_width=20)
     command.main()
     manifest = json.loads((tmp_path / "out" / "instances.json").read_text())
@@ -291,14 +339,15 @@ def test_cli_main_with_a_loaded_pipeline(tmp_path, monkeypatch):
 
 
 def test_cli_main_reports_bad_input_in_one_line(tmp_path, monkeypatch, capsys):
-    import nerfstudio.utils.eval_utils as eval_utils
-
     model = SimpleNamespace(gauss_params=splatfacto_params(), config=SimpleNamespace(sh_degree=3))
-    monkeypatch.setattr(eval_utils, "eval_setup", lambda *a, **k: (None, stub_pipeline(model), None, None))
+    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: (None, stub_pipeline(model), None, None))
+    monkeypatch.setattr(sys, "argv", ["/venv/bin/ns-export", SUBCOMMAND_NAME, "--load-config", "c.yml"])
     with pytest.raises(SystemExit) as exit_info:
         ExportVoteSplatInstances(load_config=tmp_path / "c.yml", output_dir=tmp_path / "out", num_views=0).main()
     assert exit_info.value.code == 1
-    assert "not trained with the votesplat method" in capsys.readouterr().out
+    error = capsys.readouterr().err
+    assert error.startswith("ns-export votesplat-instances: error: the checkpoint has no vote_offsets") and error.count("\n") == 1
+    assert "not trained with the votesplat method" in error
     assert not (tmp_path / "out").exists()
 
 

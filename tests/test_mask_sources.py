@@ -16,6 +16,7 @@ from votesplat_ns.mask_sources import (
     SamMaskSource,
     check_label_size,
     make_mask_source,
+    read_image_rgb,
     read_label_png,
 )
 
@@ -49,6 +50,32 @@ def test_folder_source_reads_8_and_16_bit_pngs(tmp_path):
     parts[0, 0] = 1
     write_png(tmp_path / "masks" / "part" / "frame_001.png", parts)
     assert source.view_fingerprint(tmp_path / "images" / "frame_001.jpg", 0) != before
+
+
+def test_folder_source_leaves_out_hidden_folders(tmp_path):
+    for level in ("instance", "part", ".ipynb_checkpoints", "__pycache__"):
+        write_png(tmp_path / "m" / level / "a.png", np.zeros((24, 32), np.uint16))
+    assert FolderMaskSource(tmp_path / "m").levels == ("instance", "part")
+    # named explicitly, a hidden folder is still a level: only the default listing leaves them out
+    assert FolderMaskSource(tmp_path / "m", levels=(".ipynb_checkpoints",)).levels == (".ipynb_checkpoints",)
+
+
+def test_broken_image_files_are_named(tmp_path):
+    good = write_png(tmp_path / "good.png", rgb_image())
+    assert read_image_rgb(good).shape == (24, 32, 3)
+    data = good.read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"^image .*cut\.png cannot be read \(the file is truncated.*; replace it"):
+        read_image_rgb(tmp_path / "cut.png")
+    (tmp_path / "text.png").write_text("hello")
+    with pytest.raises(ValueError, match=r"^image .*text\.png cannot be read \(not an image format PIL can read\)"):
+        read_image_rgb(tmp_path / "text.png")
+    labels = write_png(tmp_path / "labels.png", np.ones((24, 32), np.uint16))
+    (tmp_path / "cut_labels.png").write_bytes(labels.read_bytes()[:60])
+    with pytest.raises(ValueError, match=r"^label image .*cut_labels\.png cannot be read"):
+        read_label_png(tmp_path / "cut_labels.png")
+    with pytest.raises(ValueError, match=r"^label image .*absent\.png does not exist"):
+        read_label_png(tmp_path / "absent.png")
 
 
 def test_folder_source_errors_name_the_file(tmp_path):
@@ -216,5 +243,6 @@ def test_broken_sam_checkpoint_fails_with_one_line(tmp_path):
     broken.write_bytes(b"not a checkpoint")
     source = SamMaskSource(checkpoint=broken, model_type="vit_b", device="cpu")
     assert source.config_key()["checkpoint_name"] == "sam_vit_b_01ec64.pth"
-    with pytest.raises(ValueError, match=r"could not load SAM checkpoint .*sam_vit_b_01ec64\.pth"):
+    with pytest.raises(ValueError, match=r"could not load SAM checkpoint .*sam_vit_b_01ec64\.pth .*not a PyTorch weights file") as error:
         source.masks_for_image(blocks_image(), "blocks.png", 0)
+    assert "weights_only" not in str(error.value)

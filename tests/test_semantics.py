@@ -327,14 +327,27 @@ def test_clip_checkpoint_loads_from_a_local_file_only(tmp_path, random_clip):
     assert "\n" not in str(error.value)
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"these are not weights")
-    with pytest.raises(ValueError, match="does not hold open_clip weights"):
+    with pytest.raises(ValueError, match=r"does not hold open_clip weights .*\(it is not a PyTorch weights file\)") as error:
         ClipEncoder.from_checkpoint(SMALLEST_OPEN_CLIP_MODEL, garbage)
+    assert "weights_only" not in str(error.value)  # torch's advice to unpickle an unknown file is not relayed
+    other = tmp_path / "other_weights.pt"
+    torch.save({"visual.proj": torch.zeros(3)}, other)
+    with pytest.raises(ValueError, match=r"\(it holds weights of another model\)"):
+        ClipEncoder.from_checkpoint(SMALLEST_OPEN_CLIP_MODEL, other)
     with pytest.raises(ValueError, match="hub"):
         ClipEncoder.from_checkpoint("hf-hub:laion/CLIP-ViT-B-32", checkpoint)
     with pytest.raises(ValueError, match="unknown open_clip architecture"):
         ClipEncoder.from_checkpoint("ViT-Nonexistent", checkpoint)
     with pytest.raises(ValueError, match="Hugging Face"):
         ClipEncoder.random_init("ViT-B-16-SigLIP")
+
+
+def test_text_longer_than_clip_reads_is_refused(random_clip):
+    fits = " ".join(["mug"] * 75)  # one token each: exactly the 75 the context holds besides start and end
+    random_clip.check_text_length([fits])
+    assert random_clip.encode_text([fits]).shape[0] == 1
+    with pytest.raises(ValueError, match=r"^the text 'mug mug .*\.\.\.' \(303 characters\) is 76 tokens long, but CLIP reads at most 75"):
+        random_clip.encode_text([fits + " mug"])
 
 
 def test_click_select_maps_continuous_pixel_coordinates_to_ids():

@@ -153,7 +153,7 @@ def test_failed_write_leaves_no_entry_and_no_temp_file(tmp_path, monkeypatch):
     assert source.calls == ["frame_000.png"]
 
 
-@pytest.mark.parametrize("damage", ["truncate_labels", "garbage_record", "truncate_record"])
+@pytest.mark.parametrize("damage", ["truncate_labels", "garbage_record", "truncate_record", "ids_past_the_table"])
 def test_damaged_entry_is_rebuilt_with_a_warning(tmp_path, damage):
     views = write_views(tmp_path / "images", count=1)
     VoteCache(tmp_path / "cache", ThresholdMaskSource()).build_all(views, progress=False)
@@ -166,11 +166,15 @@ def test_damaged_entry_is_rebuilt_with_a_warning(tmp_path, damage):
         os.truncate(path, path.stat().st_size // 2)
     elif damage == "garbage_record":
         cache.votes_path(key).write_bytes(b"\x00" * 64)
-    else:
+    elif damage == "truncate_record":
         path = cache.votes_path(key)
         os.truncate(path, path.stat().st_size - 20)
+    else:  # same shape and dtype, so only the ids tell: the first vote step would index past the centroid table
+        labels = np.load(cache.labels_path(key))
+        labels[1, 0, 0] = 7
+        np.save(cache.labels_path(key), labels)
 
-    with pytest.warns(UserWarning, match="unreadable"):
+    with pytest.warns(UserWarning, match=r"is damaged .*; rebuilding it"):
         rebuilt = cache.get(0, views[0][1])
     assert source.calls == ["frame_000.png"]
     assert np.array_equal(np.asarray(rebuilt.labels), expected)
@@ -188,3 +192,29 @@ def test_tampered_config_file_rebuilds(tmp_path):
         source = ThresholdMaskSource()
         VoteCache(tmp_path / "cache", source).build_all(views, progress=False)
     assert source.calls == ["frame_000.png"]
+
+
+def test_damaged_entries_are_reported_once_and_counted(tmp_path):
+    views = write_views(tmp_path / "images", count=3)
+    keys = VoteCache(tmp_path / "cache", ThresholdMaskSource()).build_all(views, progress=False)
+    cache = VoteCache(tmp_path / "cache", ThresholdMaskSource())
+    for key in keys:
+        labels = np.load(cache.labels_path(key))
+        labels[0, -1, -1] = 60000
+        np.save(cache.labels_path(key), labels)
+    with pytest.warns(UserWarning) as caught:
+        cache.build_all(views, progress=False)
+    assert len([w for w in caught if "is damaged" in str(w.message)]) == 1
+    assert "level 0 holds label ids 0..60000, outside its masks' ids 0..1" in str(caught[0].message)
+    assert cache.rebuilt_damaged == 3 and cache.source.calls == ["frame_000.png", "frame_001.png", "frame_002.png"]
+
+
+def test_nothing_is_written_until_an_entry_is_made(tmp_path):
+    class Failing(ThresholdMaskSource):
+        def masks_for_image(self, image, image_path, frame_index):
+            raise ValueError("the mask source cannot start")
+
+    views = write_views(tmp_path / "images", count=1)
+    with pytest.raises(ValueError, match="cannot start"):
+        VoteCache(tmp_path / "cache", Failing()).build_all(views, progress=False)
+    assert not (tmp_path / "cache").exists()

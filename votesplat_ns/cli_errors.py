@@ -11,14 +11,27 @@ and Python exits with status 1, as for any uncaught exception. Every other excep
 its normal traceback: only errors we raise on purpose, with an actionable message, are
 shortened. ``VoteSplatInputError`` is a ``ValueError``, so callers catching ``ValueError``
 still catch it.
+
+The plugin's own console scripts (``votesplat``, ``votesplat-masks``, ``votesplat-export`` and
+``ns-export votesplat-instances``) wrap their work in :func:`one_line_errors`, which prints the
+same line and exits 1. The helpers below turn the usual causes of a traceback into such an
+error in one place each: a folder that cannot be written (:func:`check_writable_folder`,
+:func:`writing_into`), a weights or checkpoint file torch cannot read (:func:`load_failure_reason`,
+never relaying torch's advice to load with ``weights_only=False``) and a run whose checkpoint is
+damaged (:func:`load_run`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
+import pickle
 import sys
+import zipfile
+from pathlib import Path
 from types import TracebackType
-from typing import Callable, Optional, Sequence, Type, Union
+from typing import Callable, Iterator, Optional, Sequence, Tuple, Type, Union
 
 import torch
 
@@ -29,21 +42,32 @@ class VoteSplatInputError(ValueError):
     """Bad user input; the message says what to do. ns-* commands print it as one line, without a traceback."""
 
 
+# (command, subcommand) pairs named together in messages: ns-train votesplat, votesplat query, ...
+_SUBCOMMANDS = {
+    "ns-train": ("votesplat",),
+    "ns-export": ("votesplat-instances",),
+    "votesplat": ("query", "click", "query-eval", "write-labels"),
+}
+
+
 def program_name(argv: Optional[Sequence[str]] = None) -> str:
-    """``ns-train votesplat`` for ``ns-train votesplat ...``, the command's name for other ns-* commands."""
+    """The command as the user typed it: ``ns-train votesplat``, ``votesplat query``, ``ns-viewer``, ...
+
+    Commands that are neither ns-* nor the plugin's own scripts (``pytest``, ``python``) give ``votesplat``.
+    """
     argv = sys.argv if argv is None else argv
     prog = os.path.basename(argv[0]) if argv and argv[0] else ""
-    if not prog.startswith("ns-"):
+    if not prog.startswith(("ns-", "votesplat")):
         return "votesplat"
-    if len(argv) > 1 and argv[1] == "votesplat":
-        return f"{prog} votesplat"
+    if len(argv) > 1 and argv[1] in _SUBCOMMANDS.get(prog, ()):
+        return f"{prog} {argv[1]}"
     return prog
 
 
-def one_line_message(error: BaseException, argv: Optional[Sequence[str]] = None) -> str:
-    """``<program>: error: <message>``, the message's lines joined into one."""
+def one_line_message(error: BaseException, argv: Optional[Sequence[str]] = None, prog: Optional[str] = None) -> str:
+    """``<program>: error: <message>``, the message's lines joined into one (``prog`` default: from ``argv``)."""
     text = "; ".join(line.strip() for line in str(error).splitlines() if line.strip())
-    return f"{program_name(argv)}: error: {text or type(error).__name__}"
+    return f"{prog or program_name(argv)}: error: {text or type(error).__name__}"
 
 
 def install_excepthook() -> None:
@@ -80,3 +104,170 @@ def check_device_available(device: Union[str, torch.device]) -> None:
             "MPS (Apple GPU) is not available on this machine; use --machine.device-type cpu (small scenes only), "
             "or --machine.device-type cuda on an NVIDIA GPU"
         )
+
+
+@contextlib.contextmanager
+def one_line_errors(catch: Tuple[Type[BaseException], ...] = (VoteSplatInputError,), prog: Optional[str] = None) -> Iterator[None]:
+    """Run a console script's work; an exception of a ``catch`` type ends it with one line on stderr and exit 1.
+
+    ``prog`` names the command in the line (default: :func:`program_name` of ``sys.argv``).
+    """
+    try:
+        yield
+    except catch as error:
+        sys.stderr.write(one_line_message(error, prog=prog) + "\n")
+        sys.stderr.flush()
+        raise SystemExit(1) from None
+
+
+# errors that mean "this place cannot take our files", as opposed to a bug or a missing input
+_WRITE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENOTDIR, errno.EEXIST}
+
+
+def _nearest_existing(path: Path) -> Path:
+    path = Path(os.path.abspath(path))
+    while not os.path.lexists(path) and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_writable_folder(folder: Union[str, Path], flag: str, given: Union[str, Path, None] = None) -> None:
+    """Raise :class:`VoteSplatInputError` unless files can be made in ``folder`` (created if missing).
+
+    Writes nothing: the nearest existing folder on the way must be a folder this process may
+    write into (``os.access``, which also reports read-only file systems). The message names
+    ``flag`` and the value the user gave for it (``given``, default ``folder``).
+    """
+    folder = Path(folder)
+    given = folder if given is None else given
+    existing = _nearest_existing(folder)
+    if not existing.is_dir():
+        raise VoteSplatInputError(f"{flag} {given}: {existing} is a file, not a folder; choose another {flag}")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise VoteSplatInputError(
+            f"{flag} {given}: cannot write in {existing} (permission denied or read-only file system); "
+            f"make it writable or choose another {flag}"
+        )
+
+
+def input_error_for_write(error: OSError, folder: Union[str, Path], flag: str) -> Optional[VoteSplatInputError]:
+    """The :class:`VoteSplatInputError` for an ``OSError`` raised while writing into ``folder``, else None.
+
+    Only errors about ``folder``, a path inside it or one of its parents, with an errno that
+    means "cannot put files here" (permission, read-only, disk full, not a folder), qualify;
+    anything else keeps its traceback.
+    """
+    if error.errno not in _WRITE_ERRNOS or not error.filename:
+        return None
+    target = Path(os.path.abspath(folder))
+    failed = Path(os.path.abspath(os.fsdecode(error.filename)))
+    if failed != target and target not in failed.parents and failed not in target.parents:
+        return None
+    reason = error.strerror or os.strerror(error.errno)
+    return VoteSplatInputError(f"{flag} {folder}: cannot write {failed} ({reason}); make it writable or choose another {flag}")
+
+
+@contextlib.contextmanager
+def writing_into(folder: Union[str, Path], flag: str) -> Iterator[None]:
+    """Turn an ``OSError`` about writing into ``folder`` into one :class:`VoteSplatInputError` naming ``flag``."""
+    try:
+        yield
+    except OSError as error:
+        converted = input_error_for_write(error, folder, flag)
+        if converted is None:
+            raise
+        raise converted from error
+
+
+def _file_format_problem(path: Union[str, Path]) -> Optional[str]:
+    """What is wrong with a file torch.load should read, judged from its bytes alone (None: looks fine)."""
+    if not os.path.isfile(path) or zipfile.is_zipfile(path):  # torch.save writes a zip
+        return None
+    with open(path, "rb") as handle:
+        head = handle.read(4)
+    if head.startswith(b"PK\x03\x04"):  # a zip that lost its end (central directory)
+        return "the file is truncated or damaged"
+    if not head.startswith(b"\x80"):  # nor a pickle (torch's legacy format)
+        return "it is not a PyTorch weights file"
+    return None
+
+
+def load_failure_reason(error: BaseException, path: Union[str, Path, None] = None) -> str:
+    """Why torch (or a model's ``load_state_dict``) could not use a file, in a few safe words.
+
+    With ``path``, the file's own format decides first (torch's unpickler fails on arbitrary bytes
+    with arbitrary exceptions). Never relays torch's text, which for a file that is not a weights
+    file suggests loading it with ``weights_only=False``: unsafe for a file of unknown origin.
+    """
+    problem = _file_format_problem(path) if path is not None else None
+    if problem is not None:
+        return problem
+    text = str(error)
+    if isinstance(error, (EOFError, zipfile.BadZipFile)) or any(
+        marker in text for marker in ("PytorchStreamReader", "central directory", "unexpected EOF", "truncated")
+    ):
+        return "the file is truncated or damaged"
+    if isinstance(error, pickle.UnpicklingError) or "invalid load key" in text or "Weights only load failed" in text:
+        return "it is not a PyTorch weights file"
+    if "state_dict" in text or "size mismatch" in text or isinstance(error, KeyError):
+        return "it holds weights of another model"
+    return f"torch could not read it ({type(error).__name__})"
+
+
+def _latest_checkpoint(config) -> Optional[Path]:
+    """The step-*.ckpt nerfstudio's eval_setup loads for a run config (the newest), or None."""
+    folder = Path(config.load_dir) if getattr(config, "load_dir", None) else Path(config.get_checkpoint_dir())
+    if getattr(config, "load_step", None) is not None:
+        return folder / f"step-{config.load_step:09d}.ckpt"
+    checkpoints = sorted(folder.glob("step-*.ckpt")) if folder.is_dir() else []
+    return checkpoints[-1] if checkpoints else None
+
+
+def _checkpoint_problem(checkpoint: Path) -> Optional[str]:
+    """Why ``checkpoint`` cannot be loaded (it is read again only on this error path), or None."""
+    import torch
+
+    try:
+        torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a damaged file
+        return load_failure_reason(error, checkpoint)
+    return None
+
+
+def load_run(load_config: Union[str, Path], flag: str = "--load-config"):
+    """nerfstudio's ``eval_setup`` for a trained run (inference mode), with one-line errors.
+
+    A missing config file, a run without checkpoints or a checkpoint that is truncated or damaged
+    raise :class:`VoteSplatInputError` naming the file, before the model is built where possible.
+    Returns ``(config, pipeline, checkpoint_path, step)`` as ``eval_setup`` does.
+    """
+    import yaml
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    load_config = Path(load_config)
+    if not load_config.is_file():
+        raise VoteSplatInputError(f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)")
+    try:
+        config = yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
+        checkpoint = _latest_checkpoint(config) if hasattr(config, "get_checkpoint_dir") else None
+    except Exception as error:  # a config.yml that is not a nerfstudio run config
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: not a nerfstudio run config ({type(error).__name__}); pass the config.yml that ns-train wrote"
+        ) from None
+    if checkpoint is None or not checkpoint.is_file():
+        folder = checkpoint.parent if checkpoint is not None else "its nerfstudio_models/ folder"
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: the run has no checkpoint (looked in {folder}); "
+            "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
+        )
+    damaged_hint = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
+    problem = _file_format_problem(checkpoint)  # before the model is built
+    if problem is not None:
+        raise VoteSplatInputError(f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {damaged_hint}")
+    try:
+        return eval_setup(load_config, test_mode="inference")
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
+        problem = _checkpoint_problem(checkpoint)
+        if problem is None:
+            raise
+        raise VoteSplatInputError(f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {damaged_hint}") from error

@@ -27,6 +27,7 @@ as well to keep the cache beside the runs.
 from __future__ import annotations
 
 import json
+import os
 from collections import OrderedDict
 from copy import deepcopy
 from dataclasses import dataclass, field
@@ -43,14 +44,16 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.cli_errors import VoteSplatInputError, check_device_available
+from votesplat_ns.cli_errors import VoteSplatInputError, check_device_available, writing_into
 from votesplat_ns.mask_sources import (
     SAM_CHECKPOINT_FILES,
     SAM_LEVELS,
     DatasetMaskSource,
     FolderMaskSource,
     MaskSource,
+    image_file_size,
     make_mask_source,
+    read_image_rgb,
 )
 from votesplat_ns.vote_cache import VoteCache, VoteOptions
 from votesplat_ns.vote_maps import (
@@ -88,6 +91,33 @@ def check_cache_outside_dataset(cache_dir: Path, data: Path) -> None:
         )
 
 
+CACHE_DIR_FLAG = "--pipeline.datamanager.cache-dir"
+
+
+def check_vote_schedule(model, start_step: int, num_steps: int) -> None:
+    """Raise :class:`VoteSplatInputError` when no step in ``start_step .. start_step + num_steps - 1`` runs the vote loss.
+
+    Such a run trains splatfacto only and ends with every Gaussian's vote support at zero. A
+    retrofit run (vote-only) votes on every step; a run with both vote loss weights at 0 trains
+    without votes on purpose (e.g. the splatfacto base of a retrofit benchmark).
+    """
+    config = model.config
+    if getattr(model, "vote_only", False) or num_steps <= 0:
+        return
+    if config.vote_loss_weight == 0 and config.distortion_loss_weight == 0:
+        return
+    start, every = int(config.vote_start_step), max(1, int(config.vote_every_n_steps))
+    first_vote = start if start_step <= start else start + -(-(start_step - start) // every) * every
+    last_step = start_step + num_steps - 1
+    if first_vote > last_step:
+        raise VoteSplatInputError(
+            f"--pipeline.model.vote-start-step {start} is past the last training step {last_step} "
+            f"(--max-num-iterations {num_steps}{f', resuming at step {start_step}' if start_step else ''}): "
+            "the vote loss would never run and the run would learn no instances; "
+            "lower --pipeline.model.vote-start-step or raise --max-num-iterations"
+        )
+
+
 MAKE_DATASET_HINT = "give the folder that holds transforms.json (ns-process-data makes one from images or a video)"
 
 
@@ -98,12 +128,18 @@ def frame_image_path(data_dir: Path, file_path: str, downscale_factor: Optional[
     return data_dir / file_path
 
 
-def check_data_input(config: "VoteDataManagerConfig", check_images: bool = True, where: Optional[str] = None) -> None:
-    """Raise :class:`VoteSplatInputError`, saying what to do, for a dataset nerfstudio would reject with a traceback.
+def check_data_input(
+    config: "VoteDataManagerConfig",
+    check_images: bool = True,
+    where: Optional[str] = None,
+    mask_source_flag: str = "--pipeline.datamanager.mask-source",
+) -> None:
+    """Raise :class:`VoteSplatInputError`, saying what to do, for a dataset that would fail later or train wrongly.
 
     Checks that the data path exists and, for the nerfstudio dataparser, that it holds a readable
-    transforms.json with frames and (``check_images``) that every frame's image file exists.
-    ``where`` names the path in the message (default ``--data <path>``).
+    transforms.json with frames and (``check_images``) the frames themselves (:func:`check_frames`).
+    ``where`` names the path in the message (default ``--data <path>``), ``mask_source_flag`` the
+    option that picks the mask source.
     """
     data = config.dataset_path
     where = where or f"--data {data}"
@@ -136,18 +172,102 @@ def check_data_input(config: "VoteDataManagerConfig", check_images: bool = True,
         )
     if not check_images:
         return
+    check_frames(transforms, meta, config, where, mask_source_flag)
+
+
+CAMERA_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+
+
+def _is_finite_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _frame_name(number: int, frame: dict) -> str:
+    return f"frame {number} ({frame['file_path']})"
+
+
+def check_frames(
+    transforms: Path, meta: dict, config: "VoteDataManagerConfig", where: str, mask_source_flag: str = "--pipeline.datamanager.mask-source"
+) -> None:
+    """Check every frame of a transforms.json before anything is trained or cached.
+
+    One place for what would otherwise fail late, with a traceback, or silently: a pose or camera
+    value that is not a finite number (sklearn's "Input X contains NaN" in splatfacto's set-up),
+    the same image listed twice (trained double-weighted), mask paths on only some frames (the
+    'auto' mask source would switch to SAM), image files that are missing, not images, or not the
+    size the frame's camera says (later blamed on their masks).
+    """
+    frames = meta["frames"]
+    name = transforms.name
+    remake = "or make the dataset again with ns-process-data"
+
+    def check_camera_values(entry: dict, what: str) -> None:
+        for key in CAMERA_KEYS:
+            value = entry.get(key)
+            if value is not None and not (_is_finite_number(value) and (value > 0 or key in ("cx", "cy"))):
+                bound = "" if key in ("cx", "cy") else " > 0"
+                raise VoteSplatInputError(
+                    f"{transforms}: {what} has camera value {key}={value!r}; it must be a finite number{bound}; fix it, {remake}"
+                )
+
+    check_camera_values(meta, "the file")
+    for number, frame in enumerate(frames):
+        matrix = frame.get("transform_matrix")
+        rows = np.asarray(matrix, dtype=object) if isinstance(matrix, list) else None
+        if rows is None or rows.shape not in ((4, 4), (3, 4)) or not all(_is_finite_number(v) for v in rows.ravel()):
+            problem = "no transform_matrix" if matrix is None else "a transform_matrix that is not a 4x4 (or 3x4) grid of finite numbers"
+            raise VoteSplatInputError(
+                f"{transforms}: {_frame_name(number, frame)} has {problem} (NaN/Inf in a pose usually means a camera "
+                f"COLMAP failed to register); fix or remove that frame, {remake}"
+            )
+        check_camera_values(frame, _frame_name(number, frame))
+    seen: Dict[str, int] = {}
+    for number, frame in enumerate(frames):
+        path = os.path.normpath(str(frame["file_path"]))
+        if path in seen:
+            raise VoteSplatInputError(
+                f"{transforms}: frames {seen[path]} and {number} both list {frame['file_path']} (it would be trained twice as often); "
+                "remove the duplicate frame"
+            )
+        seen[path] = number
+    if config.mask_source in ("auto", "dataset"):
+        levels = ("instance",) if config.mask_source == "auto" else (config.mask_levels or DATASET_LEVELS)
+        for level in levels:
+            key = f"{level}_mask_path"
+            lacking = [number for number, frame in enumerate(frames) if key not in frame]
+            if 0 < len(lacking) < len(frames) or (lacking and config.mask_source == "dataset"):
+                first = lacking[0]
+                raise VoteSplatInputError(
+                    f"{transforms}: {len(lacking)} of {len(frames)} frames list no {key} (first: {_frame_name(first, frames[first])}); "
+                    f"give every frame one, or make masks another way with {mask_source_flag} sam (or folder)"
+                )
+
     downscale_factor = config.dataparser.downscale_factor
+    downscaled = downscale_factor is not None and downscale_factor > 1
     images = [frame_image_path(transforms.parent, frame["file_path"], downscale_factor) for frame in frames]
     missing = [image for image in images if not image.is_file()]
     if missing:
-        if downscale_factor is not None and downscale_factor > 1:
+        if downscaled:
             fix = f"put the downscaled images in images_{downscale_factor}/ (--downscale-factor {downscale_factor})"
         else:
-            fix = f"put the images where the file_path entries of {transforms.name} point"
+            fix = f"put the images where the file_path entries of {name} point"
         raise VoteSplatInputError(
-            f"{where}: {len(missing)} of {len(images)} images listed in {transforms.name} are missing (first: {missing[0]}); "
-            f"{fix}, or make the dataset again with ns-process-data"
+            f"{where}: {len(missing)} of {len(images)} images listed in {name} are missing (first: {missing[0]}); "
+            f"{fix}, {remake}"
         )
+    scale = float(downscale_factor) if downscaled else 1.0
+    for number, (frame, image) in enumerate(zip(frames, images)):
+        width, height = frame.get("w", meta.get("w")), frame.get("h", meta.get("h"))
+        if width is None or height is None:
+            continue
+        actual_w, actual_h = image_file_size(image)
+        if abs(actual_w - width / scale) > 1 or abs(actual_h - height / scale) > 1:
+            expected = f"{int(width // scale)}x{int(height // scale)}"
+            raise VoteSplatInputError(
+                f"image {image} is {actual_w}x{actual_h} but {name} gives its camera ({_frame_name(number, frame)}) as "
+                f"{expected}{f' at --downscale-factor {downscale_factor}' if downscaled else ''}; "
+                f"replace the image with one of the camera's size, or fix w/h and the intrinsics in {name}"
+            )
 
 
 @dataclass
@@ -156,36 +276,35 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
 
     _target: Type = field(default_factory=lambda: VoteDataManager)
     mask_source: Literal["auto", "dataset", "folder", "sam"] = "auto"
-    """Where masks come from: 'dataset' reads <level>_mask_path per frame of transforms.json, 'folder' reads
-    <mask_folder>/<level>/<image_stem>.png, 'sam' runs Segment Anything; 'auto' = 'dataset' if every frame lists
-    instance_mask_path, else 'sam'."""
+    """Where masks come from: dataset (<level>_mask_path in transforms.json), folder, sam; auto: dataset if listed, else sam."""
     mask_levels: Optional[Tuple[str, ...]] = None
-    """Mask levels, in order (one vote map each). Default: ('instance', 'part') for 'dataset', the sub-folders for
-    'folder', ('default', 's', 'm', 'l') for 'sam'. Must match the model's vote levels."""
+    """Mask levels in order, one vote map each (default: instance part / the mask folder's sub-folders / SAM's 4 levels)."""
     mask_folder: Optional[Path] = None
-    """Root of precomputed label PNGs for mask_source='folder'."""
+    """For mask-source folder: a folder holding <level>/<image file stem>.png label images (0 = no mask)."""
     sam_checkpoint: Optional[Path] = None
-    """SAM checkpoint file (e.g. sam_vit_h_4b8939.pth from the segment-anything README); never downloaded."""
+    """For mask-source sam: the SAM checkpoint file, e.g. sam_vit_h_4b8939.pth (never downloaded)."""
     sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = "vit_h"
-    """SAM backbone matching the checkpoint."""
+    """SAM backbone of that checkpoint."""
     sam_device: Optional[str] = None
-    """Device SAM runs on; default cuda when available."""
+    """Device SAM runs on (default: cuda when available, else cpu)."""
     sam_points_per_side: int = 32
+    """SAM automatic mask generator: points per image side."""
     sam_pred_iou_thresh: float = 0.7
+    """SAM automatic mask generator: lowest predicted IoU of a kept mask."""
     sam_stability_score_thresh: float = 0.85
+    """SAM automatic mask generator: lowest stability score of a kept mask."""
     sam_crop_n_layers: int = 1
+    """SAM automatic mask generator: layers of image crops (0: whole image only)."""
     sam_min_mask_region_area: int = 100
+    """SAM automatic mask generator: smallest mask region kept, in pixels."""
     sam_max_long_side: Optional[int] = 1080
-    """Images are downscaled to this long side before SAM (LangSplat works at <= 1080 px)."""
+    """Images are shrunk to this long side before SAM (None: full size); LangSplat uses 1080."""
     border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
-    """A mask touching the image border: 'vote' (its visible part's centroid is the target), 'mask_only' (a
-    mask without a vote target) or 'drop' (not a mask). Objects cut by the frame in most views need the first two."""
+    """A mask touching the image border: vote (its visible part's centroid), mask_only (no vote target) or drop."""
     cache_dir: Optional[Path] = None
-    """Vote cache folder; default outputs/<dataset folder name>/votesplat_cache (never inside the dataset)."""
+    """Where masks and 2D votes are cached (default: outputs/<dataset folder name>/votesplat_cache)."""
     vote_maps_in_memory: int = 128
-    """Views whose vote maps, at training resolution, stay in RAM (the rest are re-derived from the on-disk cache).
-    Re-deriving an undistorted view costs ~0.2 s of CPU, so keep every training view when memory allows
-    (L levels x H x W x 4 bytes each: ~4 MB for 2 levels at 960x540)."""
+    """Training views whose vote maps stay in RAM (about 4 MB per view of 960x540 with 2 levels)."""
 
     @property
     def dataset_path(self) -> Path:
@@ -290,15 +409,48 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         source = self.config.make_mask_source()
         if tuple(source.levels) != self.vote_levels:
             raise ValueError(f"mask source levels {list(source.levels)} differ from the announced {list(self.vote_levels)}")
-        cache = VoteCache(
-            self.vote_cache_dir,
-            source,
-            VoteOptions(border_masks=self.config.border_masks),
-        )
+        cache_dir = self.vote_cache_dir
         views = [(index, Path(path)) for index, path in enumerate(self.train_dataset.image_filenames)]
-        CONSOLE.log(f"Vote maps: {source.name} masks, levels {list(source.levels)}, cache {cache.entry_dir}")
-        self._vote_keys = cache.build_all(views, description=f"Making vote maps ({source.name} masks)")
+        with writing_into(cache_dir, CACHE_DIR_FLAG):
+            cache = VoteCache(cache_dir, source, VoteOptions(border_masks=self.config.border_masks))
+            CONSOLE.log(f"Vote maps: {source.name} masks, levels {list(source.levels)}, cache {cache.entry_dir}")
+            self._vote_keys = cache.build_all(views, description=f"Making vote maps ({source.name} masks)")
         self._vote_cache = cache
+        if not any(self._view_has_votes(key) for key in self._vote_keys):
+            # training would run to the end without a single vote; only the export would notice
+            border = f", or touches the image border (--pipeline.datamanager.border-masks {self.config.border_masks})"
+            CONSOLE.print(
+                f"Warning: no mask of the {len(views)} training views gives a vote (every mask is empty"
+                f"{border if self.config.border_masks != 'vote' else ''}), so this run learns no instances; "
+                f"look at the masks with: votesplat-masks --data {self.config.dataset_path} --preview 4",
+                style="bold yellow",
+                soft_wrap=True,
+                markup=False,
+            )
+
+    def _view_has_votes(self, key: str) -> bool:
+        assert self._vote_cache is not None
+        stored = self._vote_cache.load(key)
+        # a mask votes when its centroid is finite (border_masks=mask_only keeps masks without one)
+        return stored is not None and any(bool(np.isfinite(table[1:]).any()) for table in stored.centroids)
+
+    def get_training_callbacks(self, training_callback_attributes) -> List:
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        trainer = training_callback_attributes.trainer
+        model = getattr(training_callback_attributes.pipeline, "model", None)
+        if trainer is not None and model is not None:  # the step range is known only now, after a --load-dir
+            check_vote_schedule(model, trainer._start_step, trainer.config.max_num_iterations)
+        return callbacks
+
+    def _load_images(self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]):
+        try:
+            return super()._load_images(split, cache_images_device)
+        except Exception:
+            # nerfstudio's loader names no file (PIL: "image file is truncated"); find it and name it
+            dataset = self.train_dataset if split == "train" else self.eval_dataset
+            for path in dataset.image_filenames:
+                read_image_rgb(path)
+            raise
 
     def vote_maps_for_train_view(self, index: int, height: int, width: int) -> VoteMaps:
         """The view's vote maps mapped to a training image of ``height`` x ``width`` pixels."""
@@ -307,7 +459,8 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         image_path = Path(self.train_dataset.image_filenames[index])
         stored = self._vote_cache.load(self._vote_keys[index])
         if stored is None:  # entry removed or damaged since start-up
-            stored = self._vote_cache.get(index, image_path)
+            with writing_into(self._vote_cache.entry_dir, CACHE_DIR_FLAG):
+                stored = self._vote_cache.get(index, image_path)
         return self._to_training_frame(stored, index, height, width, image_path)
 
     def _to_training_frame(self, stored: VoteMaps, index: int, height: int, width: int, image_path: Path) -> VoteMaps:

@@ -14,7 +14,9 @@ Output folder (every PLY is a standard 3DGS file, see ``ply_io``):
 
 The folder is built next to the target and renamed into place at the end, so an interrupted
 export leaves nothing half-written. An existing target is replaced only if it is empty or holds a
-previous export (an instances.json).
+previous export (an instances.json) and nothing else: a file the export does not write (a user's
+notes, say) makes the export stop before any work, naming the file, rather than delete it. Every
+folder of a previous export must be writable, so that it can be deleted once replaced.
 
 This module keeps nerfstudio imports inside functions: the plugin's method entry point imports it
 (for ``install_ns_export_hook``) while nerfstudio is still importing its method configs.
@@ -23,13 +25,16 @@ This module keeps nerfstudio imports inside functions: the plugin's method entry
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import importlib.abc
 import math
+import os
 import shutil
 import sys
 import tempfile
 import types
 import typing
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Literal, Mapping, Optional, Sequence, Tuple, Union
@@ -40,8 +45,9 @@ import tyro
 from typing_extensions import Annotated
 
 from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.cli_errors import VoteSplatInputError, check_writable_folder, load_run, one_line_errors, writing_into
 from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.instances import MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
+from votesplat_ns.instances import IDS_NAME, MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
 from votesplat_ns.ply_io import SH_C0, gaussian_vertex_table, write_gaussian_table, write_instance_id_file
 
 VOTE_OFFSETS_KEY = "vote_offsets"
@@ -145,14 +151,70 @@ def _progress(enabled: bool) -> Iterator[Callable[..., Callable[[int], None]]]:
         yield task
 
 
-def _check_output_dir(output_dir: Path) -> None:
+# Everything an export writes (paths relative to its folder); anything else in a previous export is the user's.
+EXPORT_FILE_PATTERNS = (
+    MANIFEST_NAME,
+    IDS_NAME,
+    "scene.ply",
+    "scene_instance_ids.npy",
+    "background.ply",
+    "instances.png",
+    "scene_without_*.ply",
+    "instances/instance_*.ply",
+)
+
+
+def _foreign_entries(folder: Path) -> List[str]:
+    """Paths (relative, sorted) inside a previous export that no export writes, e.g. a user's notes."""
+    foreign = []
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            path = Path(root) / name
+            relative = path.relative_to(folder).as_posix()
+            if relative == "instances" and path.is_dir() and not path.is_symlink():
+                continue
+            is_file = path.is_file() and not path.is_symlink()
+            if not (is_file and any(fnmatch.fnmatchcase(relative, pattern) for pattern in EXPORT_FILE_PATTERNS)):
+                foreign.append(relative)
+    return sorted(foreign)
+
+
+def _check_output_dir(output_dir: Path, flag: str = "output_dir") -> None:
+    """Fail before any work if ``output_dir`` cannot be (re)placed: see the module docstring."""
     if output_dir.exists() and not output_dir.is_dir():
-        raise ValueError(f"output_dir {output_dir} is a file; pass a folder path (it is created if missing)")
-    if output_dir.is_dir() and any(output_dir.iterdir()) and not (output_dir / MANIFEST_NAME).is_file():
-        raise ValueError(
-            f"output_dir {output_dir} is a non-empty folder that is not a previous instance export; "
-            "choose a new or empty folder (it would be replaced)"
-        )
+        raise VoteSplatInputError(f"{flag} {output_dir} is a file; pass a folder path (it is created if missing)")
+    if output_dir.is_dir() and any(output_dir.iterdir()):
+        if not (output_dir / MANIFEST_NAME).is_file():
+            raise VoteSplatInputError(
+                f"{flag} {output_dir} is a non-empty folder that is not a previous instance export; "
+                "choose a new or empty folder (it would be replaced)"
+            )
+        foreign = _foreign_entries(output_dir)
+        if foreign:
+            more = f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else ""
+            raise VoteSplatInputError(
+                f"{flag} {output_dir} holds {foreign[0]}{more}, which an instance export does not write; replacing the "
+                f"previous export would delete it: move it out of that folder, or choose another {flag}"
+            )
+        for folder in (output_dir, output_dir / "instances"):
+            if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+                raise VoteSplatInputError(
+                    f"{flag} {output_dir}: the previous export's folder {folder} is not writable, so it could not be deleted "
+                    f"once replaced; make it writable, or choose another {flag}"
+                )
+    # the new export is built beside the target
+    check_writable_folder(output_dir.parent, flag, given=output_dir)
+
+
+def _nonfinite_votes(params: "_Params") -> Dict[str, int]:
+    """Per level: supervised Gaussians (support > 0) whose mean or vote offset is NaN/Inf (clustering treats them as background)."""
+    finite_means = np.isfinite(params.means).all(axis=1)
+    counts = {}
+    for index, name in enumerate(params.level_names):
+        support = params.vote_support[:, index]
+        supervised = np.isfinite(support) & (support > 0)
+        counts[name] = int((supervised & ~(finite_means & np.isfinite(params.vote_offsets[:, index]).all(axis=1))).sum())
+    return counts
 
 
 def _move_into_place(staging: Path, output_dir: Path) -> None:
@@ -165,7 +227,10 @@ def _move_into_place(staging: Path, output_dir: Path) -> None:
         except BaseException:
             old.rename(output_dir)
             raise
-        shutil.rmtree(old, ignore_errors=True)
+        try:
+            shutil.rmtree(old)
+        except OSError as error:  # checked beforehand (_check_output_dir); say so rather than hide it
+            warnings.warn(f"the previous export was replaced but could not be deleted ({error}); delete {old} yourself")
     else:
         staging.rename(output_dir)
 
@@ -190,6 +255,7 @@ def export_instances(
     render_device: Union[str, torch.device, None] = None,
     progress: bool = True,
     source: Optional[str] = None,
+    output_flag: str = "output_dir",
 ) -> Dict[str, object]:
     """Cluster the votes of every level and write the export folder described in the module doc.
 
@@ -198,10 +264,12 @@ def export_instances(
     [N, L, 3] and ``vote_support`` [N, L]. ``level`` (name or index, default the first level)
     selects whose instances get their own PLY; ``remove`` lists instance ids of that level to cut
     out of the scene. ``views`` and ``rasterize_fn`` (gsplat ``rasterization`` signature) draw
-    instances.png. Returns the manifest written to instances.json.
+    instances.png. ``output_flag`` names ``output_dir`` in error messages (the CLI's --output-dir).
+    Returns the manifest written to instances.json; its ``export.nonfinite_votes`` counts, per
+    level, the supervised Gaussians whose vote is NaN/Inf and so became background.
     """
     output_dir = Path(output_dir)
-    _check_output_dir(output_dir)
+    _check_output_dir(output_dir, output_flag)
     params = _read_params(model_or_params, level_names, sh_degree)
     n = params.means.shape[0]
     if n == 0:
@@ -257,7 +325,10 @@ def export_instances(
         output_dir.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.partial.", dir=output_dir.parent))
         try:
-            manifest = _write_export(params, instance_set, level_index, remove_ids, staging, views, rasterize_fn, render_device, task, source)
+            manifest = _write_export(
+                params, instance_set, level_index, remove_ids, staging, views, rasterize_fn, render_device, task, source,
+                _nonfinite_votes(params),
+            )
             _move_into_place(staging, output_dir)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
@@ -276,6 +347,7 @@ def _write_export(
     render_device,
     task,
     source: Optional[str],
+    nonfinite_votes: Dict[str, int],
 ) -> Dict[str, object]:
     chosen = instance_set.levels[level_index]
     ids = chosen.ids
@@ -322,6 +394,7 @@ def _write_export(
             "removed": removal,
             "picture": picture,
             "source": source,
+            "nonfinite_votes": nonfinite_votes,
             "ply_filter": "vertices with NaN/Inf or opacity logit < -5.5373 are not written (as ns-export gaussian-splat)",
         }
     }
@@ -420,13 +493,12 @@ class ExportVoteSplatInstances:
     """Width in pixels of each view in instances.png."""
 
     def main(self) -> None:
-        from nerfstudio.utils.eval_utils import eval_setup
         from nerfstudio.utils.rich_utils import CONSOLE
 
-        try:
-            if self.output_dir.exists() and not self.output_dir.is_dir():
-                raise ValueError(f"output_dir {self.output_dir} is a file; pass a folder path (it is created if missing)")
-            _, pipeline, _, _ = eval_setup(self.load_config, test_mode="inference")
+        # bad input (ValueError, VoteSplatInputError) ends the command with one line, exit 1
+        with one_line_errors(catch=(ValueError,)), writing_into(self.output_dir, "--output-dir"):
+            _check_output_dir(self.output_dir, "--output-dir")  # before the checkpoint is loaded
+            _, pipeline, _, _ = load_run(self.load_config)
             model = pipeline.model
             device = next(iter(model.gauss_params.values())).device if hasattr(model, "gauss_params") else torch.device("cpu")
             views: List[PinholeView] = []
@@ -454,11 +526,18 @@ class ExportVoteSplatInstances:
                 seed=self.seed,
                 render_device=device,
                 source=str(self.load_config),
+                output_flag="--output-dir",
             )
-        except ValueError as err:
-            CONSOLE.print(f"[bold red]Error:[/bold red] {err}")
-            raise SystemExit(1) from None
         export = manifest["export"]
+        for level_name, count in export["nonfinite_votes"].items():
+            if count:
+                CONSOLE.print(
+                    f"Warning: {count} Gaussians with vote support at level {level_name!r} have a NaN/Inf mean or vote offset "
+                    "and were exported as background (the run diverged there)",
+                    style="bold yellow",
+                    soft_wrap=True,
+                    markup=False,
+                )
         chosen = next(level for level in manifest["levels"] if level["name"] == export["level"])
         CONSOLE.print(
             f"[bold green]Exported {chosen['num_instances']} instances of level {export['level']!r} "

@@ -16,9 +16,9 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
-from votesplat_ns.cli_errors import VoteSplatInputError
+from votesplat_ns.cli_errors import VoteSplatInputError, load_failure_reason
 from votesplat_ns.vote_maps import labels_from_binary_masks
 
 PathLike = Union[str, Path]
@@ -45,17 +45,53 @@ def file_digest(path: PathLike, chunk_size: int = 1 << 20) -> str:
     return digest.hexdigest()
 
 
+def load_image_file(path: PathLike, what: str = "image") -> Image.Image:
+    """An image file decoded in full by PIL; a missing, truncated or unreadable file raises a
+    :class:`VoteSplatInputError` naming it (``what``: "image", "label image", ...).
+
+    Every image and label file the plugin reads goes through here (nerfstudio's own image loading
+    is checked with it too, see the datamanager), so a broken file is always named.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise VoteSplatInputError(f"{what} {path} does not exist")
+    try:
+        with Image.open(path) as image:
+            image.load()
+    except Exception as error:  # PIL raises OSError, ValueError, SyntaxError, ... for broken files
+        text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if isinstance(error, UnidentifiedImageError):
+            text = "not an image format PIL can read"
+        elif "truncated" in text or isinstance(error, EOFError):
+            text = f"the file is truncated: {text}"
+        raise VoteSplatInputError(f"{what} {path} cannot be read ({text}); replace it with an intact file") from None
+    return image
+
+
+def image_file_size(path: PathLike, what: str = "image") -> Tuple[int, int]:
+    """``(width, height)`` from an image file's header (nothing decoded); an unreadable file raises a named error."""
+    path = Path(path)
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except FileNotFoundError:
+        raise VoteSplatInputError(f"{what} {path} does not exist") from None
+    except Exception:  # not an image, or a header PIL cannot parse: load_image_file says which
+        load_image_file(path, what)
+        raise
+
+
+def read_image_rgb(path: PathLike, what: str = "image") -> np.ndarray:
+    """An image file's pixels as uint8 [H, W, 3] (alpha dropped, grey expanded); errors name the file."""
+    return np.asarray(load_image_file(path, what).convert("RGB"))
+
+
 def read_label_png(path: PathLike) -> np.ndarray:
     """Read a single-channel 8- or 16-bit label PNG as int32 [H, W]."""
     path = Path(path)
-    if not path.is_file():
-        raise VoteSplatInputError(f"label image {path} does not exist")
-    try:
-        with Image.open(path) as image:
-            mode = image.mode
-            labels = np.array(image)
-    except Exception as error:  # PIL raises several types for broken files
-        raise VoteSplatInputError(f"label image {path} could not be read ({error}); write it as a single-channel PNG") from error
+    image = load_image_file(path, "label image")
+    mode = image.mode
+    labels = np.array(image)
     if labels.ndim != 2 or mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
         raise VoteSplatInputError(
             f"label image {path} has mode {mode} with shape {labels.shape}; it must be a single-channel "
@@ -117,6 +153,11 @@ class MaskSource(abc.ABC):
         return str(self.config_key()["type"])
 
 
+def _is_hidden_folder(name: str) -> bool:
+    """Folders tools leave beside the data (.ipynb_checkpoints, .git, __pycache__): never a mask level."""
+    return name.startswith(".") or name == "__pycache__"
+
+
 def _validate_levels(levels: Sequence[str], what: str) -> Tuple[str, ...]:
     levels = tuple(str(level) for level in levels)
     if not levels:
@@ -132,7 +173,8 @@ class FolderMaskSource(MaskSource):
 
     One single-channel 8- or 16-bit PNG label image per view and level (0 = no mask, k > 0 =
     mask k), the same size as the image (a uniformly scaled copy is accepted too). ``levels``
-    defaults to the sub-folders of ``root`` in sorted order.
+    defaults to the sub-folders of ``root`` in sorted order, leaving out hidden ones (``.name``,
+    e.g. ``.ipynb_checkpoints``) and ``__pycache__``.
     """
 
     def __init__(self, root: PathLike, levels: Optional[Sequence[str]] = None):
@@ -140,7 +182,7 @@ class FolderMaskSource(MaskSource):
         if not self.root.is_dir():
             raise VoteSplatInputError(f"mask folder {self.root} does not exist; it must hold one sub-folder of label PNGs per level")
         if levels is None:
-            levels = sorted(p.name for p in self.root.iterdir() if p.is_dir())
+            levels = sorted(p.name for p in self.root.iterdir() if p.is_dir() and not _is_hidden_folder(p.name))
             if not levels:
                 raise VoteSplatInputError(f"mask folder {self.root} has no level sub-folders (expected <root>/<level>/<image_stem>.png)")
         self.levels = _validate_levels(levels, f"mask folder {self.root}")
@@ -402,7 +444,7 @@ class SamMaskSource(MaskSource):
                 model.load_state_dict(state_dict)
             except Exception as error:
                 raise VoteSplatInputError(
-                    f"could not load SAM checkpoint {self.checkpoint} as model type '{self.model_type}' ({type(error).__name__}); "
+                    f"could not load SAM checkpoint {self.checkpoint} as model type '{self.model_type}' ({load_failure_reason(error, self.checkpoint)}); "
                     f"expected the official {SAM_CHECKPOINT_FILES[self.model_type]} from the segment-anything "
                     "repository's README (facebookresearch/segment-anything)"
                 ) from error

@@ -18,6 +18,7 @@ from typing import Dict, List, Literal, Optional, Tuple
 import cv2
 import numpy as np
 
+from votesplat_ns.cli_errors import VoteSplatInputError, one_line_errors, writing_into
 from votesplat_ns.vote_cache import VoteCache, VoteOptions, atomic_write_bytes, load_image_rgb
 from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps
 
@@ -33,29 +34,37 @@ class MasksConfig:
     output_dir: Path = Path("outputs")
     """Same as ns-train's --output-dir: the cache goes to <output-dir>/<dataset name>/votesplat_cache."""
     cache_dir: Optional[Path] = None
-    """Override the cache folder (then pass the same --pipeline.datamanager.cache-dir to ns-train)."""
+    """Another cache folder (then give ns-train the same --pipeline.datamanager.cache-dir)."""
     source: Literal["auto", "dataset", "folder", "sam"] = "auto"
-    """Mask source; see --pipeline.datamanager.mask-source of ns-train votesplat."""
+    """Mask source, as ns-train's --pipeline.datamanager.mask-source."""
     levels: Optional[Tuple[str, ...]] = None
-    """Mask levels in order; default depends on the source."""
+    """Mask levels in order (default: depends on the source)."""
     mask_folder: Optional[Path] = None
-    """Root of <level>/<image_stem>.png label images for --source folder."""
+    """For --source folder: a folder of <level>/<image file stem>.png label images."""
     sam_checkpoint: Optional[Path] = None
-    """SAM checkpoint file for --source sam (never downloaded)."""
+    """For --source sam: the SAM checkpoint file (never downloaded)."""
     sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = "vit_h"
+    """SAM backbone of that checkpoint."""
     sam_device: Optional[str] = None
+    """Device SAM runs on (default: cuda when available, else cpu)."""
     sam_points_per_side: int = 32
+    """SAM automatic mask generator: points per image side."""
     sam_pred_iou_thresh: float = 0.7
+    """SAM automatic mask generator: lowest predicted IoU of a kept mask."""
     sam_stability_score_thresh: float = 0.85
+    """SAM automatic mask generator: lowest stability score of a kept mask."""
     sam_crop_n_layers: int = 1
+    """SAM automatic mask generator: layers of image crops (0: whole image only)."""
     sam_min_mask_region_area: int = 100
+    """SAM automatic mask generator: smallest mask region kept, in pixels."""
     sam_max_long_side: Optional[int] = 1080
+    """Images are shrunk to this long side before SAM (None: full size)."""
     border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
-    """A mask touching the image border: 'vote', 'mask_only' (no vote target) or 'drop' (as ns-train's flag)."""
+    """A mask touching the image border: vote, mask_only (no vote target) or drop, as ns-train's flag."""
     downscale_factor: Optional[int] = None
-    """nerfstudio dataparser downscale factor (images_N/); must match training's for the cache to be reused."""
+    """nerfstudio's --downscale-factor (images_N/); give training's for the cache to be reused."""
     preview: int = 0
-    """Number of views to save a preview picture for."""
+    """Number of views to save a picture of the masks and centroids for."""
 
 
 def dataset_images(data: Path, downscale_factor: Optional[int]) -> List[Path]:
@@ -127,10 +136,16 @@ def write_png(path: Path, image_rgb: np.ndarray) -> None:
 
 def main(config: MasksConfig) -> Dict[str, object]:
     """Make all views' vote maps and the previews; returns where they went."""
-    from votesplat_ns.datamanager import VoteDataManagerConfig, check_cache_outside_dataset, default_cache_dir, dataset_dir
+    from votesplat_ns.datamanager import (
+        VoteDataManagerConfig,
+        check_cache_outside_dataset,
+        check_data_input,
+        dataset_dir,
+        default_cache_dir,
+    )
 
     if config.preview < 0:
-        raise ValueError(f"--preview must be >= 0, got {config.preview}")
+        raise VoteSplatInputError(f"--preview must be >= 0, got {config.preview}")
     manager_config = VoteDataManagerConfig(
         data=config.data,
         mask_source=config.source,
@@ -147,25 +162,33 @@ def main(config: MasksConfig) -> Dict[str, object]:
         sam_max_long_side=config.sam_max_long_side,
         border_masks=config.border_masks,
     )
+    manager_config.dataparser.downscale_factor = config.downscale_factor
+    check_data_input(manager_config, where=f"--data {config.data}", mask_source_flag="--source")
     cache_dir = config.cache_dir if config.cache_dir is not None else default_cache_dir(config.data, config.output_dir)
     check_cache_outside_dataset(cache_dir, config.data)
+    # the folder the user chose: --cache-dir, or --output-dir that holds the default cache folder
+    folder, flag = (cache_dir, "--cache-dir") if config.cache_dir is not None else (config.output_dir, "--output-dir")
     source = manager_config.make_mask_source()
-    cache = VoteCache(cache_dir, source, VoteOptions(border_masks=config.border_masks))
     images = dataset_images(config.data, config.downscale_factor)
     views = list(enumerate(images))
-    keys = cache.build_all(views)
+    with writing_into(folder, flag):
+        cache = VoteCache(cache_dir, source, VoteOptions(border_masks=config.border_masks))
+        keys = cache.build_all(views)
     print(f"vote maps of {len(views)} views ({source.name} masks, levels {list(source.levels)}) in {cache.entry_dir}")
+    if cache.rebuilt_damaged:
+        print(f"{cache.rebuilt_damaged} damaged cache entries were rebuilt")
 
     preview_paths: List[Path] = []
     if config.preview > 0 and views:
         preview_dir = cache_dir.parent / PREVIEW_FOLDER_NAME
         chosen = np.unique(np.linspace(0, len(views) - 1, num=min(config.preview, len(views))).round().astype(int))
-        for i in chosen:
-            index, image_path = views[int(i)]
-            vote_maps = cache.load(keys[int(i)]) or cache.get(index, image_path)
-            path = preview_dir / f"{Path(image_path).stem}.png"
-            write_png(path, render_vote_preview(load_image_rgb(image_path), vote_maps))
-            preview_paths.append(path)
+        with writing_into(folder, flag):
+            for i in chosen:
+                index, image_path = views[int(i)]
+                vote_maps = cache.load(keys[int(i)]) or cache.get(index, image_path)
+                path = preview_dir / f"{Path(image_path).stem}.png"
+                write_png(path, render_vote_preview(load_image_rgb(image_path), vote_maps))
+                preview_paths.append(path)
         print(f"{len(preview_paths)} previews in {preview_dir}")
     return {"entry_dir": cache.entry_dir, "keys": keys, "previews": preview_paths, "dataset": dataset_dir(config.data)}
 
@@ -173,7 +196,9 @@ def main(config: MasksConfig) -> Dict[str, object]:
 def entrypoint() -> None:
     import tyro
 
-    main(tyro.cli(MasksConfig))
+    config = tyro.cli(MasksConfig)
+    with one_line_errors(prog="votesplat-masks"):
+        main(config)
 
 
 if __name__ == "__main__":

@@ -97,10 +97,17 @@ def votesplat_trainer_config() -> TrainerConfig:
     )
 
 
-votesplat_method = MethodSpecification(
-    config=votesplat_trainer_config(),
-    description="VoteSplat: splatfacto + Hough-voting offsets for 3D instances and open-vocabulary selection.",
+# Shown at the top of `ns-train votesplat --help`, above ~90 options of splatfacto's: point to the method's own.
+VOTESPLAT_DESCRIPTION = (
+    "VoteSplat: splatfacto plus a 3D vote offset per Gaussian, for instances, click and text selection. "
+    "Its own options: --pipeline.model.vote-start-step, --pipeline.model.vote-every-n-steps and the other "
+    "--pipeline.model.vote-* options (vote loss), --pipeline.model.retrofit-from (add instances to a trained "
+    "splatfacto run); --pipeline.datamanager.mask-source, --pipeline.datamanager.mask-folder, "
+    "--pipeline.datamanager.sam-checkpoint and --pipeline.datamanager.cache-dir (where masks come from and are cached). "
+    "README sections: 'Using it on your own capture', 'Masks', 'Troubleshooting'."
 )
+
+votesplat_method = MethodSpecification(config=votesplat_trainer_config(), description=VOTESPLAT_DESCRIPTION)
 
 _install_export_hook()
 

@@ -103,12 +103,9 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     vote_start_step: int = 500
     """Step at which the vote losses start (geometry settles first)."""
     vote_pixels_per_step: int = 4096
-    """Pixels sampled per step among those carrying a vote at any level; every level is evaluated on them in
-    one walk. The loss is a mean over masked pixels, so a sample gives the same expected gradient."""
+    """Pixels with a 2D vote sampled per vote step, shared by all levels (the loss is a mean, so a sample suffices)."""
     vote_every_n_steps: int = 4
-    """Run the vote pass on every n-th step only (1: every step, as the paper). The vote pass costs about as much
-    as splatfacto's whole step (Python-bound): on the fox capture 1 made training 1.52x slower, 4 makes it 1.15x,
-    with the same PSNR and instance mIoU >= 0.92 on the synthetic scenes (BENCHMARKS.md). A retrofit votes every step."""
+    """Run the vote pass every n-th step (1: every step, as the paper, ~1.5x splatfacto's time; 4: ~1.15x, BENCHMARKS.md)."""
     vote_transmittance: float = 0.01
     """Voting transmittance threshold: a Gaussian votes while the transmittance in front of it stays above this."""
     vote_weighting: Literal["uniform", "alpha_t"] = "uniform"
@@ -120,14 +117,9 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
     retrofit_from: Optional[Path] = None
-    """Add instances to an already trained splatfacto (or votesplat) scene: take its Gaussians from this
-    checkpoint (a .ckpt file, or a run folder holding nerfstudio_models/), freeze geometry and appearance, and
-    train only the vote offsets. No colour pass and no densification run: this is also the fast vote-only path."""
+    """Add instances to a trained splatfacto run (its folder or a step-*.ckpt): train only the vote offsets (fast, also on CPU)."""
     foreground_min_masked_share: Optional[float] = DEFAULT_MIN_MASKED_SHARE
-    """At the end of training, a Gaussian keeps its vote support (stays foreground for clustering) at a level only
-    if more than this share of its rendering weight in the training views lies inside that level's masks: children
-    of densification inherit support and offsets from parents that once overlapped an object. The others get
-    negative support (background; offsets kept). None: keep all."""
+    """After training, a Gaussian stays foreground at a level only if more than this share of its weight is in masks (None: all)."""
     clip_model_name: str = "ViT-B-16"
     """open_clip model name used by the viewer's text query box."""
     clip_checkpoint: Optional[Path] = None

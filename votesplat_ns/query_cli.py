@@ -33,7 +33,6 @@ import io
 import json
 import math
 import re
-import sys
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +44,7 @@ import tyro
 from typing_extensions import Annotated
 
 from votesplat_ns.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
+from votesplat_ns.cli_errors import check_writable_folder, load_run, one_line_errors, writing_into
 from votesplat_ns.clustering import cluster_levels
 from votesplat_ns.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
 from votesplat_ns.lerf_ovs import (
@@ -187,15 +187,11 @@ class QueryScene:
     @classmethod
     def from_config(cls, load_config: Path, level: Optional[str] = None, instances: Optional[Path] = None,
                     clustering: Optional[ClusteringOptions] = None) -> "QueryScene":
-        """Load a run's checkpoint (nerfstudio eval_setup) and get the instances of ``level``."""
-        from nerfstudio.utils.eval_utils import eval_setup
-
+        """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``."""
         from votesplat_ns.export import _read_params
 
         load_config = Path(load_config)
-        if not load_config.is_file():
-            raise ValueError(f"config file not found: {load_config}; pass the config.yml of a votesplat run (outputs/.../config.yml)")
-        _, pipeline, _, _ = eval_setup(load_config, test_mode="inference")
+        _, pipeline, _, _ = load_run(load_config)
         model = pipeline.model
         params = _read_params(model, None, None)
         device = params_device(model)
@@ -751,11 +747,18 @@ class Query(_EncoderArgs):
     def run(self, encoder: Optional[EncoderProtocol] = None, scene: Optional[QueryScene] = None) -> Dict[str, Any]:
         if not self.text.strip():
             raise ValueError(f"the text query is empty ({self.text!r}); pass the words to look for, e.g. votesplat query --load-config C \"red mug\"")
+        if self.output_dir is not None:
+            check_writable_folder(self.output_dir, "--output-dir")
         encoder = encoder or self.encoder()
+        check_text_length = getattr(encoder, "check_text_length", None)
+        if check_text_length is not None:  # before the run is loaded
+            check_text_length([self.text, *self.negatives])
         scene = scene or self.load_scene()
         cache = features_cache_path(scene, self.features_cache)
-        return run_query(scene, self.text, encoder, self.output_dir, self.views, self.top_k, self.threshold,
-                         self.negatives, self.feature_options(), cache)
+        output_dir = self.output_dir if self.output_dir is not None else scene.run_dir or Path(".")
+        with writing_into(output_dir, "--output-dir"):
+            return run_query(scene, self.text, encoder, self.output_dir, self.views, self.top_k, self.threshold,
+                             self.negatives, self.feature_options(), cache)
 
 
 @dataclass
@@ -778,8 +781,10 @@ class Click(_RunArgs):
     def run(self, scene: Optional[QueryScene] = None) -> Dict[str, Any]:
         if self.isolate and self.remove:
             raise ValueError("--isolate and --remove exclude each other; pass one of them")
+        check_writable_folder(self.output_dir, "--output-dir")  # before the run is loaded
         scene = scene or self.load_scene()
-        return run_click(scene, self.view, self.x, self.y, self.output_dir, "remove" if self.remove else "isolate")
+        with writing_into(self.output_dir, "--output-dir"):
+            return run_click(scene, self.view, self.x, self.y, self.output_dir, "remove" if self.remove else "isolate")
 
 
 @dataclass
@@ -792,6 +797,8 @@ class QueryEval(_EncoderArgs):
     """Also write the per-query scores as JSON here."""
 
     def run(self, encoder: Optional[EncoderProtocol] = None, scene: Optional[QueryScene] = None) -> Dict[str, Any]:
+        if self.output is not None:
+            check_writable_folder(Path(self.output).parent, "--output", given=self.output)
         frames = load_scene_labels(self.labels)
         encoder = encoder or self.encoder()
         scene = scene or self.load_scene()
@@ -805,7 +812,8 @@ class QueryEval(_EncoderArgs):
             print(f"{query.frame:>16}  {query.category:<24} IoU {query.iou:.3f}  selected {selections.get(query.category)}")
         print(f"{score.scene or 'scene'}: {len(score.queries)} queries, mIoU {score.miou:.4f}, mAcc@0.25 {score.accuracy(0.25):.4f}")
         if self.output is not None:
-            _write_json(Path(self.output), summary)
+            with writing_into(Path(self.output), "--output"):
+                _write_json(Path(self.output), summary)
         return summary
 
 
@@ -833,13 +841,9 @@ def main(args: Optional[Sequence[str]] = None) -> Any:
     """Parse ``args`` (default: sys.argv) and run the subcommand; bad input exits 1 with one line on stderr."""
     subcommands = Union[tuple(Annotated[cls, tyro.conf.subcommand(name=name)] for name, cls in COMMANDS.items())]  # type: ignore[misc]
     command = tyro.cli(subcommands, args=args, prog="votesplat")
-    try:
+    name = next(key for key, cls in COMMANDS.items() if isinstance(command, cls))
+    with one_line_errors(catch=(ValueError,), prog=f"votesplat {name}"):  # also CheckpointNotFoundError
         return command.run()
-    except ValueError as error:  # also CheckpointNotFoundError
-        name = next(key for key, cls in COMMANDS.items() if isinstance(command, cls))
-        message = " ".join(str(error).split())
-        print(f"votesplat {name}: error: {message}", file=sys.stderr)
-        raise SystemExit(1) from None
 
 
 def entrypoint() -> None:

@@ -23,6 +23,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from votesplat_ns.cli_errors import load_failure_reason
+
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
 # LERF's canonical negative phrases (Kerr et al. 2023, §3.4).
@@ -129,10 +131,10 @@ class ClipEncoder:
             # An absolute path never matches one of open_clip's pretrained tags, so it loads the file.
             model, _, preprocess = open_clip.create_model_and_transforms(model_name, pretrained=str(checkpoint), device="cpu")
         except Exception as error:  # torch.load/load_state_dict raise many types for a wrong file
-            first_line = (str(error).strip().splitlines() or [type(error).__name__])[0]
+            # never relay torch's text: for a non-weights file it suggests weights_only=False, unsafe here
             raise ValueError(
-                f"{checkpoint} does not hold open_clip weights for {model_name!r} ({first_line}); "
-                "pass the architecture name the checkpoint was trained with"
+                f"{checkpoint} does not hold open_clip weights for {model_name!r} ({load_failure_reason(error, checkpoint)}); "
+                "pass the open_clip weights file of that architecture, or the architecture the file was trained with"
             ) from None
         config = {
             "kind": "open_clip",
@@ -179,12 +181,28 @@ class ClipEncoder:
             features.append(self.model.encode_image(batch.to(self.device)).float().cpu())
         return F.normalize(torch.cat(features), dim=-1)
 
+    def check_text_length(self, texts: Sequence[str]) -> None:
+        """Raise ValueError for a text longer than the model reads (open_clip would silently cut it to 77 tokens)."""
+        encode = getattr(self.tokenizer, "encode", None)
+        context_length = getattr(self.tokenizer, "context_length", None)
+        if encode is None or not context_length or getattr(self.tokenizer, "reduction_fn", None) is not None:
+            return
+        for text in texts:
+            count = len(encode(text))
+            if count > context_length - 2:  # start and end tokens take two places
+                start = text if len(text) <= 40 else text[:40] + "..."
+                raise ValueError(
+                    f"the text {start!r} ({len(text)} characters) is {count} tokens long, but CLIP reads at most "
+                    f"{context_length - 2} and would silently drop the rest; shorten it"
+                )
+
     @torch.no_grad()
     def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
         if isinstance(texts, str):
             raise ValueError("encode_text takes a list of strings, not a single string; wrap it: [text]")
         if len(texts) == 0 or any(not isinstance(text, str) or not text.strip() for text in texts):
             raise ValueError(f"encode_text needs non-empty strings, got {list(texts)!r}")
+        self.check_text_length(texts)
         features = []
         for start in range(0, len(texts), self.batch_size):
             tokens = self.tokenizer(list(texts[start:start + self.batch_size])).to(self.device)

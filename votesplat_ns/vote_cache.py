@@ -13,8 +13,12 @@ Layout (``cache_dir`` is chosen by the caller, next to the outputs, never inside
   (e.g. the label files it reads), so an edited image or mask is rebuilt.
 - Each file is written to a temp file in the same folder and moved into place with os.replace;
   the .votes.npz is written last and is the entry's commit record. A missing, truncated or
-  unreadable entry is rebuilt (with a warning when it existed but was unreadable), so an
-  interrupted build resumes where it stopped and never yields a partial entry.
+  unreadable entry is rebuilt, so an interrupted build resumes where it stopped and never
+  yields a partial entry.
+- An entry is validated when first read in a process: shapes and dtype against its record, and
+  every label id within its level's centroid table (a damaged labels file could otherwise index
+  past the table on the first vote step). A damaged entry is rebuilt; the first one per cache
+  is reported with a warning, the others are counted in ``rebuilt_damaged``.
 """
 
 from __future__ import annotations
@@ -31,9 +35,8 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
-from PIL import Image
 
-from votesplat_ns.mask_sources import MaskSource, file_digest
+from votesplat_ns.mask_sources import MaskSource, file_digest, read_image_rgb
 from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps, vote_maps_from_labels
 
 PathLike = Union[str, Path]
@@ -53,9 +56,8 @@ class VoteOptions:
 
 
 def load_image_rgb(path: PathLike) -> np.ndarray:
-    """An image file's pixels as uint8 [H, W, 3] (alpha dropped, grey expanded)."""
-    with Image.open(path) as image:
-        return np.asarray(image.convert("RGB"))
+    """An image file's pixels as uint8 [H, W, 3] (alpha dropped, grey expanded); a broken file is named."""
+    return read_image_rgb(path)
 
 
 def atomic_write_bytes(path: Path, writer: Callable[[object], None]) -> None:
@@ -99,14 +101,23 @@ class VoteCache:
         config_text = json.dumps(self.config, sort_keys=True, indent=2)
         digest = hashlib.sha256(config_text.encode()).hexdigest()[:16]
         self.entry_dir = Path(cache_dir) / f"{source.name}-{digest}"
-        self._ensure_config_file(config_text)
+        self._config_text = config_text
+        self._config_written = self._check_config_file(config_text)
         # open memmaps hold a file descriptor each, so only a few stay open
         self._open: "OrderedDict[str, VoteMaps]" = OrderedDict()
         self._max_open = max(1, int(max_open_entries))
         self._key_memo: Dict[Tuple[str, int], Tuple[Tuple[int, int], str]] = {}
+        # labels files whose ids were checked in this process, by (key, size, mtime): a full scan per file
+        self._validated: Dict[str, Tuple[int, int]] = {}
+        self.rebuilt_damaged = 0
 
     # ------------------------------------------------------------------ configuration
-    def _ensure_config_file(self, config_text: str) -> None:
+    def _check_config_file(self, config_text: str) -> bool:
+        """Whether config.json is there and matches; entries made with other arguments are removed.
+
+        config.json is written with the first entry (``_write_entry``), so a cache that is only read,
+        or a build that fails before its first entry, writes nothing.
+        """
         config_path = self.entry_dir / "config.json"
         if config_path.is_file():
             try:
@@ -114,13 +125,13 @@ class VoteCache:
             except (OSError, ValueError):
                 stored = None
             if stored == json.loads(config_text):
-                return
+                return True
             # same folder name but other arguments: the entries cannot be trusted
             warnings.warn(f"vote cache {self.entry_dir} was made with other arguments; rebuilding it")
             for path in self.entry_dir.iterdir():
                 if path.is_file():
                     path.unlink()
-        atomic_write_bytes(config_path, lambda handle: handle.write(config_text.encode()))
+        return False
 
     # ------------------------------------------------------------------ keys and paths
     def view_key(self, image_path: PathLike, frame_index: int) -> str:
@@ -157,8 +168,13 @@ class VoteCache:
             return None
         try:
             vote_maps = self._read_entry(key, votes_path, labels_path)
-        except Exception as error:  # any unreadable entry is rebuilt
-            warnings.warn(f"vote cache entry {votes_path.name} is unreadable ({type(error).__name__}: {error}); rebuilding it")
+        except Exception as error:  # any unreadable or inconsistent entry is rebuilt
+            if self.rebuilt_damaged == 0:
+                warnings.warn(
+                    f"vote cache entry {votes_path.name} in {self.entry_dir} is damaged ({type(error).__name__}: {error}); "
+                    "rebuilding it (and any other damaged entry of this cache)"
+                )
+            self.rebuilt_damaged += 1
             self._remove_entry(key)
             return None
         self._open[key] = vote_maps
@@ -182,6 +198,11 @@ class VoteCache:
         vote_maps = VoteMaps(labels=labels, centroids=centroids, level_names=level_names)
         if level_names != tuple(self.source.levels):
             raise ValueError(f"entry has levels {level_names}, expected {tuple(self.source.levels)}")
+        stat = labels_path.stat()
+        signature = (stat.st_size, stat.st_mtime_ns)
+        if self._validated.get(key) != signature:
+            _check_label_ids(labels, centroids)
+            self._validated[key] = signature
         return vote_maps
 
     def _remove_entry(self, key: str) -> None:
@@ -208,6 +229,10 @@ class VoteCache:
         return vote_maps
 
     def _write_entry(self, key: str, vote_maps: VoteMaps) -> None:
+        if not self._config_written:
+            config_text = self._config_text
+            atomic_write_bytes(self.entry_dir / "config.json", lambda handle: handle.write(config_text.encode()))
+            self._config_written = True
         labels = np.ascontiguousarray(vote_maps.labels)
         atomic_write_bytes(self.labels_path(key), lambda handle: np.save(handle, labels, allow_pickle=False))
         record = {
@@ -261,9 +286,15 @@ class VoteCache:
         if missing:
             text = description or f"Making vote maps ({self.source.name} masks)"
             steps = _progress(missing, text, enabled=progress)
-            for i in steps:
-                index, path = views[i]
-                self._build(keys[i], index, Path(path), image_loader)
+            try:
+                for i in steps:
+                    index, path = views[i]
+                    self._build(keys[i], index, Path(path), image_loader)
+            finally:
+                # stop the progress display now: closed at interpreter exit instead, it fails with its own traceback
+                close = getattr(steps, "close", None)
+                if close is not None:
+                    close()
         return keys
 
     def _entry_usable(self, key: str) -> bool:
@@ -280,6 +311,17 @@ class VoteCache:
                         path.unlink()
                 except FileNotFoundError:
                     pass
+
+
+def _check_label_ids(labels: np.ndarray, centroids: Sequence[np.ndarray]) -> None:
+    """Raise ValueError unless every level's ids lie in 0..K, K + 1 being its centroid table's length."""
+    for level, table in enumerate(centroids):
+        level_labels = np.asarray(labels[level])
+        if not level_labels.size:
+            continue
+        low, high = int(level_labels.min()), int(level_labels.max())
+        if low < 0 or high >= table.shape[0]:
+            raise ValueError(f"level {level} holds label ids {low}..{high}, outside its masks' ids 0..{table.shape[0] - 1}")
 
 
 def _progress(items: Sequence[int], description: str, enabled: bool):
