@@ -199,6 +199,24 @@ def test_an_interrupted_export_leaves_nothing_half_written(tmp_path, monkeypatch
     assert no_leftovers(tmp_path, keep=["old"])
 
 
+@pytest.mark.parametrize("umask, file_mode, folder_mode", [(0o022, 0o644, 0o755), (0o077, 0o600, 0o700)])
+def test_export_files_and_folders_follow_the_umask(tmp_path, umask, file_mode, folder_mode):
+    params, _ = vote_scene()
+    previous = os.umask(umask)
+    try:
+        export(params, tmp_path / "out", remove=[0])
+        export(params, tmp_path / "out", remove=[1])  # a re-export replaces the folder: same modes
+    finally:
+        os.umask(previous)
+    out = tmp_path / "out"
+    modes = {str(p.relative_to(tmp_path)): p.stat().st_mode & 0o777 for p in [out, *out.rglob("*")]}
+    assert len(modes) == 12 and (out / "scene_without_1.ply").is_file()
+    for name, mode in modes.items():
+        expected = folder_mode if (tmp_path / name).is_dir() else file_mode
+        assert mode == expected, f"{name}: {oct(mode)} != {oct(expected)}"
+    assert no_leftovers(tmp_path, keep=["out"])
+
+
 def splatfacto_params():
     params, _ = vote_scene(num_objects=1, per_object=50, num_background=10)
     del params["vote_offsets"], params["vote_support"]

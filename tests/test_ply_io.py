@@ -1,5 +1,6 @@
 """3DGS PLY writer/reader: round trip, plyfile compatibility, nerfstudio's exact layout."""
 
+import os
 from collections import OrderedDict
 
 import numpy as np
@@ -150,6 +151,23 @@ def test_failed_write_leaves_no_partial_file(tmp_path):
             raise RuntimeError("interrupted")
     assert (tmp_path / "f.bin").read_bytes() == b"old"
     assert [x.name for x in tmp_path.iterdir()] == ["f.bin"]
+
+
+@pytest.mark.parametrize("umask, expected", [(0o022, 0o644), (0o077, 0o600)])
+def test_atomic_write_follows_the_umask(tmp_path, umask, expected):
+    from votesplat_ns.ply_io import atomic_write
+
+    (tmp_path / "old.bin").write_bytes(b"old")
+    previous = os.umask(umask)
+    try:
+        for name in ("new.bin", "old.bin"):
+            with atomic_write(tmp_path / name) as handle:
+                handle.write(b"data")
+    finally:
+        os.umask(previous)
+    for name in ("new.bin", "old.bin"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == expected, name
+        assert (tmp_path / name).read_bytes() == b"data"
 
 
 @pytest.mark.parametrize(

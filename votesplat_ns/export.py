@@ -31,7 +31,6 @@ import math
 import os
 import shutil
 import sys
-import tempfile
 import types
 import typing
 import warnings
@@ -48,7 +47,7 @@ from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.cli_errors import VoteSplatInputError, check_writable_folder, load_run, one_line_errors, writing_into
 from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.instances import IDS_NAME, MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
-from votesplat_ns.ply_io import SH_C0, gaussian_vertex_table, write_gaussian_table, write_instance_id_file
+from votesplat_ns.ply_io import SH_C0, gaussian_vertex_table, make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
 
 VOTE_OFFSETS_KEY = "vote_offsets"
 VOTE_SUPPORT_KEY = "vote_support"
@@ -219,8 +218,7 @@ def _nonfinite_votes(params: "_Params") -> Dict[str, int]:
 
 def _move_into_place(staging: Path, output_dir: Path) -> None:
     if output_dir.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.old.", dir=output_dir.parent))
-        old.rmdir()
+        old = temp_sibling(output_dir, ".old")
         output_dir.rename(old)
         try:
             staging.rename(output_dir)
@@ -323,7 +321,7 @@ def export_instances(
             raise ValueError(f"cannot remove instances {bad}: level {level_name!r} has instances 0..{chosen.num_instances - 1}")
 
         output_dir.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.partial.", dir=output_dir.parent))
+        staging = make_temp_dir(output_dir, ".partial")  # umask permissions: it becomes the export folder
         try:
             manifest = _write_export(
                 params, instance_set, level_index, remove_ids, staging, views, rasterize_fn, render_device, task, source,

@@ -112,7 +112,7 @@ votesplat_method = MethodSpecification(config=votesplat_trainer_config(), descri
 _install_export_hook()
 
 
-def train_in_process(
+def setup_trainer_in_process(
     data: Path,
     output_dir: Path,
     steps: int,
@@ -122,14 +122,14 @@ def train_in_process(
     mask_folder: Optional[Path] = None,
     seed: int = 42,
     datamanager_overrides: Optional[Dict[str, Any]] = None,
+    load_dir: Optional[Path] = None,
     **model_overrides,
-) -> Path:
-    """Train votesplat in this process (tests, benchmarks/quality.py); returns the run's config.yml.
+):
+    """A set-up (not yet trained) nerfstudio Trainer for ``train_in_process``; same arguments.
 
-    No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
-    ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields.
-    ``seed`` seeds Python, NumPy and torch as ns-train does (``--machine.seed``).
     ``datamanager_overrides`` set datamanager config fields (e.g. ``border_masks``).
+    ``load_dir``: a run's nerfstudio_models/ folder to resume from, as ``ns-train --load-dir``
+    (the ``steps`` more steps continue from its latest checkpoint).
     """
     import random
 
@@ -147,6 +147,7 @@ def train_in_process(
     config.steps_per_eval_image = 10 * steps
     config.steps_per_eval_all_images = 10 * steps
     config.steps_per_save = 10 * steps
+    config.load_dir = load_dir
     config.data = data
     config.pipeline.datamanager.data = data
     config.pipeline.datamanager.cache_dir = output_dir / "vote_cache"
@@ -174,9 +175,40 @@ def train_in_process(
     torch.manual_seed(seed)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
+    return trainer
+
+
+def train_in_process(
+    data: Path,
+    output_dir: Path,
+    steps: int,
+    vote_start: int,
+    device: str = "cpu",
+    timestamp: str = "run",
+    mask_folder: Optional[Path] = None,
+    seed: int = 42,
+    load_dir: Optional[Path] = None,
+    datamanager_overrides: Optional[Dict[str, Any]] = None,
+    **model_overrides,
+) -> Path:
+    """Train votesplat in this process (tests, benchmarks/quality.py); returns the run's config.yml.
+
+    No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
+    ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields.
+    ``seed`` seeds Python, NumPy and torch as ns-train does (``--machine.seed``). ``load_dir``
+    resumes a run from its nerfstudio_models/ folder, as ``ns-train --load-dir``.
+    ``datamanager_overrides`` set datamanager config fields (e.g. ``border_masks``).
+    """
+    import torch
+
+    trainer = setup_trainer_in_process(
+        data, output_dir, steps, vote_start, device, timestamp, mask_folder, seed,
+        datamanager_overrides=datamanager_overrides, load_dir=load_dir, **model_overrides,
+    )
+    config_path = trainer.config.get_base_dir() / "config.yml"
     trainer.train()
     del trainer
     gc.collect()
     if device == "cuda":
         torch.cuda.empty_cache()
-    return config.get_base_dir() / "config.yml"
+    return config_path

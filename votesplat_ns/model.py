@@ -192,6 +192,10 @@ class VoteSplatModel(SplatfactoModel):
                 f"--pipeline.model.retrofit-from {self.config.retrofit_from} does not exist: "
                 "give the trained splatfacto run folder or its step-*.ckpt"
             )
+        if training_callback_attributes.optimizers is not None:
+            # the trainer asks for callbacks right after loading a checkpoint (ns-train --load-dir)
+            self.adopt_optimizers(training_callback_attributes.optimizers)
+        self.continue_support_counts()
         callbacks = super().get_training_callbacks(training_callback_attributes)
         trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
@@ -206,6 +210,67 @@ class VoteSplatModel(SplatfactoModel):
                 )
             )
         return callbacks
+
+    # ---------------------------------------------------------- resuming (ns-train --load-dir)
+    # Patch of nerfstudio 1.1.5 (upstream issue #3554), all of it here: load_state_dict and adopt_optimizers.
+    # Trainer.setup builds the optimizers from the model's Parameters, then _load_checkpoint runs
+    # pipeline.load_pipeline (SplatfactoModel.load_state_dict replaces every gauss_params entry by a new
+    # Parameter of the checkpoint's N), then optimizers.load_optimizers (which files the checkpoint's Adam
+    # moments under the optimizers' old Parameters). Left alone, a resumed run steps orphaned tensors the
+    # model never renders (it does not train), and densification rebuilds the Gaussians from those orphans
+    # (IndexError once the checkpoint's N differs from the initial one). load_state_dict restores what the
+    # reload undoes; adopt_optimizers, called from get_training_callbacks (the trainer's next call after
+    # loading), points the optimizers at the model's own Parameters and moves the loaded state onto them.
+
+    def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
+        super().load_state_dict(state_dict, **kwargs)
+        # densification statistics of the Gaussians before the load mean nothing now: start them afresh
+        # (gsplat sizes them to the loaded N at the next step), as after each densification step
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        if self.vote_only:
+            # the reload made fresh trainable Parameters: the scene stays frozen, and the checkpoint
+            # holds the retrofitted Gaussians even if the retrofit source has gone since
+            for name in SPLAT_PARAM_NAMES:
+                self.gauss_params[name].requires_grad_(False)
+            self.retrofitted = True
+
+    def adopt_optimizers(self, optimizers) -> None:
+        """Point nerfstudio's optimizers at the model's current Parameters, keeping their loaded state.
+
+        A no-op when they already hold them (a fresh run). Optimizer state (Adam moments and step) moves
+        to the new Parameter when its shape fits; otherwise that Parameter starts with fresh state.
+        """
+        for name, params in self.get_param_groups().items():
+            optimizer = optimizers.optimizers.get(name)
+            if optimizer is None:
+                continue
+            held = [param for group in optimizer.param_groups for param in group["params"]]
+            if len(held) != len(params):
+                raise RuntimeError(f"optimizer {name!r} holds {len(held)} tensors, the model has {len(params)}")
+            replacement = {id(old): new for old, new in zip(held, params)}
+            for group in optimizer.param_groups:
+                for index, old in enumerate(group["params"]):
+                    new = replacement[id(old)]
+                    if new is old:
+                        continue
+                    state = optimizer.state.pop(old, None)
+                    fits = state is not None and all(
+                        value.shape == new.shape for value in state.values() if torch.is_tensor(value) and value.dim() > 0
+                    )
+                    if fits:
+                        optimizer.state[new] = state
+                    group["params"][index] = new
+            optimizers.parameters[name] = list(params)
+
+    @torch.no_grad()
+    def continue_support_counts(self) -> None:
+        """Undo the end-of-training sign of vote_support so that a resumed run keeps counting.
+
+        restrict_support_to_masked_gaussians marks background as negative counts when a run ends;
+        counting on from a negative value would mix the two. The end of the resumed run decides
+        foreground again from the full count.
+        """
+        self.gauss_params["vote_support"].abs_()
 
     @torch.no_grad()
     def restrict_support_to_masked_gaussians(self, datamanager) -> torch.Tensor:

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from pathlib import Path
 from typing import Dict, Iterator, Optional, Sequence, Union
 
@@ -53,14 +53,41 @@ _PLY_TO_NUMPY = {
 _NUMPY_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
 
 
+TEMP_MARKER = ".tmp-"
+"""In the name of every temporary file or folder made here (next to its target), so stale ones can be found."""
+
+
+def temp_sibling(path: PathLike, tag: str = "") -> Path:
+    """A fresh hidden name next to ``path`` (``.<name><tag>.tmp-<pid>-<random>``); nothing is created."""
+    path = Path(path)
+    return path.parent / f".{path.name}{tag}{TEMP_MARKER}{os.getpid()}-{secrets.token_hex(6)}"
+
+
+def make_temp_dir(path: PathLike, tag: str = "") -> Path:
+    """Create an empty folder with a fresh name next to ``path`` (to be renamed onto it later).
+
+    Made with mode 0o777 less the umask, as any folder the user creates; tempfile.mkdtemp would
+    make it 0700 and the renamed export unreadable to others.
+    """
+    while True:
+        candidate = temp_sibling(path, tag)
+        try:
+            candidate.mkdir(0o777)
+            return candidate
+        except FileExistsError:  # pragma: no cover - 48 random bits
+            continue
+
+
 @contextlib.contextmanager
 def atomic_write(path: PathLike, mode: str = "wb") -> Iterator:
     """Open a temporary file next to ``path``; on success it replaces ``path`` in one rename.
 
     Readers never see a half-written file, and a crash leaves the previous file (if any) intact.
+    The file gets mode 0o666 less the umask, as ``open`` gives (tempfile.mkstemp would make it 0600).
     """
     path = Path(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp_name = temp_sibling(path)
+    fd = os.open(tmp_name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, mode) as handle:
             yield handle

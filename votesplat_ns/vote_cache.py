@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import secrets
 import time
 import warnings
 from collections import OrderedDict
@@ -37,13 +35,14 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from votesplat_ns.mask_sources import MaskSource, file_digest, read_image_rgb
+from votesplat_ns.ply_io import TEMP_MARKER, atomic_write
 from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps, vote_maps_from_labels
 
 PathLike = Union[str, Path]
 ImageLoader = Callable[[int, Path], np.ndarray]
 
 CACHE_FORMAT_VERSION = 1
-_TEMP_MARKER = ".tmp-"
+_TEMP_MARKER = TEMP_MARKER  # atomic_write names its temporary files with it
 _STALE_TEMP_SECONDS = 3600.0
 
 
@@ -61,23 +60,10 @@ def load_image_rgb(path: PathLike) -> np.ndarray:
 
 
 def atomic_write_bytes(path: Path, writer: Callable[[object], None]) -> None:
-    """Write a file atomically: ``writer(file)`` fills a temp file in the same folder, then os.replace."""
+    """Write a file atomically (``ply_io.atomic_write``, honours the umask): ``writer(file)`` fills it."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    temp_name = path.parent / f".{path.name}{_TEMP_MARKER}{os.getpid()}-{secrets.token_hex(6)}"
-    # os.open with 0o666 honours the umask (mkstemp would make the file private)
-    fd = os.open(temp_name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            writer(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temp_name, path)
-    except BaseException:
-        try:
-            os.unlink(temp_name)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_write(path) as handle:
+        writer(handle)
 
 
 class VoteCache:
