@@ -226,19 +226,28 @@ def test_quaternion_of_a_rotation_and_non_similarities():
         similarity_parts(torch.diag(torch.tensor([1.0, 2.0, 1.0, 1.0])))
 
 
-def test_frames_follow_nerfstudios_dataparser(tmp_path):
-    """colmap -> training is nerfstudio's dataparser transform; dataset = colmap after applied_transform."""
+@pytest.mark.parametrize("applied_scale", [1.0, 0.25])
+def test_frames_follow_nerfstudios_dataparser(tmp_path, applied_scale):
+    """Frames as nerfstudio defines them: transforms.json poses = applied_scale (A p_colmap); its dataparser maps
+    them by s (T p) and reports T A as dataparser_transform and s * applied_scale as dataparser_scale."""
     applied = torch.tensor([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]], dtype=torch.float64)  # ns-process-data's
-    (tmp_path / "transforms.json").write_text(json.dumps({"applied_transform": applied.tolist(), "frames": []}))
-    torch.testing.assert_close(applied_transform_of(tmp_path), applied)
-    assert applied_transform_of(DEMO_SCENE) is None
-    dataparser_transform = homogeneous(torch.cat([random_rotation(3), torch.tensor([[0.1], [0.2], [-0.7]], dtype=torch.float64)], 1))
-    frames = frames_from_dataparser(dataparser_transform[:3], 0.4, applied)
+    meta = {"applied_transform": applied.tolist(), "frames": []}
+    if applied_scale != 1.0:
+        meta["applied_scale"] = applied_scale
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    read_transform, read_scale = applied_transform_of(tmp_path)
+    torch.testing.assert_close(read_transform, applied)
+    assert read_scale == applied_scale
+    assert applied_transform_of(DEMO_SCENE) == (None, 1.0)
+
+    T = homogeneous(torch.cat([random_rotation(3), torch.tensor([[0.1], [0.2], [-0.7]], dtype=torch.float64)], 1))
+    s = 0.4
+    frames = frames_from_dataparser((T @ homogeneous(applied))[:3], s * applied_scale, applied, applied_scale)
     point_colmap = torch.tensor([1.0, 2.0, 3.0, 1.0], dtype=torch.float64)
-    point_dataset = homogeneous(applied) @ point_colmap
-    expected = 0.4 * (dataparser_transform @ point_colmap)[:3]
-    torch.testing.assert_close((frames["colmap"] @ point_colmap)[:3], expected)
+    point_dataset = torch.cat([applied_scale * (homogeneous(applied) @ point_colmap)[:3], torch.ones(1, dtype=torch.float64)])
+    expected = s * (T @ point_dataset)[:3]
     torch.testing.assert_close((frames["dataset"] @ point_dataset)[:3], expected)
+    torch.testing.assert_close((frames["colmap"] @ point_colmap)[:3], expected)
     torch.testing.assert_close(frames["dataparser"], torch.eye(4, dtype=torch.float64))
 
 
@@ -321,6 +330,33 @@ def test_frame_checks_on_the_demo_scene(demo_reference, trained_demo, ns_exporte
     twins = RetrofitReference({"dataparser": torch.eye(4, dtype=torch.float64), "dataset": nudged}, demo_reference.views)
     with pytest.raises(VoteSplatInputError, match=r"cannot tell the frame of .*: frames '\w+' and '\w+' both fit"):
         resolve_frame(load(ns_ply), twins, "auto", ns_ply, rasterize, 3)
+
+
+def test_auto_finds_the_colmap_frame_of_a_capture_with_an_applied_transform(trained_demo, tmp_path):
+    """The demo capture as ns-process-data would have made it from COLMAP: transforms.json records the axis
+    permutation it applied; a PLY in COLMAP's world (as the original 3DGS writes it) is found as 'colmap'."""
+    applied = torch.tensor([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]], dtype=torch.float64)
+    data = tmp_path / "capture"
+    data.mkdir()
+    for entry in DEMO_SCENE.iterdir():
+        if entry.name != "transforms.json":
+            (data / entry.name).symlink_to(entry)
+    meta = json.loads((DEMO_SCENE / "transforms.json").read_text())
+    meta["applied_transform"] = applied.tolist()
+    (data / "transforms.json").write_text(json.dumps(meta))
+    config = yaml.load(Path(trained_demo).read_text(), Loader=yaml.Loader)
+    config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.dataparser.data = data
+    reference = retrofit_reference(config.pipeline.datamanager.setup(device="cpu", test_mode="test"))
+
+    saved = json.loads((Path(trained_demo).parent / "dataparser_transforms.json").read_text())
+    dataset_to_training = torch.diag(torch.tensor([saved["scale"]] * 3 + [1.0], dtype=torch.float64)) @ homogeneous(torch.tensor(saved["transform"]))
+    g = trained_gaussians(Path(trained_demo))
+    in_colmap = transform_gaussians(g, torch.linalg.inv(dataset_to_training @ homogeneous(applied)))
+    frame, moved, fits = resolve_frame(in_colmap, reference, "auto", Path("colmap_world.ply"), rasterize, 3)
+    assert frame == "colmap" and len(fits) == 3, fits
+    torch.testing.assert_close(moved["means"], g["means"], rtol=1e-5, atol=2e-6)
+    torch.testing.assert_close(moved["features_rest"], g["features_rest"], rtol=1e-4, atol=1e-5)
 
 
 def _assert_retrofit_froze(config_path: Path, expected, frame: str):

@@ -9,10 +9,11 @@ A PLY's x, y, z can be in one of three frames of a nerfstudio capture:
   that ns-process-data made from COLMAP (the original 3DGS, and gsplat's simple_trainer with
   ``--no-normalize-world-space``, write PLYs in it). Without an applied_transform it is ``dataset``.
 
-nerfstudio's ``dataparser_transform`` [3, 4] and ``dataparser_scale`` s map the colmap frame to
-the training frame: p' = s (A p + b). A frame change moves each Gaussian rigidly: means as
-points, log scales + log s, rotations composed with A, and the SH colour bands rotated, so the
-scene renders the same from the moved cameras.
+Each frame reaches the training frame by a similarity p' = s (A p + b) built from nerfstudio's
+``dataparser_transform``, ``dataparser_scale`` and transforms.json's applied_transform/applied_scale
+(:func:`frames_from_dataparser`). It moves each Gaussian rigidly: means as points, log scales
++ log s, rotations composed with A, and the SH colour bands rotated, so the scene renders the
+same from the moved cameras.
 
 Which frame a file is in is checked against the training views, never assumed:
 :func:`resolve_frame` moves the Gaussians into every candidate frame, counts the share whose
@@ -365,25 +366,35 @@ def resolve_frame(
 # ----------------------------------------------------------------------------------------
 
 
-def applied_transform_of(data: Path) -> Optional[Tensor]:
-    """transforms.json's applied_transform [3, 4] as nerfstudio's dataparser takes it (None: there is none)."""
+def applied_transform_of(data: Path) -> Tuple[Optional[Tensor], float]:
+    """transforms.json's applied_transform [3, 4] (None: there is none) and applied_scale, as nerfstudio's dataparser takes them."""
     data = Path(data)
     transforms = data if data.suffix == ".json" else data / "transforms.json"
     meta = json.loads(transforms.read_text()) if transforms.is_file() else {}
+    scale = float(meta.get("applied_scale", 1.0))
     if "applied_transform" in meta:
-        return torch.tensor(meta["applied_transform"], dtype=torch.float64)
+        return torch.tensor(meta["applied_transform"], dtype=torch.float64), scale
     if (data / "colmap" / "sparse" / "0").exists():
-        return torch.tensor(_LEGACY_COLMAP_APPLIED_TRANSFORM, dtype=torch.float64)
-    return None
+        return torch.tensor(_LEGACY_COLMAP_APPLIED_TRANSFORM, dtype=torch.float64), scale
+    return None, scale
 
 
-def frames_from_dataparser(dataparser_transform: Tensor, dataparser_scale: float, applied_transform: Optional[Tensor]) -> Dict[str, Tensor]:
-    """[4, 4] transforms into the training frame: dataparser (identity), colmap (nerfstudio's
-    dataparser transform and scale, which start from the frame before applied_transform), dataset."""
-    to_training = torch.diag(torch.tensor([dataparser_scale] * 3 + [1.0], dtype=torch.float64)) @ homogeneous(dataparser_transform)
-    frames = {"dataparser": torch.eye(4, dtype=torch.float64), "colmap": to_training}
-    frames["dataset"] = to_training @ torch.linalg.inv(homogeneous(applied_transform)) if applied_transform is not None else to_training
-    return frames
+def frames_from_dataparser(
+    dataparser_transform: Tensor, dataparser_scale: float, applied_transform: Optional[Tensor], applied_scale: float = 1.0
+) -> Dict[str, Tensor]:
+    """[4, 4] transforms into the training frame of the frames 'dataparser' (identity), 'dataset' and 'colmap'.
+
+    nerfstudio's dataparser maps transforms.json's poses by s (T p) with T = dataparser_transform
+    applied_transform^-1 and s = dataparser_scale / applied_scale (it reports the product with
+    applied_scale), and ns-process-data made those poses as applied_scale (A p) from the original
+    (COLMAP) frame, as nerfstudio's ``transform_poses_to_original_space`` undoes them.
+    """
+    applied = homogeneous(applied_transform) if applied_transform is not None else torch.eye(4, dtype=torch.float64)
+    transform = homogeneous(dataparser_transform) @ torch.linalg.inv(applied)
+    auto_scale = dataparser_scale / applied_scale
+    dataset = torch.diag(torch.tensor([auto_scale] * 3 + [1.0], dtype=torch.float64)) @ transform
+    colmap = dataset @ torch.diag(torch.tensor([applied_scale] * 3 + [1.0], dtype=torch.float64)) @ applied
+    return {"dataparser": torch.eye(4, dtype=torch.float64), "dataset": dataset, "colmap": colmap}
 
 
 def _photo(image: Tensor, view: PinholeView) -> Tensor:
@@ -399,10 +410,10 @@ def retrofit_reference(datamanager) -> RetrofitReference:
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
     outputs = datamanager.train_dataparser_outputs
-    applied = None
+    applied, applied_scale = None, 1.0
     if isinstance(datamanager.config.dataparser, NerfstudioDataParserConfig):
-        applied = applied_transform_of(Path(datamanager.config.dataparser.data))
-    frames = frames_from_dataparser(outputs.dataparser_transform, float(outputs.dataparser_scale), applied)
+        applied, applied_scale = applied_transform_of(Path(datamanager.config.dataparser.data))
+    frames = frames_from_dataparser(outputs.dataparser_transform, float(outputs.dataparser_scale), applied, applied_scale)
 
     def views() -> Tuple[List[PinholeView], List[PinholeView]]:
         cached = datamanager.cached_train  # undistorts the images and updates the cameras to match; do it first
