@@ -70,8 +70,8 @@ _LEGACY_COLMAP_APPLIED_TRANSFORM = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], 
 
 
 def homogeneous(matrix: Tensor) -> Tensor:
-    """[3, 4] or [4, 4] -> [4, 4] float64."""
-    matrix = torch.as_tensor(matrix, dtype=torch.float64)
+    """[3, 4] or [4, 4] -> [4, 4] float64 on the CPU."""
+    matrix = torch.as_tensor(matrix).detach().to("cpu", torch.float64)
     if matrix.shape == (4, 4):
         return matrix.clone()
     out = torch.eye(4, dtype=torch.float64)
@@ -80,7 +80,7 @@ def homogeneous(matrix: Tensor) -> Tensor:
 
 
 def similarity_parts(matrix: Tensor) -> Tuple[float, Tensor, Tensor]:
-    """Split p -> M p (M [4, 4]) into scale s, rotation R [3, 3] and translation t with M p = s R p + t.
+    """Split p -> M p (M [4, 4], on the CPU) into scale s, rotation R [3, 3] and translation t with M p = s R p + t.
 
     Raises ValueError when M is not a similarity (shear, anisotropic scale or a mirror).
     """
@@ -187,13 +187,14 @@ def transform_gaussians(gaussians: Dict[str, Tensor], matrix: Tensor) -> Dict[st
     means: M p; scales (log): + log s; quats (w, x, y, z, not normalised): q_R * q, keeping their
     norm; features_rest: each SH band rotated; features_dc and opacities unchanged.
     """
-    scale, rotation, translation = similarity_parts(matrix)
+    scale, rotation, translation = similarity_parts(torch.as_tensor(matrix).cpu())
     means = gaussians["means"]
     moved = dict(gaussians)
-    moved["means"] = (scale * means.double() @ rotation.T + translation).to(means)
+    moved["means"] = (scale * means.double() @ rotation.T.to(means.device) + translation.to(means.device)).to(means)
     moved["scales"] = gaussians["scales"] + math.log(scale)
     quats = gaussians["quats"]
-    moved["quats"] = quaternion_multiply(rotation_to_quaternion(rotation).expand_as(quats), quats.double()).to(quats)
+    turn = rotation_to_quaternion(rotation).to(quats.device)
+    moved["quats"] = quaternion_multiply(turn.expand_as(quats), quats.double()).to(quats)
     moved["features_rest"] = rotate_sh(gaussians["features_rest"], rotation)
     return moved
 
@@ -297,7 +298,8 @@ def resolve_frame(
     device = gaussians["means"].device
     centres = torch.stack([torch.inverse(view.viewmat.double())[:3, 3] for view in all_views])
     extent = max(float((centres - centres.mean(0)).norm(dim=-1).max()), 1e-6)
-    probe = gaussians["means"][torch.linspace(0, gaussians["means"].shape[0] - 1, min(4096, gaussians["means"].shape[0])).long()]
+    count = gaussians["means"].shape[0]
+    probe = gaussians["means"][torch.linspace(0, count - 1, min(4096, count)).long().to(device)]
 
     fits: List[FrameFit] = []
     moved: Dict[str, Dict[str, Tensor]] = {}
@@ -316,7 +318,7 @@ def resolve_frame(
             twin.same_as.append(name)
             continue
         probes[name] = placed
-        moved[name] = transform_gaussians(gaussians, matrix.to(device))
+        moved[name] = transform_gaussians(gaussians, matrix)
         share = float(in_view(moved[name]["means"], all_views).float().mean())
         fits.append(FrameFit(name, [], share, None))
     for fit in fits:
