@@ -26,6 +26,7 @@ as well to keep the cache beside the runs.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from collections import OrderedDict
@@ -55,6 +56,7 @@ from votesplat_ns.mask_sources import (
     make_mask_source,
     read_image_rgb,
 )
+from votesplat_ns.retrofit import retrofit_reference
 from votesplat_ns.vote_cache import VoteCache, VoteOptions
 from votesplat_ns.vote_maps import (
     DEFAULT_BORDER_MASKS,
@@ -387,6 +389,8 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         self._in_memory: "OrderedDict[int, Dict[str, torch.Tensor]]" = OrderedDict()
         # the pipeline hands train_dataset.metadata to the model, which sizes its offsets by it
         self.train_dataset.metadata["vote_levels"] = self.config.resolved_levels()
+        # a retrofit from a PLY (model.retrofit_from) finds the file's frame with these frames and views
+        self.train_dataset.metadata["retrofit_reference"] = functools.partial(retrofit_reference, self)
         if test_mode == "val":  # ns-train: make all masks now, before training starts
             self._prepare_votes()
 

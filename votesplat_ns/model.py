@@ -15,16 +15,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
+import numpy as np
 import torch
 from torch.nn import Parameter
 
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
+from nerfstudio.utils.rich_utils import CONSOLE
 
+from votesplat_ns.cli_errors import VoteSplatInputError
 from votesplat_ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
 from votesplat_ns.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
+from votesplat_ns.ply_io import GaussianPlyError, read_3dgs_ply
 from votesplat_ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
+from votesplat_ns.retrofit import resolve_frame
 from votesplat_ns.viewer import VoteSplatViewerState
 from votesplat_ns.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
 
@@ -41,7 +46,9 @@ def latest_checkpoint(path: Path) -> Path:
         path = path.parent
     candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
     if not candidates:
-        raise ValueError(f"no checkpoint found at {path}: give a step-*.ckpt file or a run folder with nerfstudio_models/")
+        raise VoteSplatInputError(
+            f"no checkpoint found at {path}: give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
+        )
     return candidates[-1]
 
 
@@ -51,11 +58,23 @@ def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
     pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
     missing = [name for name in SPLAT_PARAM_NAMES if f"_model.gauss_params.{name}" not in pipeline_state]
     if missing:
-        raise ValueError(
+        raise VoteSplatInputError(
             f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
             "retrofit needs one written by ns-train splatfacto or votesplat"
         )
     return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in SPLAT_PARAM_NAMES}
+
+
+def gaussians_from_ply_arrays(arrays: Dict[str, np.ndarray]) -> Dict[str, torch.Tensor]:
+    """``ply_io.read_3dgs_ply`` arrays as splatfacto's Gaussian parameters (opacities [N, 1])."""
+    return {
+        "means": torch.from_numpy(arrays["means"]),
+        "scales": torch.from_numpy(arrays["log_scales"]),
+        "quats": torch.from_numpy(arrays["quats"]),
+        "features_dc": torch.from_numpy(arrays["features_dc"]),
+        "features_rest": torch.from_numpy(arrays["features_rest"]),
+        "opacities": torch.from_numpy(arrays["opacity_logits"])[:, None],
+    }
 
 
 def _pixels_and_targets(
@@ -117,7 +136,9 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
     retrofit_from: Optional[Path] = None
-    """Add instances to a trained splatfacto run (its folder or a step-*.ckpt): train only the vote offsets (fast, also on CPU)."""
+    """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
+    retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
+    """Frame of a --pipeline.model.retrofit-from .ply: dataparser, dataset, colmap, or auto (README: retrofit frames)."""
     foreground_min_masked_share: Optional[float] = DEFAULT_MIN_MASKED_SHARE
     """After training, a Gaussian stays foreground at a level only if more than this share of its weight is in masks (None: all)."""
     clip_model_name: str = "ViT-B-16"
@@ -152,6 +173,7 @@ class VoteSplatModel(SplatfactoModel):
         with offline_lpips(), cuda_calls_stay_on_cpu(model_on_cpu=True):
             super().populate_modules()
         self.retrofitted = False
+        self.retrofit_source_frame: Optional[str] = None  # the frame a retrofit PLY was read in
         if self.config.retrofit_from is not None:
             self._load_retrofit_source()
         num_points = self.gauss_params["means"].shape[0]
@@ -175,16 +197,52 @@ class VoteSplatModel(SplatfactoModel):
             # Fine when a trained retrofit run is being loaded (its own checkpoint follows);
             # ns-train stops in get_training_callbacks with a clear message.
             return
-        gaussians = load_gaussians(latest_checkpoint(source))
+        if source.suffix.lower() == ".ply":
+            gaussians = self._gaussians_from_ply(source)
+            if gaussians is None:
+                return
+        else:
+            gaussians = load_gaussians(latest_checkpoint(source))
         expected_rest = self.gauss_params["features_rest"].shape[1:]
         if gaussians["features_rest"].shape[1:] != expected_rest:
-            raise ValueError(
+            raise VoteSplatInputError(
                 f"{source} has SH features of shape {tuple(gaussians['features_rest'].shape[1:])}, the model expects "
                 f"{tuple(expected_rest)}: pass the --pipeline.model.sh-degree it was trained with"
             )
         for name in SPLAT_PARAM_NAMES:
             self.gauss_params[name] = Parameter(gaussians[name].to(self.gauss_params[name].device), requires_grad=False)
         self.retrofitted = True
+
+    def _gaussians_from_ply(self, source: Path) -> Optional[Dict[str, torch.Tensor]]:
+        """The Gaussians of a 3DGS PLY, checked and moved into the training frame (None: a checkpoint will follow)."""
+        flag = "--pipeline.model.retrofit-from"
+        make_reference = (self.kwargs.get("metadata") or {}).get("retrofit_reference")
+        if make_reference is None:
+            raise VoteSplatInputError(
+                f"{flag} {source}: a PLY needs votesplat's datamanager, whose cameras and images tell the PLY's frame"
+            )
+        reference = make_reference()
+        if reference.test_mode != "val":
+            return None  # a trained run is loaded to evaluate, view or export it: its checkpoint replaces the Gaussians
+        try:
+            arrays, sh_degree = read_3dgs_ply(source)
+        except GaussianPlyError as err:
+            raise VoteSplatInputError(f"{flag} {err}") from None
+        if sh_degree != self.config.sh_degree:
+            raise VoteSplatInputError(
+                f"{flag} {source} has SH degree {sh_degree} ({arrays['features_rest'].shape[1] * 3} f_rest properties), "
+                f"the model is set to {self.config.sh_degree}: pass --pipeline.model.sh-degree {sh_degree}"
+            )
+        device = torch.device(self.kwargs.get("device") or "cpu")
+        gaussians = {name: value.to(device) for name, value in gaussians_from_ply_arrays(arrays).items()}
+        frame, moved, fits = resolve_frame(gaussians, reference, self.config.retrofit_frame, source, rasterize, sh_degree)
+        self.retrofit_source_frame = frame
+        fit = next(f for f in fits if frame == f.name or frame in f.same_as)
+        CONSOLE.log(
+            f"Retrofit from {source}: {moved['means'].shape[0]} Gaussians in frame '{frame}' "
+            f"({fit.in_view_share:.1%} in the training views, {fit.psnr:.1f} dB PSNR at {len(reference.views()[1])} views)"
+        )
+        return {name: value.cpu() for name, value in moved.items()}
 
     def get_training_callbacks(self, training_callback_attributes):
         if self.vote_only and not self.retrofitted:

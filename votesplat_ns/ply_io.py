@@ -30,7 +30,7 @@ import contextlib
 import os
 import secrets
 from pathlib import Path
-from typing import Dict, Iterator, Optional, Sequence, Union
+from typing import Dict, Iterator, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -314,22 +314,29 @@ def read_vertex_ply(path: PathLike) -> Dict[str, np.ndarray]:
     return {name: data[name].copy() for name, _ in props}
 
 
-def read_gaussian_ply(path: PathLike) -> Dict[str, np.ndarray]:
-    """Read a standard 3DGS PLY back into arrays shaped like splatfacto's parameters.
+_REQUIRED_GAUSSIAN_PROPERTIES = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [
+    f"rot_{i}" for i in range(4)
+]
+_OPTIONAL_GAUSSIAN_PROPERTIES = ("nx", "ny", "nz")  # zeros in every writer; gsplat's export_splats leaves them out
+MAX_SH_DEGREE = 4  # the highest degree gsplat renders
 
-    Returns means [N,3], features_dc [N,3], features_rest [N,K,3] (back in nerfstudio's
-    coefficient-major order), opacity_logits [N], log_scales [N,3], quats [N,4] (all float32).
-    """
-    columns = read_vertex_ply(path)
-    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
-    missing = [name for name in required if name not in columns]
-    if missing:
-        raise ValueError(f"{path} is not a 3D Gaussian Splatting PLY: missing properties {missing}")
-    num_rest = sum(1 for name in columns if name.startswith("f_rest_"))
-    if num_rest % 3:
-        raise ValueError(f"{path}: {num_rest} f_rest_* properties is not a multiple of 3")
+
+class GaussianPlyError(ValueError):
+    """A file that is not a usable standard 3DGS PLY; the message names the file and says what is wrong."""
+
+
+def sh_degree_of_rest_count(num_rest: int) -> Optional[int]:
+    """The SH degree d with 3 * ((d + 1)^2 - 1) == ``num_rest`` f_rest_* properties, or None if there is none."""
+    for degree in range(MAX_SH_DEGREE + 1):
+        if 3 * ((degree + 1) ** 2 - 1) == num_rest:
+            return degree
+    return None
+
+
+def _gaussians_from_columns(columns: Dict[str, np.ndarray], num_rest: int) -> Dict[str, np.ndarray]:
     n = columns["x"].shape[0]
     stack = lambda names: np.stack([columns[k].astype(np.float32) for k in names], axis=1) if names else np.zeros((n, 0), np.float32)  # noqa: E731
+    # channel-major in the file (all R coefficients, then G, then B), [N, K, 3] in splatfacto
     rest = stack([f"f_rest_{i}" for i in range(num_rest)]).reshape(n, 3, num_rest // 3).transpose(0, 2, 1)
     return {
         "means": stack(["x", "y", "z"]),
@@ -339,6 +346,94 @@ def read_gaussian_ply(path: PathLike) -> Dict[str, np.ndarray]:
         "log_scales": stack([f"scale_{i}" for i in range(3)]),
         "quats": stack([f"rot_{i}" for i in range(4)]),
     }
+
+
+def read_gaussian_ply(path: PathLike) -> Dict[str, np.ndarray]:
+    """Read a standard 3DGS PLY back into arrays shaped like splatfacto's parameters.
+
+    Returns means [N,3], features_dc [N,3], features_rest [N,K,3] (back in nerfstudio's
+    coefficient-major order), opacity_logits [N], log_scales [N,3], quats [N,4] (all float32).
+    Lenient: other properties are ignored. :func:`read_3dgs_ply` checks a file from elsewhere.
+    """
+    columns = read_vertex_ply(path)
+    missing = [name for name in _REQUIRED_GAUSSIAN_PROPERTIES if name not in columns]
+    if missing:
+        raise ValueError(f"{path} is not a 3D Gaussian Splatting PLY: missing properties {missing}")
+    num_rest = sum(1 for name in columns if name.startswith("f_rest_"))
+    if num_rest % 3:
+        raise ValueError(f"{path}: {num_rest} f_rest_* properties is not a multiple of 3")
+    return _gaussians_from_columns(columns, num_rest)
+
+
+def _names_list(names: Sequence[str], limit: int = 6) -> str:
+    shown = ", ".join(names[:limit])
+    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
+    """Read and check a standard 3DGS PLY written by any tool; returns (arrays as ``read_gaussian_ply``, SH degree).
+
+    Accepted: binary little-endian, one vertex element with exactly the properties x y z
+    [nx ny nz] f_dc_0..2 f_rest_0..f_rest_{3((d+1)^2-1)-1} opacity scale_0..2 rot_0..3 in any
+    order and any numeric type (the layout of the original 3DGS writer, gsplat's export_splats,
+    ``ns-export gaussian-splat`` and :func:`write_gaussian_ply`). Anything else — not a PLY, a
+    truncated file, no vertices, missing or extra properties (an extra one such as Mip-Splatting's
+    filter_3D changes what the scene looks like), f_rest for no SH degree, a NaN or infinite
+    value — raises :class:`GaussianPlyError` with a one-line message naming the file.
+    """
+    what_to_do = "give a binary 3DGS PLY (ns-export gaussian-splat, the original 3DGS or gsplat's simple_trainer)"
+    try:
+        _, count, props, _, offset = read_ply_header(path)
+    except FileNotFoundError:
+        raise GaussianPlyError(f"{path} does not exist; {what_to_do}") from None
+    except (ValueError, IndexError, UnicodeError) as err:
+        reason = str(err) if str(path) in str(err) else f"{path}: {err}"
+        raise GaussianPlyError(f"{reason}; {what_to_do}") from None
+    if count < 0:
+        raise GaussianPlyError(f"{path}: PLY header declares {count} vertices; {what_to_do}")
+    names = [name for name, _ in props]
+    duplicated = sorted({name for name in names if names.count(name) > 1})
+    if duplicated:
+        raise GaussianPlyError(f"{path}: properties {_names_list(duplicated)} appear more than once; {what_to_do}")
+    rest_names = [name for name in names if name.startswith("f_rest_")]
+    num_rest = len(rest_names)
+    expected_rest = [f"f_rest_{i}" for i in range(num_rest)]
+    missing = [name for name in _REQUIRED_GAUSSIAN_PROPERTIES if name not in names]
+    missing += [name for name in expected_rest if name not in rest_names]
+    known = set(_REQUIRED_GAUSSIAN_PROPERTIES) | set(_OPTIONAL_GAUSSIAN_PROPERTIES) | set(expected_rest)
+    extra = [name for name in names if name not in known]
+    if missing:
+        hint = "; it stores RGB colours, export with --ply-color-mode sh_coeffs" if "red" in names and "f_dc_0" not in names else ""
+        raise GaussianPlyError(f"{path} is not a 3DGS PLY: it lacks the properties {_names_list(missing)}{hint}; {what_to_do}")
+    if extra:
+        raise GaussianPlyError(
+            f"{path} has properties a standard 3DGS PLY does not have ({_names_list(extra)}); they would change the scene "
+            f"and are not read: {what_to_do}"
+        )
+    sh_degree = sh_degree_of_rest_count(num_rest)
+    if sh_degree is None:
+        raise GaussianPlyError(
+            f"{path} has {num_rest} f_rest_* properties, which fits no SH degree (3*((d+1)^2-1): 0, 9, 24, 45, 72); {what_to_do}"
+        )
+    if count == 0:
+        raise GaussianPlyError(f"{path} holds no Gaussians (its vertex count is 0); export the trained scene again")
+    dtype = np.dtype([(name, "<" + code if code[1] != "1" else code) for name, code in props])
+    size = os.path.getsize(path)
+    if size - offset < count * dtype.itemsize:
+        raise GaussianPlyError(
+            f"{path} is truncated: its header declares {count} Gaussians ({count * dtype.itemsize} bytes) but only "
+            f"{max(size - offset, 0)} bytes follow; copy or export the file again"
+        )
+    data = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    columns = {name: data[name] for name in names}
+    bad_names = [name for name in names if not np.isfinite(columns[name]).all()]
+    if bad_names:
+        bad_rows = ~np.all([np.isfinite(columns[name]) for name in bad_names], axis=0)
+        raise GaussianPlyError(
+            f"{path}: {int(bad_rows.sum())} of {count} Gaussians have NaN or infinite values (in {_names_list(bad_names)}); "
+            "export the scene again (ns-export gaussian-splat leaves such Gaussians out) or drop them"
+        )
+    return _gaussians_from_columns(columns, num_rest), sh_degree
 
 
 def write_instance_id_file(path: PathLike, instance_ids: np.ndarray) -> None:
