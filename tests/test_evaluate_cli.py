@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import stat
 import sys
 from pathlib import Path
 
@@ -437,3 +439,22 @@ def test_noisy_masks_bad_inputs(tmp_path, monkeypatch, capsys):
     )
     assert code == 1 and "split_rate must be a probability" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x").exists()
+
+
+def test_written_files_and_folders_follow_the_umask(tmp_path):
+    """Noisy-mask folders, comparison pictures and label files get the user's umask, not 0600/0700."""
+    from votesplat_ns.evaluation import save_comparison_png
+    from votesplat_ns.lerf_ovs import frame_from_masks, write_label_frame
+
+    previous = os.umask(0o022)
+    try:
+        folder = write_noisy_masks(DEMO_SCENE, tmp_path / "noisy", MaskNoise(), levels=("instance",))
+        maps = [np.array([[0, 1], [1, 2]])]
+        picture = save_comparison_png(maps, maps, tmp_path / "pictures" / "comparison.png")
+        label = tmp_path / "labels" / "frame_00001.json"
+        write_label_frame(label, frame_from_masks("frame_00001.jpg", {"thing": np.eye(4, dtype=bool)}))
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o755
+    for path in [picture, label, *folder.rglob("*.png")]:
+        assert stat.S_IMODE(path.stat().st_mode) == 0o644, path

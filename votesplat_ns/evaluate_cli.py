@@ -45,7 +45,6 @@ import dataclasses
 import json
 import shutil
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple, Union
@@ -69,7 +68,7 @@ from votesplat_ns.evaluation import (
 from votesplat_ns.instances import render_instance_ids
 from votesplat_ns.mask_noise import MaskNoise
 from votesplat_ns.mask_sources import read_label_png
-from votesplat_ns.ply_io import atomic_write
+from votesplat_ns.ply_io import atomic_write, make_temp_dir, temp_sibling
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"
@@ -883,7 +882,7 @@ def write_noisy_masks(
     if output.resolve() == dataset.root.resolve() or dataset.root.resolve() in output.resolve().parents:
         raise ValueError(f"{output} lies inside the dataset {dataset.root}; write the noisy masks outside it")
     output.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.partial.", dir=output.parent))
+    staging = make_temp_dir(output, ".partial")
     try:
         changed = {level: 0 for level in levels}
         for level_index, level in enumerate(levels):
@@ -906,8 +905,7 @@ def write_noisy_masks(
         }
         write_json_atomic(staging / NOISE_MANIFEST_NAME, manifest)
         if output.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{output.name}.old.", dir=output.parent))
-            old.rmdir()
+            old = temp_sibling(output, ".old")
             output.rename(old)
             staging.rename(output)
             shutil.rmtree(old, ignore_errors=True)

@@ -42,14 +42,14 @@ floor cannot tell a wall from a scene: a flat grey image alone reaches 12-16 dB 
 from __future__ import annotations
 
 import colorsys
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from votesplat_ns.ply_io import atomic_write
 
 
 def _as_views(maps, what: str) -> list:
@@ -457,13 +457,6 @@ def save_comparison_png(gt_maps, pred_maps, path, scale: int = 1, gap: int = 4) 
         picture = picture.repeat(scale, axis=0).repeat(scale, axis=1)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        Image.fromarray(picture).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path) as handle:  # the user's umask, as every file we write
+        Image.fromarray(picture).save(handle, format="PNG")
     return path

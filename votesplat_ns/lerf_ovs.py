@@ -33,13 +33,13 @@ import json
 import math
 import os
 import re
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from votesplat_ns.ply_io import atomic_write
 
 try:  # torch is optional here: predictions may be numpy arrays or tensors.
     import torch
@@ -355,15 +355,8 @@ def write_label_frame(path: Union[str, os.PathLike], frame: LabelFrame) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(label_frame_to_json(frame), indent=4, ensure_ascii=False)
-    handle = tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=path.parent, prefix=f".{path.name}.",
-                                         suffix=".tmp", delete=False)
-    try:
-        with handle:
-            handle.write(text)
-        os.replace(handle.name, path)
-    except BaseException:
-        Path(handle.name).unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as handle:
+        handle.write(text.encode("utf-8"))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -14,7 +14,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any, Dict, Iterable, List, Mapping, Optional, Protocol, Sequence, Tuple, Union, runtime_checkable
@@ -24,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from votesplat_ns.cli_errors import load_failure_reason
+from votesplat_ns.ply_io import atomic_write
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 
@@ -267,14 +267,8 @@ class InstanceFeatures(dict):
             "config_json": np.asarray(json.dumps(self.config, sort_keys=True)),
         }
         path.parent.mkdir(parents=True, exist_ok=True)
-        handle = tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False)
-        try:
-            with handle:
-                np.savez(handle, **arrays)
-            os.replace(handle.name, path)
-        except BaseException:
-            Path(handle.name).unlink(missing_ok=True)
-            raise
+        with atomic_write(path) as handle:
+            np.savez(handle, **arrays)
 
     @classmethod
     def load(cls, path: Union[str, os.PathLike], encoder: Optional[EncoderProtocol] = None,
