@@ -4,7 +4,6 @@
     python benchmarks/quality.py --scenes build/scenes/forward --ablation --steps 800
     python benchmarks/quality.py --scenes build/scenes/forward --ablation --retrofit --base-steps 1500 \
         --steps 400 --seeds 0 1 2
-    python benchmarks/quality.py --family tuning --steps 3000     # build/family_tuning (votesplat-synth family-set)
     python benchmarks/quality.py --merge runs/*/quality.json      # one table (+ mean over scenes) of parallel runs
 
 For every scene folder (written by ``votesplat-synth``) and every mask kind in ``--masks``:
@@ -20,9 +19,8 @@ mIoU, precision and recall are votesplat-eval's ``*_valid_views`` scores (held-o
 reconstruction did not fail) where it reports them, else its scores over all held-out views; the
 "views" column says which (and how many views were valid).
 
-``--family tuning`` (or ``test``) scores every scene of that family set (``--family-dir``, default
-``build/family_<set>``, written by ``votesplat-synth family-set``); no default may be tuned on the
-test set (votesplat_ns/synthetic/family.py). ``--ablation`` trains the
+A family set (``votesplat-synth family-set``) is scored with ``benchmarks/sweep.py --family``,
+which also compares training and clustering variants. ``--ablation`` trains the
 paper's Table 3 variants on each scene with GT masks instead: the full model, no depth distortion
 (``vote_distortion=none``), votes blended in 2D (``vote_blend_space=2d``) and alpha*T vote weights
 (``vote_weighting=alpha_t``).
@@ -230,8 +228,6 @@ def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None
 def parse_args(argv: Optional[List[str]] = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="scene folders (default: the bundled demo scene)")
-    parser.add_argument("--family", choices=["tuning", "test"], default=None, help="score every scene of this family set instead")
-    parser.add_argument("--family-dir", type=Path, default=None, help="where the set was written (default build/family_<set>)")
     parser.add_argument("--masks", nargs="+", choices=["gt", "noisy"], default=["gt", "noisy"])
     parser.add_argument("--ablation", action="store_true", help="train the Table 3 variants (GT masks) instead of gt/noisy")
     parser.add_argument("--variants", nargs="+", choices=sorted(ABLATIONS), default=list(ABLATIONS), help="ablation variants to run")
@@ -271,18 +267,7 @@ def parse_args(argv: Optional[List[str]] = None):
     args = parser.parse_args(argv)
     if args.summarize or args.merge:
         return args
-    if args.family is not None:
-        if args.scenes is not None:
-            parser.error("pass either --scenes or --family, not both")
-        from votesplat_ns.synthetic.family import read_family_set
-
-        try:
-            name, args.scenes = read_family_set(args.family_dir or Path("build") / f"family_{args.family}")
-        except ValueError as err:
-            parser.error(str(err))
-        if name != args.family:
-            parser.error(f"{args.family_dir} holds the {name} set, not {args.family}")
-    elif args.scenes is None:
+    if args.scenes is None:
         args.scenes = [Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"]
     if args.retrofit:
         args.vote_start = 0  # a retrofit votes from its first step
@@ -356,8 +341,6 @@ def main(argv: Optional[List[str]] = None) -> int:
             f"device {args.device}, levels {' '.join(args.levels)}; mIoU over the held-out views that votesplat-eval "
             "counts as valid where it reports them (views column), else over all"
         )
-        if args.family:
-            settings = f"family set {args.family} (no default may be tuned on the test set); " + settings
         if args.retrofit:
             settings = f"retrofit on a scene trained {args.base_steps} steps without votes; " + settings
         if len(args.seeds) > 1:

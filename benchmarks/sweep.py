@@ -1,9 +1,14 @@
 """Choose defaults on a tuning set of scenes: every training variant x every clustering variant.
 
-    python benchmarks/sweep.py --scenes build/family_tuning/* --masks gt noisy \\
+    python benchmarks/sweep.py --family tuning --masks gt noisy \\
         --train default 'nodist:vote_distortion=none' 'pix0.05:vote_distortion=l1_pixels,distortion_loss_weight=0.05' \\
                 'maskonly:dm.border_masks=mask_only' \\
         --cluster fill 'nofill:fill=False' --steps 3000 --vote-start 500 --jobs 16 --work-dir build/sweep
+
+``--family tuning|test`` takes every scene of that family set (``--family-dir``, default
+``build/family_<set>``, written by ``votesplat-synth family-set``), checked against the seeds in
+votesplat_ns/synthetic/family.py: defaults are chosen on the tuning set only, the test set reports
+them. ``--scenes`` takes any votesplat-synth folders instead.
 
 A training variant is ``name:field=value,...`` (model config fields; ``dm.<field>`` for the
 datamanager's); ``default`` alone trains with the defaults. A clustering variant is
@@ -149,7 +154,9 @@ def write_text(path: Path, text: str) -> None:
 
 def parse_args(argv: Optional[List[str]] = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenes", nargs="+", type=Path, required=False, default=[])
+    parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="votesplat-synth scene folders")
+    parser.add_argument("--family", choices=["tuning", "test"], default=None, help="every scene of this family set instead")
+    parser.add_argument("--family-dir", type=Path, default=None, help="where the set was written (default build/family_<set>)")
     parser.add_argument("--masks", nargs="+", choices=["gt", "noisy"], default=["gt"])
     parser.add_argument("--train", nargs="+", type=parse_variant, default=[("default", {})])
     parser.add_argument("--cluster", nargs="+", type=parse_variant, default=[("default", {})])
@@ -161,6 +168,21 @@ def parse_args(argv: Optional[List[str]] = None):
     parser.add_argument("--job", type=Path, default=None, help=argparse.SUPPRESS)  # worker mode: one job file
     parser.add_argument("--summarize", nargs="+", type=Path, default=None, metavar="JSON", help="print the tables of sweep.json files")
     args = parser.parse_args(argv)
+    if args.job is not None or args.summarize:
+        return args
+    if args.family is not None:
+        if args.scenes is not None:
+            parser.error("pass either --scenes or --family, not both")
+        from votesplat_ns.synthetic.family import read_family_set
+
+        try:
+            name, args.scenes = read_family_set(args.family_dir or Path("build") / f"family_{args.family}")
+        except ValueError as err:
+            parser.error(str(err))
+        if name != args.family:
+            parser.error(f"{args.family_dir} holds the {name} set, not {args.family}")
+    elif not args.scenes:
+        parser.error("pass --scenes or --family")
     for scene in args.scenes:
         if not (scene / "transforms.json").is_file():
             parser.error(f"{scene} has no transforms.json; pass folders written by votesplat-synth")
@@ -221,13 +243,16 @@ def main(argv: Optional[List[str]] = None) -> int:
     settings["scenes"] = [str(s) for s in args.scenes]
     rows: List[dict] = []
     lock = threading.Lock()
+    header = f"steps {args.steps}, vote start {args.vote_start}"
+    if args.family:
+        header = f"family set {args.family} (no default may be tuned on the test set); " + header
 
     def finished(job_rows: List[dict]) -> None:
         # written after every run, so a call cut short by its time limit still reports what finished
         with lock:
             rows.extend(job_rows)
             write_text(work / "sweep.json", json.dumps({"settings": settings, "rows": rows}, indent=1, default=str) + "\n")
-            text = f"steps {args.steps}, vote start {args.vote_start}\n\n{table(rows)}\n\nPer scene:\n\n{per_scene_table(rows)}\n"
+            text = f"{header}\n\n{table(rows)}\n\nPer scene:\n\n{per_scene_table(rows)}\n"
             write_text(work / "sweep.md", text)
 
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:

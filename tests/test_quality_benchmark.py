@@ -1,4 +1,5 @@
-"""benchmarks/quality.py's tables: per-seed rows grouped into mean ± std, and the --summarize merge."""
+"""benchmarks/quality.py's tables (per-seed rows grouped into mean ± std, the --summarize merge) and
+benchmarks/sweep.py's family-set option."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from pathlib import Path
 import pytest
 
 QUALITY_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "quality.py"
+SWEEP_PATH = QUALITY_PATH.with_name("sweep.py")
 
 
 @pytest.fixture(scope="module")
@@ -129,22 +131,31 @@ def test_merge_gives_rows_per_scene_and_the_mean_over_scenes(quality, tmp_path):
         quality.merge([ablation])
 
 
-def test_family_option_reads_the_set_folder(quality, tmp_path):
+@pytest.fixture(scope="module")
+def sweep():
+    spec = importlib.util.spec_from_file_location("votesplat_sweep_benchmark", SWEEP_PATH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_sweep_family_option_reads_the_set_folder(sweep, tmp_path):
     from votesplat_ns.synthetic.family import SET_MANIFEST, TEST_SEEDS, TUNING_SEEDS, scene_folder
 
     with pytest.raises(SystemExit):
-        quality.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # no family_set.json
+        sweep.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # no family_set.json
     (tmp_path / SET_MANIFEST).write_text(json.dumps({"set": "test", "seeds": list(TEST_SEEDS)}))
     for seed in TEST_SEEDS:
         (tmp_path / scene_folder(seed)).mkdir()
         (tmp_path / scene_folder(seed) / "transforms.json").write_text("{}")
-    args = quality.parse_args(["--family", "test", "--family-dir", str(tmp_path)])
+    args = sweep.parse_args(["--family", "test", "--family-dir", str(tmp_path)])
     assert args.scenes == [tmp_path / scene_folder(seed) for seed in TEST_SEEDS]
-    assert args.levels == ["instance", "part"]
+    assert sweep.LEVELS == ("instance", "part")  # every run is scored at both levels
     with pytest.raises(SystemExit):
-        quality.parse_args(["--family", "tuning", "--family-dir", str(tmp_path)])  # the folder holds the test set
+        sweep.parse_args(["--family", "tuning", "--family-dir", str(tmp_path)])  # the folder holds the test set
     with pytest.raises(SystemExit):
-        quality.parse_args(["--family", "test", "--family-dir", str(tmp_path), "--scenes", str(tmp_path)])
+        sweep.parse_args(["--family", "test", "--family-dir", str(tmp_path), "--scenes", str(tmp_path)])
     (tmp_path / SET_MANIFEST).write_text(json.dumps({"set": "test", "seeds": list(TUNING_SEEDS)}))
     with pytest.raises(SystemExit):
-        quality.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # seeds that are not this code's test set
+        sweep.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # seeds that are not this code's test set

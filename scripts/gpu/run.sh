@@ -23,17 +23,10 @@
 #                     then mean ± std), every run its own process,
 #                     all at once (the GPU is mostly idle in one small-scene run); QUALITY_STEPS
 #                     (3000), QUALITY_VOTE_START (500). Output quality.md (merged tables), quality.tar.gz
-#   sweep             benchmarks/sweep.py: training x clustering variants on $SWEEP_SCENES ($SWEEP_ARGS),
-#                     all trainings in parallel worker processes; sweep.md, sweep.json, sweep.log
-#   quality-family [DIR]  benchmarks/quality.py on every scene of a family set (default
-#                     $FAMILY_DIR = .gpu/family_test, written here by `votesplat-synth family-set
-#                     --set test --output-dir .gpu/family_test`; 12.9 MB): one process per scene and
-#                     mask kind ($QUALITY_MASKS), all at once on the one GPU, each scoring the instance
-#                     and part levels; FAMILY_STEPS ($QUALITY_STEPS), FAMILY_VOTE_START
-#                     ($QUALITY_VOTE_START), FAMILY_ARGS (extra quality.py flags). Output
-#                     quality_family.md (per scene + mean over scenes), quality_family.log,
-#                     quality_family.tar.gz. Not measured yet: 12 runs at 3000 steps should take
-#                     about as long as `quality`'s 18
+#   sweep             benchmarks/sweep.py: training x clustering variants on $SWEEP_SCENES, or on a
+#                     family set with SWEEP_ARGS="--family test --family-dir build/family_test ..."
+#                     (carry the set's folder), all trainings in parallel worker processes (--jobs);
+#                     sweep.md, sweep.json, sweep.log. 12 runs of 3000 steps at 256x192: ~290 s
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
 #                     with votesplat/splatfacto ratios; prints it
 #
@@ -76,10 +69,6 @@ QUALITY_MASKS=${QUALITY_MASKS:-"gt noisy"}
 SWEEP_SCENES=${SWEEP_SCENES:-}
 SWEEP_ARGS=${SWEEP_ARGS:-}
 QUALITY_ARGS=${QUALITY_ARGS:-}                            # extra benchmarks/quality.py flags, e.g. --vote-every 4
-FAMILY_DIR=${FAMILY_DIR:-.gpu/family_test}                # a family set (family_set.json + family_<seed>/)
-FAMILY_STEPS=${FAMILY_STEPS:-$QUALITY_STEPS}
-FAMILY_VOTE_START=${FAMILY_VOTE_START:-$QUALITY_VOTE_START}
-FAMILY_ARGS=${FAMILY_ARGS:-}
 SITE=${SITE:-/tmp/site}                                  # carried wheels are installed here
 RUNS=/tmp/votesplat_runs
 OUT=${OUT:-/tmp/votesplat_gpu_out}
@@ -365,59 +354,13 @@ stage_sweep() {
   local work=$RUNS/sweep
   rm -rf "$work"; mkdir -p "$work"
   # shellcheck disable=SC2086
-  timeout "$(limit_s)" "$PY" benchmarks/sweep.py --scenes $SWEEP_SCENES --work-dir "$work" $SWEEP_ARGS >"$OUT/sweep.log" 2>&1
+  timeout "$(limit_s)" "$PY" benchmarks/sweep.py ${SWEEP_SCENES:+--scenes $SWEEP_SCENES} --work-dir "$work" $SWEEP_ARGS >"$OUT/sweep.log" 2>&1
   local rc=$?
   cp "$work/sweep.md" "$work/sweep.json" "$OUT/" 2>/dev/null || log "sweep: no run finished (see sweep.log)"
   grep -h -i -E "error|Traceback" "$work"/*/*/worker.log 2>/dev/null | sort | uniq -c | head -20 >>"$OUT/sweep.log"
   return "$rc"
 }
 
-# --------------------------------------------------------------------------- quality-family
-stage_quality_family() {  # [DIR]: a family set folder (default $FAMILY_DIR)
-  ensure_setup || return 1
-  local dir=${1:-$FAMILY_DIR} work=$RUNS/quality_family log_file=$OUT/quality_family.log pids=() scene name masks rc=0 listing
-  rm -rf "$work"; mkdir -p "$work"
-  # the set's own check: its family_set.json names this code's tuning or test seeds, every scene is complete
-  if ! listing=$("$PY" - "$dir" 2>&1 <<'PY'
-import sys
-from votesplat_ns.synthetic.family import read_family_set
-try:
-    name, scenes = read_family_set(sys.argv[1])
-except ValueError as error:
-    sys.exit(str(error))
-print(name)
-print("\n".join(str(scene) for scene in scenes))
-PY
-  ); then
-    log "quality-family: $dir is not a family set: $listing (carry it, e.g. .gpu/family_test)" | tee -a "$log_file"
-    return 1
-  fi
-  log "quality-family: the $(head -1 <<<"$listing") set in $dir, $FAMILY_STEPS steps per run" | tee -a "$log_file"
-  while read -r scene; do
-    name=$(basename "$scene")
-    for masks in $QUALITY_MASKS; do
-      # shellcheck disable=SC2086
-      timeout "$(limit_s)" "$PY" benchmarks/quality.py --scenes "$scene" --masks "$masks" --steps "$FAMILY_STEPS" \
-        --vote-start "$FAMILY_VOTE_START" --levels instance part --work-dir "$work/$name-$masks" $FAMILY_ARGS \
-        >"$work/$name-$masks.log" 2>&1 &
-      pids+=($!)
-    done
-  done < <(tail -n +2 <<<"$listing")
-  log "quality-family: ${#pids[@]} runs started" | tee -a "$log_file"
-  for pid in "${pids[@]}"; do wait "$pid" || rc=1; done
-  log "quality-family: all runs ended (exit $rc)" | tee -a "$log_file"
-  if compgen -G "$work/*/quality.json" >/dev/null; then
-    { echo "# family set $(head -1 <<<"$listing") ($dir), $FAMILY_STEPS steps, vote start $FAMILY_VOTE_START ${FAMILY_ARGS:+, $FAMILY_ARGS}"; echo
-      "$PY" benchmarks/quality.py --merge "$work"/*/quality.json; } >"$OUT/quality_family.md" 2>&1 || rc=1
-  else
-    echo "no run wrote a quality.json (see quality_family.log)" >"$OUT/quality_family.md"; rc=1
-  fi
-  cat "$OUT/quality_family.md" | tee -a "$log_file"
-  tail -n 5 "$work"/*.log >>"$log_file"
-  (cd "$work" && find . \( -name 'metrics.json' -o -name '*.png' -o -name '*.md' -o -name '*.log' -o -name 'quality.json' \) \
-     -not -path '*/noisy_masks/*' -print0 | tar --null -czf "$OUT/quality_family.tar.gz" -T -)
-  return "$rc"
-}
 
 # ----------------------------------------------------------------------------------- training
 # train_one EXPERIMENT METHOD DATA DOWNSCALE LOG [votesplat args...]: trains, evaluates and
@@ -607,17 +550,13 @@ while [ "$#" -gt 0 ]; do
     bench-sam) stage_bench_sam || rc=1 ;;
     quality) stage_quality || rc=1 ;;
     sweep) stage_sweep || rc=1 ;;
-    quality-family)
-      dir=$FAMILY_DIR
-      if [ "$#" -gt 0 ] && [ -d "$1" ]; then dir=$1; shift; fi
-      stage_quality_family "$dir" || rc=1 ;;
     train-fox) train_compare fox "$FOX" 2 || rc=1 ;;
     train-synthetic)
       data=.gpu/synthetic
       if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
       train_compare synthetic "$data" "$SYNTH_DOWNSCALE" || rc=1 ;;
     compare) summarize - "$@" || rc=1; shift "$#" ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, quality-family [DIR], train-fox, train-synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2
