@@ -6,7 +6,7 @@ import pytest
 import torch
 from nerfstudio.utils.eval_utils import eval_setup
 
-from conftest import DEMO_SCENE, train_votesplat
+from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from votesplat_ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
 
@@ -36,13 +36,7 @@ def test_retrofit_trains_only_the_offsets(splatfacto_checkpoint, tmp_path):
         assert offsets[support[:, level] > 0, level].abs().sum() > 0
         assert offsets[support[:, level] == 0, level].abs().max() == 0
 
-    datamanager = pipeline.datamanager
-    camera = datamanager.train_dataset.cameras[0:1]
-    batch = datamanager.vote_batch(0)
-    trained = model.vote_pixel_error(camera, batch)
-    model.gauss_params["vote_offsets"].data.zero_()
-    untrained = model.vote_pixel_error(camera, batch)
-    assert torch.all(trained < untrained), (trained, untrained)
+    assert_offsets_beat_zero(pipeline)
 
 
 def test_retrofit_from_a_checkpoint_of_the_wrong_structure_is_a_clear_error(tmp_path):

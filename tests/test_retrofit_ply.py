@@ -15,7 +15,7 @@ import yaml
 from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci, _spherical_harmonics
 from nerfstudio.utils.eval_utils import eval_setup
 
-from conftest import DEMO_SCENE, train_votesplat
+from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from votesplat_ns.cli_errors import VoteSplatInputError
 from votesplat_ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 from votesplat_ns.ply_io import (
@@ -366,13 +366,7 @@ def _assert_retrofit_froze(config_path: Path, expected, frame: str):
         torch.testing.assert_close(model.gauss_params[name].data.cpu(), expected[name], rtol=1e-5, atol=2e-6, msg=name)
     support = model.gauss_params["vote_support"].data
     assert (support > 0).any(dim=0).all(), "every level must have received vote supervision"
-    datamanager = pipeline.datamanager
-    camera = datamanager.train_dataset.cameras[0:1]
-    batch = datamanager.vote_batch(0)
-    trained = model.vote_pixel_error(camera, batch)
-    model.gauss_params["vote_offsets"].data.zero_()
-    untrained = model.vote_pixel_error(camera, batch)
-    assert torch.all(trained < untrained), (trained, untrained)
+    assert_offsets_beat_zero(pipeline)
 
 
 def test_retrofit_from_ns_export_gaussian_splat(trained_demo, ns_exported_ply, tmp_path):
