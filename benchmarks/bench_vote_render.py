@@ -143,9 +143,9 @@ def main(argv=None) -> int:
             )
         from gsplat import rasterization
     else:
-        from votesplat_ns.rasterize_torch import rasterize_torch as rasterization
+        from votesplat_ns.core.rasterize_torch import rasterize_torch as rasterization
 
-    from votesplat_ns.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
+    from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
 
     scene = random_gaussians(args.num_gaussians, args.width, args.height, args.sh_degree, device, args.seed)
     params = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}

@@ -16,7 +16,7 @@ from gsplat.cuda._torch_impl import (
     _spherical_harmonics,
 )
 
-from votesplat_ns.rasterize_torch import (
+from votesplat_ns.core.rasterize_torch import (
     ALPHA_MIN,
     GSPLAT_ALPHA_MAX,
     TRANSMITTANCE_STOP,
@@ -562,7 +562,7 @@ def test_isect_tiles_matches_simple_reference(tile_size, width, height):
 
 def test_isect_tiles_matches_gsplat_torch_reference():
     """gsplat's own pure-torch isect_tiles/isect_offset_encode, including isect_ids."""
-    from votesplat_ns.rasterize_torch import _isect_tiles_with_ids
+    from votesplat_ns.core.rasterize_torch import _isect_tiles_with_ids
 
     width, height, tile_size = 45, 30, 16
     radii, means2d, depths = _projected(30, 2, width, height)

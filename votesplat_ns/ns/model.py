@@ -1,6 +1,6 @@
 """VoteSplat model: splatfacto + per-Gaussian vote offsets + the RVD loss (paper Eq. 13).
 
-Thin nerfstudio glue. The maths lives in :mod:`votesplat_ns.vote_render` (vote pass and
+Thin nerfstudio glue. The maths lives in :mod:`votesplat_ns.core.vote_render` (vote pass and
 losses); this module only
 - adds ``gauss_params["vote_offsets"]`` [N, L, 3] and ``gauss_params["vote_support"]`` [N, L]
   so splatfacto's densify/prune strategy carries them,
@@ -24,14 +24,14 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocati
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.cli_errors import VoteSplatInputError
-from votesplat_ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
-from votesplat_ns.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
-from votesplat_ns.ply_io import GaussianPlyError, read_3dgs_ply
-from votesplat_ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
-from votesplat_ns.retrofit import resolve_frame
-from votesplat_ns.viewer import VoteSplatViewerState
-from votesplat_ns.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
+from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
+from votesplat_ns.core.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
+from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
+from votesplat_ns.ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
+from votesplat_ns.ns.retrofit import resolve_frame
+from votesplat_ns.ns.viewer import VoteSplatViewerState
+from votesplat_ns.core.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
 SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
@@ -334,7 +334,7 @@ class VoteSplatModel(SplatfactoModel):
     def restrict_support_to_masked_gaussians(self, datamanager) -> torch.Tensor:
         """Negate the vote support of Gaussians whose weight in the training views lies mostly outside the masks.
 
-        Returns the [N, L] foreground mask. See ``votesplat_ns.foreground``.
+        Returns the [N, L] foreground mask. See ``votesplat_ns.core.foreground``.
         """
         cameras = datamanager.train_dataset.cameras.to(self.device)
 

@@ -7,8 +7,8 @@
 both at exactly the resolution of ``data["image"]``. The level names are published as
 ``train_dataset.metadata["vote_levels"]`` (the pipeline passes that metadata to the model).
 
-Masks are made once per view by a :mod:`mask source <votesplat_ns.mask_sources>` at the image
-file's resolution and cached on disk by :class:`~votesplat_ns.vote_cache.VoteCache`; the
+Masks are made once per view by a :mod:`mask source <votesplat_ns.core.mask_sources>` at the image
+file's resolution and cached on disk by :class:`~votesplat_ns.core.vote_cache.VoteCache`; the
 datamanager only maps them to the training frame:
   - images downscaled (dataparser ``images_N/``, ``camera_res_scale_factor``): labels
     nearest-neighbour, centroids rescaled in the continuous frame (``resize_vote_maps``);
@@ -45,8 +45,8 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.cli_errors import VoteSplatInputError, check_device_available, writing_into
-from votesplat_ns.mask_sources import (
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_device_available, writing_into
+from votesplat_ns.core.mask_sources import (
     SAM_CHECKPOINT_FILES,
     SAM_LEVELS,
     DatasetMaskSource,
@@ -56,9 +56,9 @@ from votesplat_ns.mask_sources import (
     make_mask_source,
     read_image_rgb,
 )
-from votesplat_ns.retrofit import retrofit_reference
-from votesplat_ns.vote_cache import VoteCache, VoteOptions
-from votesplat_ns.vote_maps import (
+from votesplat_ns.ns.retrofit import retrofit_reference
+from votesplat_ns.core.vote_cache import VoteCache, VoteOptions
+from votesplat_ns.core.vote_maps import (
     DEFAULT_BORDER_MASKS,
     VoteMaps,
     resize_label_images,
