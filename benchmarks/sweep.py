@@ -12,7 +12,9 @@ them. ``--scenes`` takes any votesplat-synth folders instead.
 
 A training variant is ``name:field=value,...`` (model config fields; ``dm.<field>`` for the
 datamanager's); ``default`` alone trains with the defaults. A clustering variant is
-``name:key=value,...`` of :func:`votesplat_ns.core.clustering.cluster_levels` keywords. Every
+``name:key=value,...`` of :func:`votesplat_ns.core.clustering.cluster_levels` keywords, plus
+``mask_check=False`` (the vote clustering alone) and ``mc.<key>=value`` for the training-mask
+check (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`). Every
 (scene, masks, training variant, seed) trains once in its own process (``--jobs`` at a time: a
 small scene leaves most of a GPU idle); every clustering variant then scores that run with
 ``votesplat-eval``'s scorer at the instance and the part level. Rows go to
@@ -82,7 +84,6 @@ def run_job(job: dict) -> List[dict]:
     """Train one run and score it with every clustering variant (runs inside a worker process)."""
     import torch
 
-    from votesplat_ns.core.clustering import cluster_levels
     from votesplat_ns.cli.evaluate_cli import evaluate_run
     from votesplat_ns.ns.method import train_in_process
 
@@ -98,13 +99,10 @@ def run_job(job: dict) -> List[dict]:
     train_seconds = time.time() - start
     rows = []
     for cluster_name, cluster_settings in job["cluster_variants"]:
-        def recluster(scene, _gt, settings=cluster_settings):
-            instances = cluster_levels(
-                scene.means.cpu().numpy(), scene.vote_offsets, scene.vote_support, scene.level_names, **settings
-            )
-            return {name: instances.level(name).ids for name in scene.level_names}
-
-        result = evaluate_run(config, run_dir / f"eval_{cluster_name}", gaussian_ids_override=recluster)  # every level
+        options = {k: v for k, v in cluster_settings.items() if not k.startswith("mc.")}
+        check = {k[3:]: v for k, v in cluster_settings.items() if k.startswith("mc.")}
+        mask_check = check if options.pop("mask_check", True) else False
+        result = evaluate_run(config, run_dir / f"eval_{cluster_name}", mask_check=mask_check, cluster_options=options)  # every level
         for level in LEVELS:
             if level in result.metrics["levels"]:
                 rows.append({**job["labels"], "cluster": cluster_name, "level": level, **score(result.metrics, level),

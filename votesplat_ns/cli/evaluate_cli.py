@@ -621,14 +621,20 @@ def evaluate_run(
     max_psnr_drop_db: float = DEFAULT_MAX_PSNR_DROP_DB,
     min_gain_db: float = DEFAULT_MIN_GAIN_DB,
     gaussian_ids_override: Optional[Callable[[GaussianScene, Dict[str, np.ndarray]], Dict[str, np.ndarray]]] = None,
+    mask_check: Union[bool, Dict[str, object]] = True,
+    cluster_options: Optional[Dict[str, object]] = None,
 ) -> EvaluationResult:
     """Score a votesplat run (see the module doc); writes metrics.json and comparison PNGs.
 
     ``gaussian_ids_override(scene, gt_per_gaussian) -> {level: ids}`` replaces the clustered ids
-    (0..K-1, -1 = none) before rendering; tests use it to render the GT itself.
+    (0..K-1, -1 = none) before rendering; tests use it to render the GT itself. ``mask_check``
+    checks the instances against the training masks as ``ns-export votesplat-instances`` does (a
+    dict: with these options of ``regroup_with_masks``);
+    ``cluster_options`` are further keyword arguments of ``cluster_levels`` (benchmark variants).
     """
     from nerfstudio.utils.eval_utils import eval_setup
 
+    from votesplat_ns.ns.mask_views import mask_check as training_mask_check
     from votesplat_ns.ns.rasterizer import rasterize
 
     if views not in ("eval", "train", "all"):
@@ -681,6 +687,8 @@ def evaluate_run(
         min_samples=min_samples,
         max_points=max_points,
         seed=seed,
+        refine=training_mask_check(pipeline, rasterize, **(mask_check if isinstance(mask_check, dict) else {})) if mask_check is not False else None,
+        **(cluster_options or {}),
     )
     means_world = points_to_dataset_frame(scene.means.cpu().numpy(), transform, scale)
     gt_gaussians, gt_info = gaussian_ground_truth(
@@ -797,6 +805,8 @@ class EvaluateVoteSplat:
     """HDBSCAN min_samples (default as the export)."""
     seed: int = 0
     """Seed of the clustering subsample."""
+    mask_check: bool = True
+    """Check the instances against the training masks, as ns-export votesplat-instances does (--mask-check)."""
     min_weight: float = 0.5
     """A pixel shows an instance if that instance makes up at least this share of the pixel."""
     gaussian_gt: Literal["auto", "geometry", "projection"] = "auto"
@@ -828,6 +838,7 @@ class EvaluateVoteSplat:
                 surface_tolerance_px=self.surface_tolerance_px,
                 max_psnr_drop_db=self.max_psnr_drop_db,
                 min_gain_db=self.min_gain_db,
+                mask_check=self.mask_check,
             )
         except ValueError as err:
             print(f"votesplat-eval: error: {err}", file=sys.stderr)

@@ -50,7 +50,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
-from typing import Callable, Dict, Literal, Optional, Sequence
+from typing import Callable, Dict, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -103,7 +103,7 @@ def default_min_cluster_size(num_votes: int, fraction: float = DEFAULT_MIN_CLUST
     return max(10, int(math.ceil(fraction * num_votes)))
 
 
-def _relabel_by_size(labels: np.ndarray) -> np.ndarray:
+def relabel_by_size(labels: np.ndarray) -> np.ndarray:
     """Renumber clusters 0..K-1 by decreasing size (ties: earliest first member); -1 stays -1."""
     clustered = labels >= 0
     if not clustered.any():
@@ -234,7 +234,7 @@ def cluster_votes_detailed(
             close = np.isfinite(distance)
             labels[unlabelled[close]] = sample_labels[members][nearest[close]]
 
-    labels = _relabel_by_size(labels)
+    labels = relabel_by_size(labels)
     params["num_clusters"] = int(labels.max()) + 1 if (labels >= 0).any() else 0
     params["num_noise"] = int((labels < 0).sum())
     return VoteClustering(labels=labels, params=params)
@@ -256,6 +256,17 @@ def cluster_votes(
     return cluster_votes_detailed(
         votes, min_cluster_size=min_cluster_size, min_samples=min_samples, max_points=max_points, seed=seed, noise=noise, **kwargs
     ).labels
+
+
+def typical_spacing(points: np.ndarray, neighbours: int = DEFAULT_FILL_NEIGHBOURS) -> float:
+    """Median distance of a point to its ``neighbours``-th nearest other point (0 if too few)."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape[0] <= neighbours:
+        return 0.0
+    distance, _ = cKDTree(points).query(points, k=neighbours + 1)
+    return float(np.median(distance[:, -1]))
 
 
 def fill_from_neighbours(
@@ -280,12 +291,10 @@ def fill_from_neighbours(
         raise ValueError("fill needs neighbours >= 1, radius_factor >= 0 and min_instance_fraction in [0, 1)")
     m = points.shape[0]
     if m <= neighbours or not (labels >= 0).any():
-        return _relabel_by_size(labels)
-    tree = cKDTree(points)
-    distance, _ = tree.query(points, k=neighbours + 1)
-    radius = radius_factor * float(np.median(distance[:, -1]))
+        return relabel_by_size(labels)
+    radius = radius_factor * typical_spacing(points, neighbours)
     if radius <= 0:
-        return _relabel_by_size(labels)
+        return relabel_by_size(labels)
 
     original = labels.copy()
     sizes = np.bincount(labels[labels >= 0])
@@ -314,7 +323,7 @@ def fill_from_neighbours(
     # a fragment that nothing reached stays an instance of its own
     unreached = (labels < 0) & np.isin(original, fragments)
     labels[unreached] = original[unreached]
-    return _relabel_by_size(labels)
+    return relabel_by_size(labels)
 
 
 def merge_spread_clusters(votes: np.ndarray, labels: np.ndarray, separation: float) -> np.ndarray:
@@ -326,7 +335,7 @@ def merge_spread_clusters(votes: np.ndarray, labels: np.ndarray, separation: flo
         raise ValueError(f"merge separation must be >= 0, got {separation}")
     ids = np.unique(labels[labels >= 0])
     if ids.size < 2 or separation == 0:
-        return _relabel_by_size(labels)
+        return relabel_by_size(labels)
     centres = np.stack([np.median(votes[labels == k], axis=0) for k in ids])
     spreads = np.array([np.median(np.linalg.norm(votes[labels == k] - c, axis=1)) for k, c in zip(ids, centres)])
     gap = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
@@ -344,7 +353,7 @@ def merge_spread_clusters(votes: np.ndarray, labels: np.ndarray, separation: flo
     mapping = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
     mapping[ids] = [find(i) for i in range(ids.size)]
     merged = np.where(labels >= 0, mapping[np.maximum(labels, 0)], -1)
-    return _relabel_by_size(merged)
+    return relabel_by_size(merged)
 
 
 def background_mask(vote_support, level: int) -> np.ndarray:
@@ -381,6 +390,7 @@ def cluster_levels(
     fill: bool = True,
     min_instance_fraction: float = DEFAULT_MIN_INSTANCE_FRACTION,
     merge_separation: Optional[float] = None,
+    refine: Optional[Callable[[int, str, np.ndarray], Tuple[np.ndarray, Dict[str, int]]]] = None,
     **cluster_kwargs,
 ) -> InstanceSet:
     """Instances of every vote level, linked parent -> child between consecutive levels.
@@ -394,7 +404,10 @@ def cluster_levels(
     each level is clustered (progress reporting). ``fill`` gives foreground noise and fragments
     smaller than ``min_instance_fraction`` of the level's foreground the instance of their spatial
     neighbours (:func:`fill_from_neighbours`). ``merge_separation`` (None: off) first merges
-    clusters of spread votes (:func:`merge_spread_clusters`).
+    clusters of spread votes (:func:`merge_spread_clusters`). ``refine(index, name, ids)`` (ids [N],
+    -1 outside every instance) returns new ids and a dict of counts stored with the level's
+    clustering parameters; the exporter passes the training-mask check
+    (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`) here.
     """
     means = _to_numpy(means)
     offsets = _to_numpy(offsets)
@@ -451,6 +464,10 @@ def cluster_levels(
                 )
             params["num_clusters"] = int(labels.max()) + 1 if (labels >= 0).any() else 0
             ids[fg_index] = labels
+            if refine is not None:
+                ids, refine_stats = refine(index, name, ids)
+                ids = np.asarray(ids, dtype=np.int64)
+                params.update(mask_check=dict(refine_stats), num_clusters=int(ids.max()) + 1 if (ids >= 0).any() else 0)
         else:
             params = {"algorithm": "hdbscan", "num_votes": 0, "num_clusters": 0, "num_noise": 0}
         vote_points = np.full((n, 3), np.nan)

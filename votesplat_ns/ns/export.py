@@ -46,6 +46,7 @@ from typing_extensions import Annotated
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_writable_folder, load_run, one_line_errors, writing_into
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
+from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 from votesplat_ns.core.instances import IDS_NAME, MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
 from votesplat_ns.core.ply_io import SH_C0, gaussian_vertex_table, make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
 
@@ -254,6 +255,7 @@ def export_instances(
     progress: bool = True,
     source: Optional[str] = None,
     output_flag: str = "output_dir",
+    refine: Optional[Callable[[int, str, np.ndarray], tuple]] = None,
 ) -> Dict[str, object]:
     """Cluster the votes of every level and write the export folder described in the module doc.
 
@@ -263,6 +265,7 @@ def export_instances(
     selects whose instances get their own PLY; ``remove`` lists instance ids of that level to cut
     out of the scene. ``views`` and ``rasterize_fn`` (gsplat ``rasterization`` signature) draw
     instances.png. ``output_flag`` names ``output_dir`` in error messages (the CLI's --output-dir).
+    ``refine`` is passed to :func:`cluster_levels` (the training-mask check).
     Returns the manifest written to instances.json; its ``export.nonfinite_votes`` counts, per
     level, the supervised Gaussians whose vote is NaN/Inf and so became background.
     """
@@ -299,6 +302,7 @@ def export_instances(
             coarse_to_fine=coarse_to_fine,
             cluster_selection_epsilon=cluster_selection_epsilon,
             on_level=lambda index, name: advance(1) if index > 0 else None,
+            refine=refine,
         )
         advance(1)
         instance_set.validate()
@@ -489,6 +493,12 @@ class ExportVoteSplatInstances:
     """Training views drawn in instances.png (0: no picture)."""
     picture_width: int = 320
     """Width in pixels of each view in instances.png."""
+    mask_check: bool = True
+    """Check the instances against the run's training masks (votesplat_ns/core/mask_consensus.py): split off
+    Gaussians that lie in another object's mask, merge clusters that the masks cover together, drop clusters that lie
+    in no mask. Needs the run's dataset and masks (as at training); off: the vote clustering alone."""
+    mask_check_views: int = DEFAULT_MASK_VIEWS
+    """Training views the mask check looks through (evenly spaced)."""
 
     def main(self) -> None:
         from nerfstudio.utils.rich_utils import CONSOLE
@@ -508,6 +518,21 @@ class ExportVoteSplatInstances:
                     views = training_views(pipeline, self.num_views, self.picture_width)
                 except Exception as err:  # a missing dataset must not stop the PLY export
                     CONSOLE.print(f"[yellow]Training cameras unavailable ({type(err).__name__}: {err}); instances.png is skipped.")
+            refine = None
+            if self.mask_check:
+                check_rasterizer = rasterize_fn or default_rasterizer()
+                if check_rasterizer is None:
+                    raise ValueError("--mask-check needs a rasterizer (gsplat or the torch fallback); pass --mask-check False")
+                try:
+                    refine = mask_check(pipeline, check_rasterizer, max_views=self.mask_check_views)
+                except (OSError, ValueError) as err:  # the instances are still valid without it
+                    CONSOLE.print(
+                        f"Warning: the training masks are unavailable ({err}); exporting the vote clustering without the mask "
+                        "check (--mask-check False does this on purpose)",
+                        style="bold yellow",
+                        soft_wrap=True,
+                        markup=False,
+                    )
             manifest = export_instances(
                 model,
                 self.output_dir,
@@ -525,6 +550,7 @@ class ExportVoteSplatInstances:
                 render_device=device,
                 source=str(self.load_config),
                 output_flag="--output-dir",
+                refine=refine,
             )
         export = manifest["export"]
         for level_name, count in export["nonfinite_votes"].items():

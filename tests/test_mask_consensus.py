@@ -1,0 +1,139 @@
+"""The training-mask check of the instances (votesplat_ns/core/mask_consensus.py)."""
+
+import math
+
+import numpy as np
+import torch
+
+from votesplat_ns.core.clustering import cluster_levels
+from votesplat_ns.core.mask_consensus import (
+    MaskView,
+    drop_unmasked,
+    merge_agreeing,
+    regroup_with_masks,
+    seen_mask_table,
+    seen_pixels,
+    sitting_masks,
+    split_deviants,
+)
+from votesplat_ns.core.rasterize_torch import rasterize_torch
+
+VIEWS = 6
+
+
+def blob(centre, count, spread=0.05, seed=0):
+    return np.random.default_rng(seed).normal(centre, spread, size=(count, 3))
+
+
+def table_from(masks_per_point, views=VIEWS):
+    """[V, N] table where every point is seen in every view in the given mask id."""
+    return np.tile(np.asarray(masks_per_point, dtype=np.int32), (views, 1))
+
+
+def test_sitting_masks_needs_a_majority_and_enough_seen():
+    table = np.array([[1, 1, 1, 2, -1], [1, 2, 3, 0, -1], [0, 0, 0, 1, -1], [-1, -1, -1, -1, 1]], dtype=np.int32)
+    members = np.arange(5)
+    assert sitting_masks(table, members, min_share=0.5, min_seen=3).tolist() == [1, -1, 0, -1]
+
+
+def test_split_moves_an_object_resting_in_another_out_of_its_cluster():
+    # a bowl and the fruit in it voted for one centre: one cluster; the masks keep them apart
+    bowl, fruit = blob([0, 0, 0], 400, 0.3), blob([0, 0, 0.1], 60, 0.05, seed=1)
+    means = np.concatenate([bowl, fruit])
+    labels = np.zeros(len(means), dtype=np.int64)
+    table = table_from([1] * 400 + [2] * 60)
+    table[0, 400:] = 1  # one view where the fruit's mask is merged with the bowl's
+    out = split_deviants(labels, means, table, radius=0.2, min_size=10)
+    assert np.unique(out[:400]).tolist() == [0]
+    assert np.unique(out[400:]).size == 1 and out[400] != 0
+    # too small a group stays where it was
+    assert (split_deviants(labels, means, table, radius=0.2, min_size=61) == 0).all()
+
+
+def test_merge_joins_pieces_that_share_masks_and_keeps_neighbours_apart():
+    labels = np.array([0] * 50 + [1] * 50 + [2] * 50)
+    # clusters 0 and 1 lie in the same mask in every view (one object cut in two); 2 is another object
+    table = table_from([3] * 100 + [4] * 50)
+    merged, merges = merge_agreeing(labels, table, min_agreement=0.5, min_views=3)
+    assert merges == 1
+    assert len(np.unique(merged[:100])) == 1 and merged[0] != merged[120]
+    # evidence from fewer views than min_views merges nothing
+    few = np.full_like(table, -1)
+    few[:2] = table[:2]
+    assert merge_agreeing(labels, few, min_views=3)[1] == 0
+
+
+def test_merge_needs_most_views_to_agree():
+    labels = np.array([0] * 20 + [1] * 20)
+    table = table_from([1] * 40)
+    table[:4, 20:] = 2  # 4 of 6 views keep them apart
+    assert merge_agreeing(labels, table, min_agreement=0.5)[1] == 0
+    table[:2, 20:] = 1  # now 4 of 6 agree
+    assert merge_agreeing(labels, table, min_agreement=0.5)[1] == 1
+
+
+def test_drop_removes_clusters_outside_every_mask():
+    labels = np.array([0] * 20 + [1] * 20 + [-1] * 5)
+    table = table_from([1] * 20 + [0] * 20 + [1] * 5)
+    out = drop_unmasked(labels, table)
+    assert (out[:20] == 0).all() and (out[20:] == -1).all()
+
+
+def test_seen_pixels_keeps_what_the_render_hides_out():
+    # two opaque blobs on the optical axis: the near one hides the far one
+    near, far = blob([0, 0, 2.0], 200, 0.05), blob([0, 0, 4.0], 200, 0.05, seed=1)
+    side = blob([1.5, 0, 4.0], 200, 0.05, seed=2)  # visible beside them
+    means = torch.tensor(np.concatenate([near, far, side]), dtype=torch.float32)
+    n = means.shape[0]
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    scales = torch.full((n, 3), 0.06)
+    opacities = torch.full((n,), 0.99)
+    K = torch.tensor([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    view = MaskView(torch.eye(4), K, np.zeros((48, 64), dtype=np.int64))
+
+    def rasterize(*args, **kwargs):
+        return rasterize_torch(*args, **kwargs)
+
+    pixels = seen_pixels(rasterize, means, quats, scales, opacities, view)
+    seen = pixels >= 0
+    assert seen[:200].mean() > 0.15  # the front of the near blob (centres deeper inside it are hidden)
+    assert seen[200:400].mean() < 0.02
+    assert seen[400:].mean() > 0.15
+    # the pixel of a seen centre is where it projects
+    i = int(np.flatnonzero(seen[400:])[0]) + 400
+    x, y, z = means[i].tolist()
+    assert pixels[i] == math.floor(y / z * 60 + 24) * 64 + math.floor(x / z * 60 + 32)
+
+
+def test_regroup_end_to_end_on_the_mask_table():
+    # cluster 0: an object over-split by the votes into 0 and 1; cluster 2 holds two objects; 3: a floater
+    a0, a1 = blob([0, 0, 0], 100), blob([0.3, 0, 0], 100, seed=1)
+    b, c = blob([3, 0, 0], 100, seed=2), blob([3.2, 0.2, 0], 40, seed=3)
+    floater = blob([6, 0, 0], 30, seed=4)
+    means = np.concatenate([a0, a1, b, c, floater])
+    labels = np.array([0] * 100 + [1] * 100 + [2] * 140 + [3] * 30)
+    table = table_from([1] * 200 + [2] * 100 + [5] * 40 + [0] * 30)
+    out, stats = regroup_with_masks(labels, means, table, min_size=10)
+    assert len(np.unique(out[:200])) == 1
+    assert len(np.unique(out[200:300])) == 1 and len(np.unique(out[300:340])) == 1 and out[200] != out[300]
+    assert (out[340:] == -1).all()
+    assert stats["num_clusters"] == 3 and stats["merges"] == 1
+    assert sorted(np.unique(out[out >= 0]).tolist()) == [0, 1, 2]
+
+
+def test_cluster_levels_applies_the_refinement_per_level():
+    means = np.concatenate([blob([0, 0, 0], 300), blob([5, 0, 0], 300, seed=1)])
+    offsets = np.zeros((600, 2, 3))
+    offsets[:300, :, :] = -means[:300, None, :]  # votes converge per object
+    offsets[300:, :, :] = np.array([5.0, 0, 0]) - means[300:, None, :]
+    support = np.ones((600, 2))
+    calls = []
+
+    def refine(index, name, ids):
+        calls.append((index, name, int(ids.max()) + 1))
+        return np.zeros_like(ids), {"merges": 1}
+
+    result = cluster_levels(means, offsets, support, ("instance", "part"), refine=refine)
+    assert calls == [(0, "instance", 2), (1, "part", 2)]
+    assert result.level("instance").num_instances == 1
+    assert result.level("part").clustering["mask_check"] == {"merges": 1}

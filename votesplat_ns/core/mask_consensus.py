@@ -1,0 +1,276 @@
+"""Instances checked against the training masks (after the vote clustering of paper §3.4).
+
+The vote clustering sees only where the votes landed. Two failures come from that alone:
+
+* an object whose votes did not converge to one point (large, flat, seen from one side) is cut
+  into several clusters, although every training mask that covers one piece covers the others;
+* an object resting in or on another (fruit in a bowl, a box on a box) can vote for nearly the
+  same centre as its support, so both end in one cluster, although the masks keep them apart in
+  every view.
+
+Both are visible in the masks the votes were trained on, and so are stray clusters of background
+Gaussians (floaters) that the vote support let through. Three steps, per mask level, on a table
+of what each Gaussian looks like in the training views:
+
+* **Seen.** In a view, a Gaussian is *seen* when its centre projects into the image on a pixel
+  the render covers, not deeper than ``depth_tolerance`` (relative) behind the rendered depth
+  there; it then lies in that pixel's mask, or in none (0). A group of Gaussians *sits in* a mask
+  in a view when at least ``min_seen`` of them are seen and ``min_share`` of those lie in it
+  (or in no mask: it sits in none).
+* **Split.** A Gaussian of a cluster is *deviant* when, over the (at least ``min_views``) views
+  where both are decided, it mostly lies in another mask than the one its cluster sits in.
+  Deviants close to each other (3x the foreground's typical spacing, as the noise fill) become a
+  new cluster when there are at least ``min_size`` of them; fewer stay where they were.
+* **Merge.** Two clusters *agree* in a view when both sit in the same mask and disagree when both
+  sit in different masks. The pair with the highest agreement / (agreement + disagreement), over
+  at least ``min_views`` such views, merges while that ratio is at least ``min_agreement``; a
+  merged cluster's mask is recomputed from all its Gaussians.
+* **Drop.** A cluster that sits in no mask in most of the views where it is decided becomes -1.
+
+The thresholds are ratios, counts of views and the scene's own spacing, so they mean the same in
+any scene. A cluster never seen in a training view is left as it is. Pure numpy/torch: the caller
+passes the views, the training masks and a rasteriser (gsplat's ``rasterization`` signature).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Dict, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from votesplat_ns.core.clustering import DEFAULT_FILL_RADIUS_FACTOR, relabel_by_size, typical_spacing
+
+# Chosen on the tuning scenes (BENCHMARKS.md, "Training-mask check"): 2 views of evidence and
+# split groups from 10 Gaussians (HDBSCAN's own floor) gave the best instance mIoU with GT and
+# noisy masks; 0.7 agreement instead of 0.5 changed nothing there.
+DEFAULT_MIN_AGREEMENT = 0.5
+DEFAULT_MIN_VIEWS = 2
+DEFAULT_MIN_SHARE = 0.5
+DEFAULT_MIN_SEEN = 5
+DEFAULT_MIN_SPLIT_SIZE = 10
+DEFAULT_DEPTH_TOLERANCE = 0.05  # relative depth behind the rendered surface that still counts as on it (training views: 83-98% of an object's centres in its unoccluded views)
+
+
+@dataclass
+class MaskView:
+    """One training view for the mask check: camera and the view's mask labels at one level.
+
+    viewmat [4, 4] world-to-camera (OpenCV), K [3, 3], masks [H, W] integer (0 = no mask).
+    """
+
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    masks: np.ndarray
+
+    @property
+    def height(self) -> int:
+        return int(self.masks.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.masks.shape[1])
+
+
+def seen_pixels(
+    rasterize_fn: Callable[..., tuple],
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    view: MaskView,
+    depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
+    min_alpha: float = 0.5,
+) -> np.ndarray:
+    """Flat pixel index [N] where each Gaussian's centre is seen in ``view``, -1 where it is not.
+
+    Seen: the centre projects inside the image, in front of the camera, on a pixel the render
+    covers (alpha >= ``min_alpha``) and not behind the rendered (expected) depth there by more than
+    ``depth_tolerance`` of that depth. scales linear, opacities in [0, 1] ([N] or [N, 1]).
+    """
+    device = means.device
+    viewmat = view.viewmat.to(device=device, dtype=means.dtype)
+    K = view.K.to(device=device, dtype=means.dtype)
+    cam = means @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    with torch.no_grad():
+        rendered, alpha, _ = rasterize_fn(
+            means, quats, scales, opacities.reshape(-1), z[:, None], viewmat[None], K[None], view.width, view.height, sh_degree=None
+        )
+    alpha = alpha[0, ..., 0]
+    depth = rendered[0, ..., 0] / alpha.clamp_min(1e-6)
+    safe_z = z.clamp_min(1e-6)
+    u = torch.floor(cam[:, 0] / safe_z * K[0, 0] + K[0, 2]).long()
+    v = torch.floor(cam[:, 1] / safe_z * K[1, 1] + K[1, 2]).long()
+    inside = (z > 1e-6) & (u >= 0) & (u < view.width) & (v >= 0) & (v < view.height)
+    flat = torch.where(inside, v * view.width + u, torch.zeros_like(u))
+    surface = depth.reshape(-1)[flat]
+    covered = alpha.reshape(-1)[flat] >= min_alpha
+    seen = inside & covered & torch.isfinite(z) & (z <= surface * (1.0 + depth_tolerance))
+    return torch.where(seen, flat, torch.full_like(flat, -1)).cpu().numpy()
+
+
+
+def seen_mask_table(pixels_per_view: Sequence[np.ndarray], views: Sequence[MaskView]) -> np.ndarray:
+    """[V, N] int32: the mask id under each Gaussian's centre per view (0: seen, in no mask;
+    -1: not seen), from :func:`seen_pixels` of each view."""
+    table = np.full((len(views), len(pixels_per_view[0]) if pixels_per_view else 0), -1, dtype=np.int32)
+    for v, (pixels, view) in enumerate(zip(pixels_per_view, views)):
+        seen = pixels >= 0
+        table[v, seen] = np.asarray(view.masks).reshape(-1)[pixels[seen]]
+    return table
+
+
+def sitting_masks(table: np.ndarray, members: np.ndarray, min_share: float = DEFAULT_MIN_SHARE, min_seen: int = DEFAULT_MIN_SEEN) -> np.ndarray:
+    """Per view [V]: the mask (>= 1) holding at least ``min_share`` of the seen ``members``; 0 when
+    that share of them is in no mask; -1 when too few are seen or no mask has the majority."""
+    out = np.full(table.shape[0], -1, dtype=np.int64)
+    sub = table[:, members]
+    for v in range(table.shape[0]):
+        values = sub[v][sub[v] >= 0]
+        if values.size < min_seen:
+            continue
+        counts = np.bincount(values)
+        best = int(counts[1:].argmax()) + 1 if counts.size > 1 else 0
+        if best and counts[best] >= min_share * values.size:
+            out[v] = best
+        elif counts[0] >= min_share * values.size:
+            out[v] = 0
+    return out
+
+
+def _components(points: np.ndarray, radius: float) -> np.ndarray:
+    """Connected components of points closer than ``radius`` (label per point)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
+    return connected_components(graph, directed=False)[1]
+
+
+def split_deviants(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    radius: float,
+    min_size: int,
+    min_share: float = DEFAULT_MIN_SHARE,
+    min_seen: int = DEFAULT_MIN_SEEN,
+    min_views: int = DEFAULT_MIN_VIEWS,
+) -> np.ndarray:
+    """Labels with each cluster's *deviant* Gaussians moved to new clusters: those that, in most
+    views where both are decided, lie in another mask than the one their cluster sits in. Deviants
+    are grouped by spatial proximity (``radius``); groups smaller than ``min_size`` stay."""
+    out = labels.copy()
+    next_label = int(labels.max()) + 1
+    for label in np.unique(labels[labels >= 0]):
+        members = np.flatnonzero(labels == label)
+        home = sitting_masks(table, members, min_share, min_seen)
+        sub = table[:, members]
+        decided = (home[:, None] >= 1) & (sub >= 1)
+        away = (decided & (sub != home[:, None])).sum(axis=0)
+        views = decided.sum(axis=0)
+        deviant = (views >= min_views) & (away > 0.5 * views)
+        if deviant.sum() < min_size:
+            continue
+        idx = members[deviant]
+        parts = _components(means[idx], radius)
+        for part in np.unique(parts):
+            chosen = idx[parts == part]
+            if chosen.size >= min_size:
+                out[chosen] = next_label
+                next_label += 1
+    return out
+
+
+def merge_agreeing(
+    labels: np.ndarray,
+    table: np.ndarray,
+    min_agreement: float = DEFAULT_MIN_AGREEMENT,
+    min_views: int = DEFAULT_MIN_VIEWS,
+    min_share: float = DEFAULT_MIN_SHARE,
+    min_seen: int = DEFAULT_MIN_SEEN,
+) -> Tuple[np.ndarray, int]:
+    """Greedy merge of clusters that sit in the same mask in at least ``min_agreement`` of the
+    views where both sit in a mask (and there are at least ``min_views`` such views)."""
+    ids = [int(x) for x in np.unique(labels[labels >= 0])]
+    members = {i: np.flatnonzero(labels == i) for i in ids}
+    sitting = {i: sitting_masks(table, members[i], min_share, min_seen) for i in ids}
+
+    def agreement(a: int, b: int) -> float:
+        both = (sitting[a] >= 1) & (sitting[b] >= 1)
+        n = int(both.sum())
+        if n < min_views:
+            return -1.0
+        return float((sitting[a][both] == sitting[b][both]).sum()) / n
+
+    scores = {(a, b): agreement(a, b) for k, a in enumerate(ids) for b in ids[k + 1 :]}
+    merges = 0
+    while scores:
+        (a, b), best = max(scores.items(), key=lambda item: item[1])
+        if best < min_agreement:
+            break
+        members[a] = np.concatenate([members[a], members.pop(b)])
+        sitting[a] = sitting_masks(table, members[a], min_share, min_seen)
+        del sitting[b]
+        ids.remove(b)
+        scores = {pair: s for pair, s in scores.items() if a not in pair and b not in pair}
+        for c in ids:
+            if c != a:
+                scores[(min(a, c), max(a, c))] = agreement(min(a, c), max(a, c))
+        merges += 1
+    out = np.full(labels.shape, -1, dtype=np.int64)
+    for i, idx in members.items():
+        out[idx] = i
+    return out, merges
+
+
+def drop_unmasked(labels: np.ndarray, table: np.ndarray, min_share: float = DEFAULT_MIN_SHARE, min_seen: int = DEFAULT_MIN_SEEN) -> np.ndarray:
+    """Clusters that sit in no mask in most of the views where they are decided become -1
+    (background that the vote support let through: floaters, backdrop bits)."""
+    out = labels.copy()
+    for label in np.unique(labels[labels >= 0]):
+        members = np.flatnonzero(labels == label)
+        home = sitting_masks(table, members, min_share, min_seen)
+        decided = home >= 0
+        if decided.sum() >= 1 and (home[decided] == 0).sum() > 0.5 * decided.sum():
+            out[members] = -1
+    return out
+
+
+def regroup_with_masks(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    split: bool = True,
+    merge: bool = True,
+    drop: bool = True,
+    min_agreement: float = DEFAULT_MIN_AGREEMENT,
+    min_views: int = DEFAULT_MIN_VIEWS,
+    min_share: float = DEFAULT_MIN_SHARE,
+    min_seen: int = DEFAULT_MIN_SEEN,
+    min_size: int = DEFAULT_MIN_SPLIT_SIZE,
+) -> Tuple[np.ndarray, Dict[str, int]]:
+    """One level's instance labels [N] (-1: noise/background) checked against its training masks
+    (``table`` [V, N] from :func:`seen_mask_table`): split deviants, merge agreeing clusters, drop
+    clusters that sit in no mask; renumbered by decreasing size. See the module docstring."""
+    labels = np.asarray(labels, dtype=np.int64)
+    stats = {"num_clusters_before": int(labels.max()) + 1 if (labels >= 0).any() else 0}
+    if table.shape[0] == 0 or not (labels >= 0).any():
+        return labels.copy(), stats
+    foreground = np.flatnonzero(labels >= 0)
+    radius = DEFAULT_FILL_RADIUS_FACTOR * typical_spacing(means[foreground])
+    out = labels
+    if split:
+        out = split_deviants(out, means, table, radius, min_size, min_share, min_seen, min_views)
+        stats["num_after_split"] = int(np.unique(out[out >= 0]).size)
+    if merge:
+        out, stats["merges"] = merge_agreeing(out, table, min_agreement, min_views, min_share, min_seen)
+    if drop:
+        out = drop_unmasked(out, table, min_share, min_seen)
+    out = relabel_by_size(out)
+    stats["num_clusters"] = int(out.max()) + 1 if (out >= 0).any() else 0
+    return out, stats
