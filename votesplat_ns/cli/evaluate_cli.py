@@ -52,7 +52,7 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple, Uni
 import numpy as np
 import torch
 
-from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.eval.evaluation import (
@@ -69,6 +69,8 @@ from votesplat_ns.core.instances import render_instance_ids
 from votesplat_ns.eval.mask_noise import MaskNoise
 from votesplat_ns.core.mask_sources import read_label_png
 from votesplat_ns.core.ply_io import atomic_write, make_temp_dir, temp_sibling
+from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.ns.run import dataset_views, load_run
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"
@@ -317,45 +319,8 @@ def gaussian_ground_truth(
 # ----------------------------------------------------------------------------- scoring
 
 
-@dataclass
-class GaussianScene:
-    """Activated Gaussians (nerfstudio frame) with their votes, as the renderer and clustering need them."""
-
-    means: torch.Tensor  # [N, 3]
-    quats: torch.Tensor  # [N, 4]
-    scales: torch.Tensor  # [N, 3], exp'd
-    opacities: torch.Tensor  # [N], sigmoid'd
-    vote_offsets: np.ndarray  # [N, L, 3]
-    vote_support: np.ndarray  # [N, L]
-    level_names: Tuple[str, ...]
-
-    @classmethod
-    def from_model(cls, model) -> "GaussianScene":
-        params = getattr(model, "gauss_params", None)
-        if params is None or "vote_offsets" not in params or "vote_support" not in params:
-            raise ValueError("the checkpoint has no vote_offsets / vote_support: evaluate a run trained with ns-train votesplat")
-        levels = getattr(getattr(model, "config", None), "vote_levels", None)
-        offsets = params["vote_offsets"].detach()
-        if levels is None:
-            levels = tuple(f"level_{i}" for i in range(offsets.shape[1]))
-        return cls(
-            means=params["means"].detach().float(),
-            quats=params["quats"].detach().float(),
-            scales=torch.exp(params["scales"].detach().float()),
-            opacities=torch.sigmoid(params["opacities"].detach().float()).reshape(-1),
-            vote_offsets=offsets.float().cpu().numpy(),
-            vote_support=params["vote_support"].detach().float().cpu().numpy(),
-            level_names=tuple(str(level) for level in levels),
-        )
-
-    @property
-    def finite(self) -> torch.Tensor:
-        ok = torch.isfinite(self.means).all(1) & torch.isfinite(self.quats).all(1) & torch.isfinite(self.scales).all(1)
-        return ok & torch.isfinite(self.opacities)
-
-
 def render_id_maps(
-    scene: GaussianScene,
+    scene: TrainedScene,
     gaussian_ids,
     views: Sequence[PinholeView],
     rasterize_fn: Callable[..., tuple],
@@ -366,8 +331,9 @@ def render_id_maps(
 
     Rendering at another size scales the intrinsics, which is exact in the continuous pixel frame.
     """
-    keep = scene.finite
-    ids = torch.as_tensor(np.asarray(gaussian_ids), device=scene.means.device).long()[keep]
+    keep = scene.finite()
+    means, quats, scales, opacities, _, _ = scene.gaussians(keep)
+    ids = torch.as_tensor(np.asarray(gaussian_ids), device=means.device).long()[torch.as_tensor(keep, device=means.device)]
     maps = []
     for index, view in enumerate(views):
         height, width = out_sizes[index] if out_sizes is not None else (view.height, view.width)
@@ -376,13 +342,13 @@ def render_id_maps(
         K[1] *= height / view.height
         id_map = render_instance_ids(
             rasterize_fn,
-            scene.means[keep],
-            scene.quats[keep],
-            scene.scales[keep],
-            scene.opacities[keep],
+            means,
+            quats,
+            scales,
+            opacities,
             ids,
-            view.viewmat.float().to(scene.means.device),
-            K.to(scene.means.device),
+            view.viewmat.float().to(means.device),
+            K.to(means.device),
             int(width),
             int(height),
             min_weight=min_weight,
@@ -527,23 +493,12 @@ def _dataset_of(config) -> Path:
 
 
 def _views_of(dataset) -> List[PinholeView]:
-    cameras = dataset.cameras
-    views = []
+    """The dataset's views named by image file name; pinhole cameras only."""
+    distortion = dataset.cameras.distortion_params
     for index, filename in enumerate(dataset.image_filenames):
-        camera = cameras[index : index + 1]
-        distortion = camera.distortion_params
-        if distortion is not None and bool(torch.any(distortion != 0)):
+        if distortion is not None and bool(torch.any(distortion[index] != 0)):
             raise ValueError(f"view {Path(filename).name} has lens distortion; votesplat-eval supports undistorted (pinhole) datasets")
-        views.append(
-            PinholeView(
-                name=Path(filename).name,
-                viewmat=viewmat_from_camera_to_world(camera.camera_to_worlds[0].float()),
-                K=camera.get_intrinsics_matrices()[0].float(),
-                width=int(camera.width.item()),
-                height=int(camera.height.item()),
-            )
-        )
-    return views
+    return [dataclasses.replace(view, name=Path(view.name).name) for view in dataset_views(dataset)]
 
 
 def _view_sources(datamanager) -> Dict[str, tuple]:
@@ -620,15 +575,13 @@ def evaluate_run(
     iou_threshold: float = 0.5,
     max_psnr_drop_db: float = DEFAULT_MAX_PSNR_DROP_DB,
     min_gain_db: float = DEFAULT_MIN_GAIN_DB,
-    gaussian_ids_override: Optional[Callable[[GaussianScene, Dict[str, np.ndarray]], Dict[str, np.ndarray]]] = None,
+    gaussian_ids_override: Optional[Callable[[TrainedScene, Dict[str, np.ndarray]], Dict[str, np.ndarray]]] = None,
 ) -> EvaluationResult:
     """Score a votesplat run (see the module doc); writes metrics.json and comparison PNGs.
 
     ``gaussian_ids_override(scene, gt_per_gaussian) -> {level: ids}`` replaces the clustered ids
     (0..K-1, -1 = none) before rendering; tests use it to render the GT itself.
     """
-    from nerfstudio.utils.eval_utils import eval_setup
-
     from votesplat_ns.ns.rasterizer import rasterize
 
     if views not in ("eval", "train", "all"):
@@ -653,8 +606,7 @@ def evaluate_run(
             cfg.pipeline.datamanager.data = data_path
         return cfg
 
-    _, pipeline, _, step = eval_setup(load_config, test_mode="test", update_config_callback=update)
-    scene = GaussianScene.from_model(pipeline.model)
+    pipeline, scene, step = load_run(load_config, test_mode="test", update_config_callback=update)
     pairs = _levels_to_score(scene.level_names, dataset.levels, level, gt_level)
 
     datamanager = pipeline.datamanager
@@ -673,7 +625,7 @@ def evaluate_run(
     check = check_reconstruction([p for p, _ in rgb], [f for _, f in rgb], max_psnr_drop_db, min_gain_db)
 
     instance_set = cluster_levels(
-        scene.means.cpu().numpy(),
+        scene.means,
         scene.vote_offsets,
         scene.vote_support,
         scene.level_names,
@@ -682,7 +634,7 @@ def evaluate_run(
         max_points=max_points,
         seed=seed,
     )
-    means_world = points_to_dataset_frame(scene.means.cpu().numpy(), transform, scale)
+    means_world = points_to_dataset_frame(scene.means, transform, scale)
     gt_gaussians, gt_info = gaussian_ground_truth(
         dataset, means_world, sorted({gt for _, gt in pairs}), method=gaussian_gt, surface_tolerance_px=surface_tolerance_px
     )
@@ -713,7 +665,7 @@ def evaluate_run(
         "dataset": str(dataset.root),
         "views": views,
         "view_names": [v.name for v in chosen],
-        "num_gaussians": int(scene.means.shape[0]),
+        "num_gaussians": scene.num_gaussians,
         "min_weight": min_weight,
         "iou_threshold": iou_threshold,
         "gaussian_gt": gt_info,

@@ -31,7 +31,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import math
 import re
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -43,8 +42,8 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
-from votesplat_ns.core.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
-from votesplat_ns.cli.cli_errors import check_writable_folder, load_run, one_line_errors, writing_into
+from votesplat_ns.core.cameras import PinholeView, scaled_view
+from votesplat_ns.cli.cli_errors import check_writable_folder, one_line_errors, writing_into
 from votesplat_ns.core.clustering import cluster_levels
 from votesplat_ns.core.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
 from votesplat_ns.eval.lerf_ovs import (
@@ -57,7 +56,9 @@ from votesplat_ns.eval.lerf_ovs import (
     silhouette_mask,
     write_label_frame,
 )
-from votesplat_ns.core.ply_io import atomic_write, gaussian_vertex_table, write_gaussian_table
+from votesplat_ns.core.ply_io import atomic_write, write_gaussian_table
+from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.ns.run import dataset_views, load_run
 from votesplat_ns.core.semantics import (
     DEFAULT_NEGATIVES,
     ClipEncoder,
@@ -145,12 +146,12 @@ class QueryScene:
     """A trained run ready for selection: its Gaussians, the instances of one level, its cameras.
 
     Build it with :meth:`from_config` (loads the checkpoint through nerfstudio) or directly from
-    parameters and cameras (tests, other front ends). ``params`` is export's ``_Params``;
+    parameters and cameras (tests, other front ends). ``params`` is the run's :class:`TrainedScene`;
     ``train_views``/``eval_views`` are lists of ``(PinholeView, image_loader)`` where
     ``image_loader()`` returns the view's image as [H, W, 3] uint8 at the camera's resolution.
     """
 
-    def __init__(self, params, level: LevelInstances, train_views: Sequence[Tuple[PinholeView, Any]],
+    def __init__(self, params: TrainedScene, level: LevelInstances, train_views: Sequence[Tuple[PinholeView, Any]],
                  eval_views: Sequence[Tuple[PinholeView, Any]] = (), run_dir: Optional[Path] = None,
                  device: Union[str, torch.device] = "cpu", rasterize_mode: str = "classic",
                  instances_source: str = "clustered") -> None:
@@ -162,23 +163,12 @@ class QueryScene:
         self.device = torch.device(device)
         self.rasterize_mode = rasterize_mode
         self.instances_source = instances_source
-        n = params.means.shape[0]
+        n = params.num_gaussians
         if level.ids.shape != (n,):
             raise ValueError(f"instance ids cover {level.ids.shape[0]} Gaussians but the model has {n}")
-        finite = np.isfinite(params.means).all(1) & np.isfinite(params.log_scales).all(1) & np.isfinite(params.quats).all(1)
-        finite &= np.isfinite(params.opacity_logits) & np.isfinite(params.sh_dc).all(1)
-        if params.sh_rest is not None:
-            finite &= np.isfinite(params.sh_rest).reshape(n, -1).all(1)
-        # The rasteriser refuses non-finite input; such Gaussians are invisible anyway.
+        finite = params.finite(colours=True)
         self.finite = finite
-        tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a[finite]), dtype=torch.float32, device=self.device)  # noqa: E731
-        self.means = tensor(params.means)
-        self.quats = tensor(params.quats)
-        self.scales = torch.exp(tensor(params.log_scales))
-        self.opacities = torch.sigmoid(tensor(params.opacity_logits))
-        dc = tensor(params.sh_dc)[:, None, :]
-        self.colors = torch.cat([dc, tensor(params.sh_rest)], dim=1) if params.sh_rest is not None else dc
-        self.sh_degree = int(round(math.sqrt(self.colors.shape[1]))) - 1
+        self.means, self.quats, self.scales, self.opacities, self.colors, self.sh_degree = params.gaussians(finite, self.device)
         self.ids = torch.as_tensor(level.ids[finite], dtype=torch.long, device=self.device)
         self._table: Optional[np.ndarray] = None
         self._id_maps: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
@@ -188,17 +178,14 @@ class QueryScene:
     def from_config(cls, load_config: Path, level: Optional[str] = None, instances: Optional[Path] = None,
                     clustering: Optional[ClusteringOptions] = None) -> "QueryScene":
         """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``."""
-        from votesplat_ns.ns.export import _read_params
-
         load_config = Path(load_config)
-        _, pipeline, _, _ = load_run(load_config)
+        pipeline, params, _ = load_run(load_config)
         model = pipeline.model
-        params = _read_params(model, None, None)
-        device = params_device(model)
+        device = torch.device(params.device)
         level_instances, source = instances_of_level(params, level, instances, clustering or ClusteringOptions())
         datamanager = pipeline.datamanager
-        train_views = dataset_views(datamanager, "train")
-        eval_views = dataset_views(datamanager, "eval")
+        train_views = split_views(datamanager, "train")
+        eval_views = split_views(datamanager, "eval")
         rasterize_mode = getattr(getattr(model, "config", None), "rasterize_mode", "classic")
         return cls(params, level_instances, train_views, eval_views, run_dir=load_config.parent, device=device,
                    rasterize_mode=rasterize_mode, instances_source=source)
@@ -291,8 +278,7 @@ class QueryScene:
 
     def vertex_table(self) -> np.ndarray:
         if self._table is None:
-            p = self.params
-            self._table = gaussian_vertex_table(p.means, p.sh_dc, p.sh_rest, p.opacity_logits, p.log_scales, p.quats)
+            self._table = self.params.vertex_table()
         return self._table
 
     def fingerprint(self) -> Dict[str, Any]:
@@ -305,12 +291,6 @@ class QueryScene:
             "level": self.level.name,
             "num_gaussians": int(p.means.shape[0]),
         }
-
-
-def params_device(model) -> torch.device:
-    if hasattr(model, "gauss_params"):
-        return next(iter(model.gauss_params.values())).device
-    return torch.device("cpu")
 
 
 def instances_of_level(params, level: Optional[str], instances_dir: Optional[Path],
@@ -343,7 +323,7 @@ def instances_of_level(params, level: Optional[str], instances_dir: Optional[Pat
     return chosen, source
 
 
-def dataset_views(datamanager, split: Literal["train", "eval"]) -> List[Tuple[PinholeView, Any]]:
+def split_views(datamanager, split: Literal["train", "eval"]) -> List[Tuple[PinholeView, Any]]:
     """Cameras and lazy uint8 image loaders of a nerfstudio full-image datamanager's split.
 
     Images of distorted cameras are taken from nerfstudio's undistorted cache, whose loading also
@@ -365,14 +345,8 @@ def dataset_views(datamanager, split: Literal["train", "eval"]) -> List[Tuple[Pi
         def loader(index: int):
             return lambda: _uint8_image(dataset.get_data(index, image_type="uint8")["image"])
 
-    views = []
-    for index in range(len(dataset)):
-        camera = cameras[index]
-        K = camera.get_intrinsics_matrices().reshape(3, 3).float().clone()
-        view = PinholeView(viewmat_from_camera_to_world(camera.camera_to_worlds.reshape(3, 4).float()), K,
-                          int(camera.width.item()), int(camera.height.item()), str(dataset.image_filenames[index]))
-        views.append((view, loader(index)))
-    return views
+    views = dataset_views(dataset, cameras=cameras)
+    return [(view, loader(index)) for index, view in enumerate(views)]
 
 
 def _uint8_image(image) -> np.ndarray:
