@@ -46,7 +46,7 @@ class VoteSplatInputError(ValueError):
 _SUBCOMMANDS = {
     "ns-train": ("votesplat",),
     "ns-export": ("votesplat-instances",),
-    "votesplat": ("query", "click", "query-eval", "write-labels"),
+    "votesplat": ("masks", "export", "query", "click", "query-eval", "eval", "noisy-masks", "synth", "write-labels"),
 }
 
 

@@ -18,7 +18,7 @@ from typing import Dict, List, Literal, Optional, Tuple
 import cv2
 import numpy as np
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, one_line_errors, writing_into
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, writing_into
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, atomic_write_bytes, load_image_rgb
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps
 
@@ -194,11 +194,10 @@ def main(config: MasksConfig) -> Dict[str, object]:
 
 
 def entrypoint() -> None:
-    import tyro
+    """Console script ``votesplat-masks``, an alias of ``votesplat masks`` (lazy import: cli.main imports this module)."""
+    from votesplat_ns.cli.main import alias
 
-    config = tyro.cli(MasksConfig)
-    with one_line_errors(prog="votesplat-masks"):
-        main(config)
+    alias("masks", "votesplat-masks")
 
 
 if __name__ == "__main__":

@@ -472,9 +472,10 @@ class ExportVoteSplatInstances:
 
 
 def entrypoint() -> None:
-    """Console script ``votesplat-export``."""
-    tyro.extras.set_accent_color("bright_yellow")
-    tyro.cli(tyro.conf.FlagConversionOff[ExportVoteSplatInstances]).main()
+    """Console script ``votesplat-export``, an alias of ``votesplat export`` (lazy import: cli.main imports this module)."""
+    from votesplat_ns.cli.main import alias
+
+    alias("export", "votesplat-export")
 
 
 # ----------------------------------------------------------------------------- ns-export hook
