@@ -522,6 +522,7 @@ def workspace(tmp_path):
     ws.unlock()
 
 
+@pytest.mark.slow  # every case starts a console script; several train a step or load a trained run
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_bad_input(name, workspace, fixtures):
     expect = CASES[name](workspace, fixtures)
