@@ -202,7 +202,7 @@ def level_row(metrics: dict, level: str) -> dict:
 
 def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, seed: int = 42, **overrides) -> List[dict]:
     """Train once, score every level of ``args.levels``: one row per level."""
-    from votesplat_ns.cli.evaluate_cli import evaluate_run
+    from votesplat_ns.ns.evaluate import evaluate_run
     from votesplat_ns.ns.method import train_in_process
 
     start = time.time()
@@ -321,7 +321,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     import torch
 
-    from votesplat_ns.cli.evaluate_cli import write_noisy_masks
+    from votesplat_ns.eval.mask_noise import write_noisy_masks
     from votesplat_ns.eval.mask_noise import MaskNoise
 
     if args.device == "auto":

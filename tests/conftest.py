@@ -11,6 +11,14 @@ DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "de
 # Short enough for CI on 2 cores, long enough for the votes to move well past their start.
 DEMO_STEPS = int(os.environ.get("VOTESPLAT_TEST_STEPS", "240"))
 DEMO_VOTE_START = 40
+# Tests that use a fixture which trains are marked ``slow``; ``pytest -m "not slow"`` skips them.
+TRAINING_FIXTURES = ("trained_demo", "plain_runs")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    for item in items:
+        if any(name in TRAINING_FIXTURES for name in getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
 
 
 def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, **model_overrides) -> Path:

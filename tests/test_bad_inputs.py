@@ -1,7 +1,7 @@
 """Bad-input catalogue: the real commands, in subprocesses, given what a clumsy user gives them.
 
 Every case runs one console script (ns-train votesplat, ns-export votesplat-instances, votesplat
-query/click, votesplat-masks) in a workspace of its own and checks
+query/click/masks) in a workspace of its own and checks
   - the exit code,
   - for a failure: one line ``<command>: error: ...`` naming the file or flag, and no traceback,
   - for a run that must go on: its warning, said once,
@@ -159,7 +159,7 @@ def ns_export(config: Path, output_dir: Path, *extra: str) -> List[str]:
 
 
 def masks(data: Path, *extra: str) -> List[str]:
-    return [str(BIN / "votesplat-masks"), "--data", str(data), *extra]
+    return [str(BIN / "votesplat"), "masks", "--data", str(data), *extra]
 
 
 CASES: Dict[str, Callable[..., Expect]] = {}
@@ -297,7 +297,7 @@ def masks_without_any_vote(ws, fixtures):
         for path in (scene / folder).glob("*.png"):
             Image.fromarray(np.zeros((128, 128), np.uint16)).save(path)
     argv = ns_train(ws, scene, *ONE_VOTE_STEP)
-    return Expect(argv, exit_code=0, needles=["no mask of the 30 training views gives a vote", "votesplat-masks --data"],
+    return Expect(argv, exit_code=0, needles=["no mask of the 30 training views gives a vote", "votesplat masks --data"],
                   new_paths=("runs", "runs/**", "cache", "cache/**"))
 
 
@@ -468,7 +468,7 @@ def click_into_a_read_only_folder(ws, fixtures):
 
 
 # ------------------------------------------------------------------ running a case
-PROGRAMS = {"ns-train": "ns-train votesplat", "ns-export": "ns-export votesplat-instances", "votesplat-masks": "votesplat-masks"}
+PROGRAMS = {"ns-train": "ns-train votesplat", "ns-export": "ns-export votesplat-instances"}
 
 
 def program_of(argv: Sequence[str]) -> str:
@@ -522,6 +522,7 @@ def workspace(tmp_path):
     ws.unlock()
 
 
+@pytest.mark.slow  # every case starts a console script; several train a step or load a trained run
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_bad_input(name, workspace, fixtures):
     expect = CASES[name](workspace, fixtures)

@@ -17,19 +17,18 @@ from PIL import Image
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.eval.evaluation import match_instances
 import votesplat_ns.cli.evaluate_cli as evaluate_cli
-from votesplat_ns.cli.evaluate_cli import (
+import votesplat_ns.ns.evaluate as evaluate_module
+from votesplat_ns.eval.ground_truth import (
     GroundTruthDataset,
     LabelledView,
-    MaskNoise,
-    evaluate_run,
     gaussian_ground_truth,
     points_to_dataset_frame,
     projected_majority_labels,
     score_level,
-    select_views,
     surface_labels,
-    write_noisy_masks,
 )
+from votesplat_ns.eval.mask_noise import MaskNoise, write_noisy_masks
+from votesplat_ns.ns.evaluate import evaluate_run, select_views
 from votesplat_ns.core.mask_sources import FolderMaskSource
 from votesplat_ns.eval.synthetic.render import read_views
 
@@ -358,12 +357,12 @@ def test_eval_rejects_bad_options(trained_demo, tmp_path, monkeypatch, capsys):
         assert code == 1 and flag in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "c").exists()
     with pytest.raises(ValueError, match="--gt-level needs --level"):
-        evaluate_cli._levels_to_score(("instance", "part"), ("instance", "part"), None, "part")
+        evaluate_module._levels_to_score(("instance", "part"), ("instance", "part"), None, "part")
     with pytest.raises(ValueError, match="unknown vote level"):
-        evaluate_cli._levels_to_score(("instance", "part"), ("instance", "part"), "l", None)
+        evaluate_module._levels_to_score(("instance", "part"), ("instance", "part"), "l", None)
     with pytest.raises(ValueError, match="--gt-level instance"):
-        evaluate_cli._levels_to_score(("default", "s"), ("instance", "part"), None, None)
-    assert evaluate_cli._levels_to_score(("default", "s"), ("instance", "part"), "s", "instance") == [("s", "instance")]
+        evaluate_module._levels_to_score(("default", "s"), ("instance", "part"), None, None)
+    assert evaluate_module._levels_to_score(("default", "s"), ("instance", "part"), "s", "instance") == [("s", "instance")]
 
 
 # ----------------------------------------------------------------------------- noisy masks

@@ -25,6 +25,8 @@ from votesplat_ns.ns.export import (
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.instances import InstanceSet
 from votesplat_ns.core.ply_io import read_gaussian_ply, read_ply_header
+from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.ns.run import LoadedRun
 
 from test_instances import brute_force_rasterize  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -340,7 +342,7 @@ def stub_pipeline(model, width=40, height=30, views=3):
 def test_cli_main_with_a_loaded_pipeline(tmp_path, monkeypatch):
     params, _ = vote_scene(num_background=0)
     model = SimpleNamespace(gauss_params=params, config=SimpleNamespace(vote_levels=LEVELS, sh_degree=3))
-    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: (None, stub_pipeline(model), None, None))
+    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: LoadedRun(stub_pipeline(model), TrainedScene.from_model(model), 0))
     command = ExportVoteSplatInstances(load_config=tmp_path / "config.yml", output_dir=tmp_path / "out", level="part", remove=(2,), num_views=2, picture_width=20)
     command.main()
     manifest = json.loads((tmp_path / "out" / "instances.json").read_text())
@@ -358,7 +360,7 @@ def test_cli_main_with_a_loaded_pipeline(tmp_path, monkeypatch):
 
 def test_cli_main_reports_bad_input_in_one_line(tmp_path, monkeypatch, capsys):
     model = SimpleNamespace(gauss_params=splatfacto_params(), config=SimpleNamespace(sh_degree=3))
-    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: (None, stub_pipeline(model), None, None))
+    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: LoadedRun(stub_pipeline(model), TrainedScene.from_model(model), 0))
     monkeypatch.setattr(sys, "argv", ["/venv/bin/ns-export", SUBCOMMAND_NAME, "--load-config", "c.yml"])
     with pytest.raises(SystemExit) as exit_info:
         ExportVoteSplatInstances(load_config=tmp_path / "c.yml", output_dir=tmp_path / "out", num_views=0).main()

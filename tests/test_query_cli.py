@@ -18,19 +18,12 @@ import votesplat_ns
 from votesplat_ns.eval.lerf_ovs import category_masks, load_scene_labels, mask_iou
 from votesplat_ns.core.ply_io import read_gaussian_ply
 from votesplat_ns.core.clustering import cluster_levels
-from votesplat_ns.cli.query_cli import (
-    ClusteringOptions,
-    Query,
-    QueryEval,
-    QueryScene,
-    evaluate_queries,
-    instances_of_level,
-    main,
-    run_click,
-    run_query,
-    write_scene_labels,
-)
+from votesplat_ns.cli.query_cli import Query, QueryEval
+from votesplat_ns.eval.synthetic.labels import write_scene_labels
+from votesplat_ns.ns.query import evaluate_queries, run_click, run_query
+from votesplat_ns.ns.selection import ClusteringOptions, QueryScene, instances_of_level
 from votesplat_ns.core.semantics import InstanceFeatures
+from votesplat_ns.cli.main import main
 
 DEMO_SCENE = Path(votesplat_ns.__file__).resolve().parent / "data" / "demo"
 TRANSFORMS = json.loads((DEMO_SCENE / "transforms.json").read_text())

@@ -515,10 +515,13 @@ def test_mitsuba_sensor_matches_the_label_rays():
 
 @needs_mitsuba
 def test_cli_refuses_to_overwrite(tiny_dataset, capsys):
-    from votesplat_ns.eval.synthetic.cli import main
+    from votesplat_ns.cli.main import main
 
-    assert main(["tabletop360", "--output-dir", str(tiny_dataset)] + TINY) == 2
-    assert "--overwrite" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["synth", "tabletop360", "--output-dir", str(tiny_dataset)] + TINY)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 1 and "--overwrite" in err
+    assert err.strip().splitlines()[-1].startswith("votesplat synth: error:") and "Traceback" not in err
 
 
 # --------------------------------------------------------------------------------------------

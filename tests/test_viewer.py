@@ -498,7 +498,8 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
     from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
     from votesplat_ns.ns.model import VoteSplatModelConfig
-    from votesplat_ns.ns.viewer import VoteSplatViewerState, scene_from_model, view_from_camera
+    from votesplat_ns.ns.run import camera_view
+    from votesplat_ns.ns.viewer import VoteSplatViewerState, scene_from_model
 
     # splatfacto's get_viewmat is torch.compile'd; compiling it costs ~10 s on CPU and tests nothing here.
     monkeypatch.setattr(splatfacto, "get_viewmat", getattr(splatfacto.get_viewmat, "_torchdynamo_orig_callable", splatfacto.get_viewmat))
@@ -531,7 +532,7 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
         outputs = model.get_outputs(camera)
     assert viewer_state.extra_outputs(camera, outputs) == {}  # not a viewer render thread: nothing added
 
-    mirror = render_rgb(scene_from_model(model), view_from_camera(camera))
+    mirror = render_rgb(scene_from_model(model), camera_view(camera))
     torch.testing.assert_close(mirror["rgb"], outputs["rgb"], rtol=0, atol=1e-6)
 
     extra = viewer_state.viewer_outputs(camera, outputs, {OUTPUT_OVERLAY})
@@ -548,7 +549,7 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
     assert viewer_state.state.selected == 1 and viewer_state.state.display == DISPLAY_ISOLATE
     isolated = viewer_state.viewer_outputs(camera, outputs, set())
     selected = torch.from_numpy(viewer_state.state.instances.level("instance").ids) == 1
-    expected = render_rgb(scene_from_model(model).subset(selected), view_from_camera(camera))["rgb"]
+    expected = render_rgb(scene_from_model(model).subset(selected), camera_view(camera))["rgb"]
     assert torch.equal(isolated["rgb"], expected) and isolated[OUTPUT_OVERLAY] is isolated["rgb"]
 
     model.instance_gui_0_level.value = "part"

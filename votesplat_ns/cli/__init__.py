@@ -1,5 +1,4 @@
-"""Console scripts kept as they were before the folder split: ``votesplat`` (query_cli),
-``votesplat-eval`` and ``votesplat-noisy-masks`` (evaluate_cli), ``votesplat-masks`` (masks_cli),
-and the shared one-line error reporting (cli_errors). ``votesplat-export`` lives in ns/export.py and
-``votesplat-synth`` in eval/synthetic/cli.py.
+"""The ``votesplat <subcommand>`` command line (main), its subcommands' options (query_cli, evaluate_cli,
+masks_cli; ``export`` lives in ns/export.py and ``synth`` in eval/synthetic/cli.py) and the shared
+one-line error reporting (cli_errors). The old ``votesplat-*`` scripts are aliases of the subcommands.
 """

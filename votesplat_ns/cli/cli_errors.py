@@ -18,7 +18,7 @@ same line and exits 1. The helpers below turn the usual causes of a traceback in
 error in one place each: a folder that cannot be written (:func:`check_writable_folder`,
 :func:`writing_into`), a weights or checkpoint file torch cannot read (:func:`load_failure_reason`,
 never relaying torch's advice to load with ``weights_only=False``) and a run whose checkpoint is
-damaged (:func:`load_run`).
+damaged (:func:`check_run`, used by ``ns/run.load_run``).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ class VoteSplatInputError(ValueError):
 _SUBCOMMANDS = {
     "ns-train": ("votesplat",),
     "ns-export": ("votesplat-instances",),
-    "votesplat": ("query", "click", "query-eval", "write-labels"),
+    "votesplat": ("masks", "export", "query", "click", "query-eval", "eval", "noisy-masks", "synth", "write-labels"),
 }
 
 
@@ -223,7 +223,7 @@ def _latest_checkpoint(config) -> Optional[Path]:
     return checkpoints[-1] if checkpoints else None
 
 
-def _checkpoint_problem(checkpoint: Path) -> Optional[str]:
+def checkpoint_problem(checkpoint: Path) -> Optional[str]:
     """Why ``checkpoint`` cannot be loaded (it is read again only on this error path), or None."""
     import torch
 
@@ -234,15 +234,13 @@ def _checkpoint_problem(checkpoint: Path) -> Optional[str]:
     return None
 
 
-def load_run(load_config: Union[str, Path], flag: str = "--load-config"):
-    """nerfstudio's ``eval_setup`` for a trained run (inference mode), with one-line errors.
+def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:
+    """The checkpoint ``ns/run.load_run`` will load for a run's config.yml, checked before any model is built.
 
     A missing config file, a run without checkpoints or a checkpoint that is truncated or damaged
-    raise :class:`VoteSplatInputError` naming the file, before the model is built where possible.
-    Returns ``(config, pipeline, checkpoint_path, step)`` as ``eval_setup`` does.
+    raise :class:`VoteSplatInputError` naming the file.
     """
     import yaml
-    from nerfstudio.utils.eval_utils import eval_setup
 
     load_config = Path(load_config)
     if not load_config.is_file():
@@ -260,14 +258,10 @@ def load_run(load_config: Union[str, Path], flag: str = "--load-config"):
             f"{flag} {load_config}: the run has no checkpoint (looked in {folder}); "
             "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
         )
-    damaged_hint = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
     problem = _file_format_problem(checkpoint)  # before the model is built
     if problem is not None:
-        raise VoteSplatInputError(f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {damaged_hint}")
-    try:
-        return eval_setup(load_config, test_mode="inference")
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
-        problem = _checkpoint_problem(checkpoint)
-        if problem is None:
-            raise
-        raise VoteSplatInputError(f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {damaged_hint}") from error
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; "
+            "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
+        )
+    return checkpoint

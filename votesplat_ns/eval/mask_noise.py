@@ -18,11 +18,17 @@ All rates 0 returns an unchanged copy.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import shutil
 from dataclasses import dataclass
-from typing import List, Sequence, Tuple
+from pathlib import Path
+from typing import List, Sequence, Tuple, Union
 
 import numpy as np
+
+from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling
+from votesplat_ns.eval.ground_truth import GT_LEVELS, GroundTruthDataset, write_json_atomic
 
 _DROP, _MERGE, _SPLIT, _JITTER = 1, 2, 3, 4
 
@@ -185,3 +191,78 @@ class MaskNoise:
             else:
                 out[mask & ~erode(mask, radius)] = 0
             events.append(NoiseEvent("jitter", label, amount=radius if grow else -radius))
+
+
+# ----------------------------------------------------------------------------- noisy mask folders
+
+NOISE_MANIFEST_NAME = "noise.json"
+
+
+def write_noisy_masks(
+    data: Union[str, Path],
+    output: Union[str, Path],
+    noise: MaskNoise,
+    levels: Sequence[str] = GT_LEVELS,
+    overwrite: bool = False,
+) -> Path:
+    """GT label images with ``noise`` applied, as ``<output>/<level>/<image_stem>.png`` (+ noise.json).
+
+    Every frame of the dataset is written (view index = frame order in transforms.json, so the
+    noise of a view is reproducible); each level gets its own seed (``noise.seed + level index``).
+    The folder is built beside ``output`` and renamed into place; an existing ``output`` is
+    replaced only with ``overwrite`` and only if it holds a previous noisy-mask folder.
+    """
+    from votesplat_ns.eval.synthetic.render import write_png
+
+    dataset = GroundTruthDataset.open(data)
+    levels = tuple(levels)
+    missing = [level for level in levels if level not in dataset.levels]
+    if missing:
+        raise ValueError(f"dataset {dataset.root} has no {missing} ground truth (it has {list(dataset.levels)})")
+    if not levels:
+        raise ValueError("pass at least one level (instance, part)")
+    output = Path(output)
+    if output.exists():
+        if not output.is_dir():
+            raise ValueError(f"{output} is a file; pass a folder path")
+        if any(output.iterdir()):
+            if not (output / NOISE_MANIFEST_NAME).is_file():
+                raise ValueError(f"{output} is a non-empty folder that is not a noisy-mask folder; choose a new or empty folder")
+            if not overwrite:
+                raise ValueError(f"{output} already holds noisy masks; pass --overwrite to replace them")
+    if output.resolve() == dataset.root.resolve() or dataset.root.resolve() in output.resolve().parents:
+        raise ValueError(f"{output} lies inside the dataset {dataset.root}; write the noisy masks outside it")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    staging = make_temp_dir(output, ".partial")
+    try:
+        changed = {level: 0 for level in levels}
+        for level_index, level in enumerate(levels):
+            level_noise = dataclasses.replace(noise, seed=int(noise.seed) + level_index)
+            for view_index, name in enumerate(dataset.frames):
+                clean = dataset.labels(name, level)
+                noisy = level_noise.apply(clean.astype(np.int64), view_index=view_index)
+                if noisy.max(initial=0) > np.iinfo(np.uint16).max:
+                    raise ValueError(f"view {name} has more than 65535 masks after noise")
+                changed[level] += int(not np.array_equal(noisy, clean))
+                write_png(staging / level / f"{Path(name).stem}.png", noisy.astype(np.uint16))
+        manifest = {
+            "format": "votesplat-noisy-masks",
+            "dataset": str(dataset.root),
+            "levels": list(levels),
+            "noise": dataclasses.asdict(noise),
+            "level_seeds": {level: int(noise.seed) + i for i, level in enumerate(levels)},
+            "num_views": len(dataset.frames),
+            "views_changed": changed,
+        }
+        write_json_atomic(staging / NOISE_MANIFEST_NAME, manifest)
+        if output.exists():
+            old = temp_sibling(output, ".old")
+            output.rename(old)
+            staging.rename(output)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            staging.rename(output)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return output

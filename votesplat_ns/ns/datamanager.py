@@ -426,7 +426,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
             CONSOLE.print(
                 f"Warning: no mask of the {len(views)} training views gives a vote (every mask is empty"
                 f"{border if self.config.border_masks != 'vote' else ''}), so this run learns no instances; "
-                f"look at the masks with: votesplat-masks --data {self.config.dataset_path} --preview 4",
+                f"look at the masks with: votesplat masks --data {self.config.dataset_path} --preview 4",
                 style="bold yellow",
                 soft_wrap=True,
                 markup=False,

@@ -27,7 +27,6 @@ from __future__ import annotations
 import contextlib
 import fnmatch
 import importlib.abc
-import math
 import os
 import shutil
 import sys
@@ -43,95 +42,28 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
-from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_writable_folder, load_run, one_line_errors, writing_into
+from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_writable_folder, one_line_errors, writing_into
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 from votesplat_ns.core.instances import IDS_NAME, MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
-from votesplat_ns.core.ply_io import SH_C0, gaussian_vertex_table, make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
+from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
+from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY, TrainedScene  # noqa: F401 (keys re-exported)
+from votesplat_ns.ns.run import camera_view, load_run
 
-VOTE_OFFSETS_KEY = "vote_offsets"
-VOTE_SUPPORT_KEY = "vote_support"
 SUBCOMMAND_NAME = "votesplat-instances"
 EXPORTER_MODULE = "nerfstudio.scripts.exporter"
 
 
-@dataclass
-class _Params:
-    means: np.ndarray
-    log_scales: np.ndarray
-    quats: np.ndarray
-    opacity_logits: np.ndarray
-    sh_dc: np.ndarray
-    sh_rest: Optional[np.ndarray]
-    vote_offsets: np.ndarray
-    vote_support: np.ndarray
-    level_names: Tuple[str, ...]
-
-
-def _numpy(value) -> np.ndarray:
-    if hasattr(value, "detach"):
-        value = value.detach().float().cpu().numpy()
-    return np.asarray(value)
-
-
-def _read_params(model_or_params, level_names: Optional[Sequence[str]], sh_degree: Optional[int]) -> _Params:
-    """Raw splatfacto-style parameters (+ votes) from a model or a gauss_params-like mapping.
-
-    With sh_degree 0, splatfacto stores RGB logits in features_dc; they are converted to SH DC
-    exactly as nerfstudio's exporter does (RGB2SH(sigmoid(.))).
-    """
+def _scene_of(model_or_params, level_names: Optional[Sequence[str]], sh_degree: Optional[int]) -> TrainedScene:
+    """The :class:`TrainedScene` of a model, a gauss_params-like mapping, or the scene itself."""
+    if isinstance(model_or_params, TrainedScene):
+        return model_or_params
     if hasattr(model_or_params, "gauss_params"):
-        params = model_or_params.gauss_params
-        config = getattr(model_or_params, "config", None)
-        if level_names is None:
-            level_names = getattr(config, "vote_levels", None)
-        if sh_degree is None:
-            sh_degree = getattr(config, "sh_degree", None)
-    elif isinstance(model_or_params, Mapping):
-        params = model_or_params
-    else:
-        raise ValueError(f"expected a VoteSplat model or a dict of Gaussian parameters, got {type(model_or_params).__name__}")
-    keys = set(params.keys())
-    missing_votes = [k for k in (VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY) if k not in keys]
-    if missing_votes:
-        raise ValueError(
-            f"the checkpoint has no {' / '.join(missing_votes)}: it was not trained with the votesplat method; "
-            "export instances from a VoteSplat run (ns-train votesplat ...)"
-        )
-    missing = [k for k in ("means", "scales", "quats", "opacities", "features_dc") if k not in keys]
-    if missing:
-        raise ValueError(f"Gaussian parameters are missing {missing}; pass splatfacto's gauss_params")
-    offsets = _numpy(params[VOTE_OFFSETS_KEY])
-    support = _numpy(params[VOTE_SUPPORT_KEY])
-    if offsets.ndim == 2:  # a single level may be stored as [N, 3]
-        offsets = offsets[:, None, :]
-    if support.ndim == 1:
-        support = support[:, None]
-    if level_names is None:
-        level_names = tuple(f"level_{i}" for i in range(offsets.shape[1]))
-    level_names = tuple(str(name) for name in level_names)
-    if len(level_names) != offsets.shape[1]:
-        raise ValueError(f"the model has {offsets.shape[1]} vote levels but {len(level_names)} level names {level_names}")
-    rest = _numpy(params["features_rest"]) if "features_rest" in keys else None
-    if sh_degree is None:
-        sh_degree = int(round(math.sqrt(rest.shape[1] + 1))) - 1 if rest is not None and rest.ndim == 3 else 0
-    dc = _numpy(params["features_dc"]).reshape(offsets.shape[0], 3)
-    if sh_degree == 0:
-        # float32 torch ops in nerfstudio's order, so the PLY bytes equal ns-export's
-        dc = ((torch.sigmoid(torch.as_tensor(dc, dtype=torch.float32)) - 0.5) / SH_C0).numpy()
-        rest = None
-    return _Params(
-        means=_numpy(params["means"]),
-        log_scales=_numpy(params["scales"]),
-        quats=_numpy(params["quats"]),
-        opacity_logits=_numpy(params["opacities"]).reshape(-1),
-        sh_dc=dc.astype(np.float32),
-        sh_rest=rest if rest is not None and rest.size else None,
-        vote_offsets=offsets,
-        vote_support=support,
-        level_names=level_names,
-    )
+        return TrainedScene.from_model(model_or_params, level_names, sh_degree)
+    if isinstance(model_or_params, Mapping):
+        return TrainedScene.from_params(model_or_params, level_names, sh_degree)
+    raise ValueError(f"expected a VoteSplat model or a dict of Gaussian parameters, got {type(model_or_params).__name__}")
 
 
 @contextlib.contextmanager
@@ -206,7 +138,7 @@ def _check_output_dir(output_dir: Path, flag: str = "output_dir") -> None:
     check_writable_folder(output_dir.parent, flag, given=output_dir)
 
 
-def _nonfinite_votes(params: "_Params") -> Dict[str, int]:
+def _nonfinite_votes(params: TrainedScene) -> Dict[str, int]:
     """Per level: supervised Gaussians (support > 0) whose mean or vote offset is NaN/Inf (clustering treats them as background)."""
     finite_means = np.isfinite(params.means).all(axis=1)
     counts = {}
@@ -271,7 +203,7 @@ def export_instances(
     """
     output_dir = Path(output_dir)
     _check_output_dir(output_dir, output_flag)
-    params = _read_params(model_or_params, level_names, sh_degree)
+    params = _scene_of(model_or_params, level_names, sh_degree)
     n = params.means.shape[0]
     if n == 0:
         raise ValueError("the model has no Gaussians to export")
@@ -339,7 +271,7 @@ def export_instances(
 
 
 def _write_export(
-    params: _Params,
+    params: TrainedScene,
     instance_set: InstanceSet,
     level_index: int,
     remove_ids: List[int],
@@ -353,7 +285,7 @@ def _write_export(
 ) -> Dict[str, object]:
     chosen = instance_set.levels[level_index]
     ids = chosen.ids
-    table = gaussian_vertex_table(params.means, params.sh_dc, params.sh_rest, params.opacity_logits, params.log_scales, params.quats)
+    table = params.vertex_table()
     width = max(4, len(str(chosen.num_instances - 1)))
     (folder / "instances").mkdir()
     advance = task("writing PLY files", total=chosen.num_instances + 2 + bool(remove_ids))
@@ -403,13 +335,10 @@ def _write_export(
     return instance_set.save(folder, instance_extra={chosen.name: per_instance}, extra=extra)
 
 
-def _write_picture(params: _Params, ids: np.ndarray, views: Sequence[PinholeView], rasterize_fn, device, path: Path, task) -> str:
+def _write_picture(params: TrainedScene, ids: np.ndarray, views: Sequence[PinholeView], rasterize_fn, device, path: Path, task) -> str:
     device = torch.device(device) if device is not None else torch.device("cpu")
-    finite = np.isfinite(params.means).all(1) & np.isfinite(params.log_scales).all(1) & np.isfinite(params.quats).all(1)
-    finite &= np.isfinite(params.opacity_logits)
-    tensor = lambda a: torch.as_tensor(np.ascontiguousarray(a[finite]), dtype=torch.float32, device=device)  # noqa: E731
-    means, quats = tensor(params.means), tensor(params.quats)
-    scales, opacities = torch.exp(tensor(params.log_scales)), torch.sigmoid(tensor(params.opacity_logits))
+    finite = params.finite()
+    means, quats, scales, opacities, _, _ = params.gaussians(finite, device)
     instance_ids = torch.as_tensor(ids[finite], device=device)
     advance = task("rendering instance views", total=len(views))
     maps, images = [], []
@@ -438,17 +367,17 @@ def training_views(pipeline, num_views: int, max_width: int = 320) -> List[Pinho
     picks = sorted({int(round(x)) for x in np.linspace(0, count - 1, min(num_views, count))})
     views = []
     for index in picks:
-        camera = cameras[index : index + 1]
-        width, height = int(camera.width.item()), int(camera.height.item())
+        view = camera_view(cameras, index)
+        width, height = view.width, view.height
         scale = min(1.0, max_width / width)
-        K = camera.get_intrinsics_matrices()[0].float().clone()
+        K = view.K.clone()
         K[:2] *= scale
         out_w, out_h = max(1, int(round(width * scale))), max(1, int(round(height * scale)))
         image = None
         with contextlib.suppress(Exception):  # the picture still works without the photo row
             image = dataset[index]["image"][..., :3].float()
             image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(out_h, out_w), mode="area")[0].permute(1, 2, 0)
-        views.append(PinholeView(viewmat_from_camera_to_world(camera.camera_to_worlds[0].float()), K, out_w, out_h, image=image))
+        views.append(PinholeView(view.viewmat, K, out_w, out_h, image=image))
     return views
 
 
@@ -506,9 +435,8 @@ class ExportVoteSplatInstances:
         # bad input (ValueError, VoteSplatInputError) ends the command with one line, exit 1
         with one_line_errors(catch=(ValueError,)), writing_into(self.output_dir, "--output-dir"):
             _check_output_dir(self.output_dir, "--output-dir")  # before the checkpoint is loaded
-            _, pipeline, _, _ = load_run(self.load_config)
-            model = pipeline.model
-            device = next(iter(model.gauss_params.values())).device if hasattr(model, "gauss_params") else torch.device("cpu")
+            pipeline, scene, _ = load_run(self.load_config)
+            device = torch.device(scene.device)
             views: List[PinholeView] = []
             rasterize_fn = default_rasterizer() if self.num_views > 0 else None
             if rasterize_fn is None and self.num_views > 0:
@@ -534,7 +462,7 @@ class ExportVoteSplatInstances:
                         markup=False,
                     )
             manifest = export_instances(
-                model,
+                scene,
                 self.output_dir,
                 level=self.level,
                 remove=list(self.remove),
@@ -570,9 +498,10 @@ class ExportVoteSplatInstances:
 
 
 def entrypoint() -> None:
-    """Console script ``votesplat-export``."""
-    tyro.extras.set_accent_color("bright_yellow")
-    tyro.cli(tyro.conf.FlagConversionOff[ExportVoteSplatInstances]).main()
+    """Console script ``votesplat-export``, an alias of ``votesplat export`` (lazy import: cli.main imports this module)."""
+    from votesplat_ns.cli.main import alias
+
+    alias("export", "votesplat-export")
 
 
 # ----------------------------------------------------------------------------- ns-export hook

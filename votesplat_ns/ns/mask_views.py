@@ -8,8 +8,9 @@ from typing import Dict, Sequence
 import numpy as np
 import torch
 
-from votesplat_ns.core.cameras import viewmat_from_camera_to_world
+from votesplat_ns.core.cameras import scaled_view
 from votesplat_ns.core.mask_consensus import MaskView, regroup_with_masks, seen_mask_table, seen_pixels
+from votesplat_ns.ns.run import camera_view
 
 DEFAULT_MASK_VIEWS = 32
 DEFAULT_MASK_VIEW_WIDTH = 320
@@ -28,17 +29,10 @@ def training_mask_views(pipeline, level_names: Sequence[str], max_views: int = D
     picks = sorted({int(round(x)) for x in np.linspace(0, count - 1, min(max_views, count))}) if max_views > 0 else []
     views: Dict[str, list] = {name: [] for name in level_names}
     for index in picks:
-        camera = cameras[index : index + 1]
-        width, height = int(camera.width.item()), int(camera.height.item())
-        scale = min(1.0, max_width / width)
-        out_w, out_h = max(1, int(round(width * scale))), max(1, int(round(height * scale)))
-        K = camera.get_intrinsics_matrices()[0].float().clone()
-        K[0] *= out_w / width
-        K[1] *= out_h / height
-        viewmat = viewmat_from_camera_to_world(camera.camera_to_worlds[0].float())
-        labels = np.asarray(datamanager.vote_maps_for_train_view(index, out_h, out_w).labels)
+        view = scaled_view(camera_view(cameras, index), max_width=max_width)
+        labels = np.asarray(datamanager.vote_maps_for_train_view(index, view.height, view.width).labels)
         for name in level_names:
-            views[name].append(MaskView(viewmat, K, labels[known.index(name)].astype(np.int64)))
+            views[name].append(MaskView(view.viewmat, view.K, labels[known.index(name)].astype(np.int64)))
     return views
 
 

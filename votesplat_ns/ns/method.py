@@ -38,7 +38,7 @@ def _install_export_hook() -> None:
 
         install_ns_export_hook()
     except Exception as err:  # pragma: no cover - reported, not fatal
-        warnings.warn(f"votesplat: ns-export votesplat-instances unavailable ({err}); use votesplat-export", RuntimeWarning)
+        warnings.warn(f"votesplat: ns-export votesplat-instances unavailable ({err}); use votesplat export", RuntimeWarning)
 
 
 def splatfacto_optimizers(max_steps: int = 30000) -> dict:

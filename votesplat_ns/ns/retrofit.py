@@ -39,8 +39,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from votesplat_ns.core.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
+from votesplat_ns.core.cameras import PinholeView, scaled_view
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.ns.run import camera_view
 
 FRAMES = ("dataparser", "dataset", "colmap")
 """The frames a retrofit PLY can be in, in the order they are preferred when they coincide."""
@@ -420,14 +421,7 @@ def retrofit_reference(datamanager) -> RetrofitReference:
     def views() -> Tuple[List[PinholeView], List[PinholeView]]:
         cached = datamanager.cached_train  # undistorts the images and updates the cameras to match; do it first
         cameras = datamanager.train_dataset.cameras
-        Ks = cameras.get_intrinsics_matrices()
-        every = [
-            PinholeView(
-                viewmat_from_camera_to_world(cameras.camera_to_worlds[i].double().cpu()),
-                Ks[i].double().cpu(), int(cameras.width[i]), int(cameras.height[i]), name=str(i),
-            )
-            for i in range(cameras.shape[0])
-        ]
+        every = [camera_view(cameras.to("cpu"), i, str(i), dtype=torch.float64) for i in range(cameras.shape[0])]
         picks = sorted({int(round(x)) for x in torch.linspace(0, len(every) - 1, min(PHOTO_VIEWS, len(every))).tolist()})
         photos = []
         for i in picks:

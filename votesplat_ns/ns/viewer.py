@@ -36,6 +36,7 @@ from torch import Tensor
 
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.instances import InstanceSet, instance_colors, render_instance_ids
+from votesplat_ns.ns.run import camera_view
 
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras
@@ -661,21 +662,6 @@ def _same_mask(a: Optional[Tensor], b: Optional[Tensor]) -> bool:
 # nerfstudio glue
 
 
-def view_from_camera(camera: "Cameras") -> PinholeView:
-    """The :class:`PinholeView` splatfacto renders for a (single, eval-mode) nerfstudio camera."""
-    from nerfstudio.models.splatfacto import get_viewmat
-
-    if camera.shape[0] != 1:
-        raise ValueError(f"the viewer renders one camera at a time, got {camera.shape[0]}")
-    c2w = camera.camera_to_worlds
-    return PinholeView(
-        viewmat=get_viewmat(c2w)[0],
-        K=camera.get_intrinsics_matrices()[0].to(c2w),
-        width=int(camera.width.item()),
-        height=int(camera.height.item()),
-    )
-
-
 def scene_from_model(model: Any) -> SplatScene:
     """A splatfacto-style model's Gaussians as :class:`SplatScene` (as its eval render sees them)."""
     features = torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1)
@@ -840,7 +826,7 @@ class VoteSplatViewerState:
             scale = min(1.0, MAX_FEATURE_VIEW_SIDE / max(int(camera.height.item()), int(camera.width.item())))
             if scale < 1.0:
                 camera.rescale_output_resolution(scale)
-            view = view_from_camera(camera)
+            view = camera_view(camera)
             if image.shape[:2] != (view.height, view.width):
                 from PIL import Image
 
@@ -875,12 +861,18 @@ class VoteSplatViewerState:
             with torch.no_grad():
                 scene = scene_from_model(model)
                 crop = model.crop_box.within(scene.means).reshape(-1) if getattr(model, "crop_box", None) is not None else None
-                extra = self.state.render_outputs(scene, view_from_camera(camera), outputs, wanted, crop)
+                extra = self.state.render_outputs(scene, self._view(camera), outputs, wanted, crop)
         rgb = extra.get("rgb", outputs["rgb"])
         for name in VIEWER_OUTPUTS:
             extra.setdefault(name, rgb)
         self._show_state()
         return extra
+
+    @staticmethod
+    def _view(camera: "Cameras") -> PinholeView:
+        if camera.shape[0] != 1:
+            raise ValueError(f"the viewer renders one camera at a time, got {camera.shape[0]}")
+        return camera_view(camera)
 
     def _show_state(self) -> None:
         """Mirror state changes made during a render (selection, status) into the GUI."""

@@ -1,21 +1,22 @@
-"""``votesplat-synth``: render a seeded synthetic scene into a nerfstudio dataset with exact labels.
+"""``votesplat synth``: render a seeded synthetic scene into a nerfstudio dataset with exact labels.
 
 Example (the bundled demo scene)::
 
-    votesplat-synth tabletop360 --seed 3 --views 30 --eval-views 4 --width 128 --height 128 \\
+    votesplat synth tabletop360 --seed 3 --views 30 --eval-views 4 --width 128 --height 128 \\
         --objects 5 --spp 64 --output-dir votesplat_ns/data/demo --overwrite
 
 A whole set of the ``family`` benchmark (votesplat_ns/eval/synthetic/family.py: tuning or test seeds)::
 
-    votesplat-synth family-set --set test --output-dir build/family_test
+    votesplat synth family-set --set test --output-dir build/family_test
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
-from typing import List, Optional
+from typing import Iterator, List, Optional
 
 from votesplat_ns.eval.synthetic.scenes import RECIPES
 
@@ -23,11 +24,11 @@ _DEFAULT_VIEWS = {"tabletop360": 48, "nested": 48, "forward": 24, "family": 48}
 FAMILY_SET_COMMAND = "family-set"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(prog: str = "votesplat synth") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="votesplat-synth",
+        prog=prog,
         description="Render a synthetic multi-view scene (mitsuba 3, CPU) with exact instance/part ids and depth.",
-        epilog=f"'votesplat-synth {FAMILY_SET_COMMAND} --help': render a whole tuning or test set of the family recipe.",
+        epilog=f"'{prog} {FAMILY_SET_COMMAND} --help': render a whole tuning or test set of the family recipe.",
     )
     parser.add_argument("recipe", choices=sorted(RECIPES), help="scene recipe")
     parser.add_argument("--output-dir", required=True, help="dataset folder to write (transforms.json, images/, ...)")
@@ -55,11 +56,11 @@ def _add_image_arguments(parser: argparse.ArgumentParser, default_format: str) -
     parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality 1-100 with --image-format jpg")
 
 
-def build_family_set_parser() -> argparse.ArgumentParser:
+def build_family_set_parser(prog: str = "votesplat synth") -> argparse.ArgumentParser:
     from votesplat_ns.eval.synthetic.family import FAMILY_SETS, SET_OPTIONS
 
     parser = argparse.ArgumentParser(
-        prog=f"votesplat-synth {FAMILY_SET_COMMAND}",
+        prog=f"{prog} {FAMILY_SET_COMMAND}",
         description=(
             "Render every scene of a family set (votesplat_ns/eval/synthetic/family.py) into <output-dir>/family_<seed>/ "
             f"at {SET_OPTIONS['width']}x{SET_OPTIONS['height']}, {SET_OPTIONS['num_views']} train + "
@@ -77,8 +78,9 @@ def build_family_set_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def family_set_main(argv: List[str]) -> int:
-    args = build_family_set_parser().parse_args(argv)
+def family_set_main(argv: List[str], prog: str = "votesplat synth") -> int:
+    """Bad input raises ValueError (``votesplat synth`` prints it as one line)."""
+    args = build_family_set_parser(prog).parse_args(argv)
     from votesplat_ns.eval.synthetic.family import write_family_set
     from votesplat_ns.eval.synthetic.render import RenderSettings
 
@@ -89,11 +91,8 @@ def family_set_main(argv: List[str]) -> int:
             print(f"\rscene {scene + 1}/{scenes}: rendered {done}/{total} views ({time.time() - start:.0f} s)", end="", file=sys.stderr, flush=True)
 
     settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
-    try:
+    with _end_progress_line(args.quiet):
         manifest = write_family_set(args.set, args.output_dir, settings, overwrite=args.overwrite, progress=progress)
-    except (ValueError, ImportError) as exc:
-        print(f"\nvotesplat-synth {FAMILY_SET_COMMAND}: error: {exc}", file=sys.stderr)
-        return 2
     if not args.quiet:
         import json
 
@@ -103,11 +102,23 @@ def family_set_main(argv: List[str]) -> int:
     return 0
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+@contextlib.contextmanager
+def _end_progress_line(quiet: bool) -> Iterator[None]:
+    """An error message starts on a line of its own, not after the progress counter."""
+    try:
+        yield
+    except BaseException:
+        if not quiet:
+            print(file=sys.stderr)
+        raise
+
+
+def main(argv: Optional[List[str]] = None, prog: str = "votesplat synth") -> int:
+    """``votesplat synth``; bad input raises ValueError (or ImportError without mitsuba), printed by the caller as one line."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == [FAMILY_SET_COMMAND]:
-        return family_set_main(argv[1:])
-    args = build_parser().parse_args(argv)
+        return family_set_main(argv[1:], prog)
+    args = build_parser(prog).parse_args(argv)
     from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset
     from votesplat_ns.eval.synthetic.scenes import make_scene
 
@@ -120,7 +131,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.fov is not None:
         options["fov_x_degrees"] = args.fov
     start = time.time()
-    try:
+    with _end_progress_line(args.quiet):
         scene = make_scene(args.recipe, seed=args.seed, **options)
 
         def progress(done: int, total: int) -> None:
@@ -129,9 +140,6 @@ def main(argv: Optional[List[str]] = None) -> int:
 
         settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
         out = write_dataset(scene, args.output_dir, settings, overwrite=args.overwrite, progress=progress)
-    except (ValueError, ImportError) as exc:
-        print(f"\nvotesplat-synth: error: {exc}", file=sys.stderr)
-        return 2
     if not args.quiet:
         names = ", ".join(obj.name for obj in scene.objects)
         print(f"\nwrote {out} ({len(scene.cameras)} views, {len(scene.objects)} objects: {names})", file=sys.stderr)
@@ -139,8 +147,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 def entrypoint() -> None:
-    sys.exit(main())
+    """``votesplat-synth`` as installed before ``votesplat synth``; the cycle-free alias needs the lazy import."""
+    from votesplat_ns.cli.main import alias
 
-
-if __name__ == "__main__":
-    entrypoint()
+    alias("synth", "votesplat-synth")

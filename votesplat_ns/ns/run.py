@@ -1,0 +1,73 @@
+"""A trained run through nerfstudio: the one checkpoint loader and the one camera-to-view conversion.
+
+:func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (``cli_errors.check_run``)
+and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`. :func:`camera_view` and
+:func:`dataset_views` turn nerfstudio ``Cameras`` into :class:`~votesplat_ns.core.cameras.PinholeView`s
+(gsplat's conventions). The checkpoint safe-globals are registered when ``votesplat_ns`` is imported.
+"""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any, Callable, List, NamedTuple, Optional, Sequence, Union
+
+import torch
+
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoint_problem
+from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.core.scene import TrainedScene
+
+DAMAGED_HINT = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
+
+
+class LoadedRun(NamedTuple):
+    pipeline: Any  # nerfstudio Pipeline (model, datamanager)
+    scene: TrainedScene
+    step: int
+
+
+def load_run(load_config: Union[str, Path], flag: str = "--load-config", test_mode: str = "inference",
+             update_config_callback: Optional[Callable[[Any], Any]] = None) -> LoadedRun:
+    """Load a run's newest checkpoint with nerfstudio's ``eval_setup``; bad input raises one-line errors.
+
+    A missing config file, a run without checkpoints or a damaged checkpoint raise
+    :class:`VoteSplatInputError` naming the file, before the model is built where possible;
+    a checkpoint without votes raises ``ValueError`` (not a votesplat run).
+    """
+    from nerfstudio.utils.eval_utils import eval_setup  # nerfstudio imports its method configs, which import us
+
+    load_config = Path(load_config)
+    checkpoint = check_run(load_config, flag)
+    try:
+        _, pipeline, _, step = eval_setup(load_config, test_mode=test_mode, update_config_callback=update_config_callback)
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
+        problem = checkpoint_problem(checkpoint)
+        if problem is None:
+            raise
+        raise VoteSplatInputError(f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {DAMAGED_HINT}") from error
+    return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), int(step))
+
+
+def camera_view(cameras: Any, index: int = 0, name: str = "", dtype: torch.dtype = torch.float32) -> PinholeView:
+    """Camera ``index`` of nerfstudio ``Cameras`` as the :class:`PinholeView` splatfacto renders."""
+    camera = cameras[index : index + 1]
+    return PinholeView(
+        viewmat=viewmat_from_camera_to_world(camera.camera_to_worlds[0].to(dtype)),
+        K=camera.get_intrinsics_matrices()[0].to(dtype),
+        width=int(camera.width.item()),
+        height=int(camera.height.item()),
+        name=name,
+    )
+
+
+def dataset_views(dataset: Any, indices: Optional[Sequence[int]] = None, cameras: Any = None) -> List[PinholeView]:
+    """Views of a nerfstudio dataset's cameras (all, or ``indices``), named by their image file path.
+
+    ``cameras`` replaces ``dataset.cameras`` (nerfstudio's undistorted cache rewrites the intrinsics).
+    """
+    cameras = dataset.cameras if cameras is None else cameras
+    indices = range(len(cameras)) if indices is None else indices
+    filenames = getattr(dataset, "image_filenames", None)
+    return [camera_view(cameras, index, str(filenames[index]) if filenames is not None else "") for index in indices]
