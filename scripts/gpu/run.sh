@@ -24,6 +24,7 @@
 #                     all at once (the GPU is mostly idle in one small-scene run); QUALITY_STEPS
 #                     (3000), QUALITY_VOTE_START (500). Output quality.md (merged tables), quality.tar.gz
 #   sweep             benchmarks/sweep.py: training x clustering variants on $SWEEP_SCENES, or on a
+#                     (SWEEP_TAG=x: work folder and returned files sweep_x.*, for parallel sweeps)
 #                     family set with SWEEP_ARGS="--family test --family-dir build/family_test ..."
 #                     (carry the set's folder), all trainings in parallel worker processes (--jobs);
 #                     sweep.md, sweep.json, sweep.log. 12 runs of 3000 steps at 256x192: ~290 s
@@ -351,13 +352,16 @@ stage_quality() {
 # after every finished run, so a call cut short still reports what finished.
 stage_sweep() {
   ensure_setup || return 1
-  local work=$RUNS/sweep
+  # SWEEP_TAG names the work folder and the returned files, so two sweeps can run side by side
+  # (run setup first, then e.g. `SWEEP_TAG=a ... run.sh sweep & SWEEP_TAG=b ... run.sh sweep & wait`)
+  local tag=${SWEEP_TAG:+_$SWEEP_TAG}
+  local work=$RUNS/sweep$tag
   rm -rf "$work"; mkdir -p "$work"
   # shellcheck disable=SC2086
-  timeout "$(limit_s)" "$PY" benchmarks/sweep.py ${SWEEP_SCENES:+--scenes $SWEEP_SCENES} --work-dir "$work" $SWEEP_ARGS >"$OUT/sweep.log" 2>&1
+  timeout "$(limit_s)" "$PY" benchmarks/sweep.py ${SWEEP_SCENES:+--scenes $SWEEP_SCENES} --work-dir "$work" $SWEEP_ARGS >"$OUT/sweep$tag.log" 2>&1
   local rc=$?
-  cp "$work/sweep.md" "$work/sweep.json" "$OUT/" 2>/dev/null || log "sweep: no run finished (see sweep.log)"
-  grep -h -i -E "error|Traceback" "$work"/*/*/worker.log 2>/dev/null | sort | uniq -c | head -20 >>"$OUT/sweep.log"
+  cp "$work/sweep.md" "$OUT/sweep$tag.md" 2>/dev/null && cp "$work/sweep.json" "$OUT/sweep$tag.json" || log "sweep$tag: no run finished (see sweep$tag.log)"
+  grep -h -i -E "error|Traceback" "$work"/*/*/worker.log 2>/dev/null | sort | uniq -c | head -20 >>"$OUT/sweep$tag.log"
   return "$rc"
 }
 
