@@ -20,6 +20,8 @@ def training_mask_views(pipeline, level_names: Sequence[str], max_views: int = D
     """Up to ``max_views`` evenly spaced training views, at most ``max_width`` wide, with the
     masks of each level in ``level_names`` (names of the datamanager's vote levels)."""
     datamanager = pipeline.datamanager
+    if not hasattr(datamanager, "vote_levels"):
+        raise ValueError("the run's datamanager has no training masks (not the votesplat vote datamanager)")
     known = list(datamanager.vote_levels)
     missing = [name for name in level_names if name not in known]
     if missing:
