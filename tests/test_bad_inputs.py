@@ -480,7 +480,7 @@ def run_command(ws: Workspace, argv: Sequence[str]) -> subprocess.CompletedProce
     env = dict(os.environ, COLUMNS="200", HOME=str(ws.home), XDG_CACHE_HOME=str(ws.home / ".cache"),
                MPLCONFIGDIR=str(ws.home / ".matplotlib"))
     prefix = DROP_ROOT_OVERRIDES if ws.drop_root_overrides else []
-    return subprocess.run(prefix + list(argv), capture_output=True, text=True, cwd=ws.home, timeout=900, env=env)
+    return subprocess.run(prefix + list(argv), capture_output=True, check=False, text=True, cwd=ws.home, timeout=900, env=env)
 
 
 def matches(path: str, patterns: Sequence[str]) -> bool:
@@ -509,7 +509,7 @@ def fixtures(trained_demo, tmp_path_factory) -> Fixtures:
     base = tmp_path_factory.mktemp("bad_inputs")
     config = copy_run(trained_demo, base / "run")
     export = base / "export"
-    result = subprocess.run(ns_export(config, export), capture_output=True, text=True, timeout=900,
+    result = subprocess.run(ns_export(config, export), capture_output=True, check=False, text=True, timeout=900,
                             env=dict(os.environ, COLUMNS="200"))
     assert result.returncode == 0, result.stderr[-3000:]
     return Fixtures(trained_demo=config, previous_export=export)

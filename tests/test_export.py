@@ -436,7 +436,7 @@ def test_ns_export_lists_the_votesplat_subcommand():
     ns_export = console_script("ns-export")
     assert ns_export, "ns-export is not installed next to this Python"
     env = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
-    result = subprocess.run([ns_export, SUBCOMMAND_NAME, "--help"], capture_output=True, text=True, env=env, timeout=600)
+    result = subprocess.run([ns_export, SUBCOMMAND_NAME, "--help"], capture_output=True, check=False, text=True, env=env, timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
     for option in ("--load-config", "--output-dir", "--level", "--remove", "--min-cluster-size", "--min-samples", "--max-points", "--noise", "--num-views"):
         assert option in result.stdout, option
@@ -445,6 +445,6 @@ def test_ns_export_lists_the_votesplat_subcommand():
 def test_votesplat_export_console_script():
     script = console_script("votesplat-export")
     assert script, "votesplat-export is not installed (pip install -e .)"
-    result = subprocess.run([script, "--help"], capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"), timeout=600)
+    result = subprocess.run([script, "--help"], capture_output=True, check=False, text=True, env=dict(os.environ, COLUMNS="200"), timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "--load-config" in result.stdout and "--remove" in result.stdout

@@ -231,7 +231,7 @@ def reference_composite(
                 chosen_cam.append(chosen)
         # Differentiable recomputation of the chosen Gaussians' weights, all pixels at once
         # (padded to the longest list; padding has alpha 0).
-        longest = max(1, max(len(ch) for ch in chosen_cam))
+        longest = max([1, *(len(ch) for ch in chosen_cam)])
         index = torch.zeros(height * width, longest, dtype=torch.long)
         used = torch.zeros(height * width, longest, dtype=torch.bool)
         for p, ch in enumerate(chosen_cam):

@@ -107,7 +107,7 @@ def test_ns_export_gaussian_splat_loads_the_checkpoint(trained_demo, tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "nerfstudio.scripts.exporter", "gaussian-splat",
          "--load-config", str(trained_demo), "--output-dir", str(tmp_path)],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, check=False, text=True, timeout=600,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert (tmp_path / "splat.ply").stat().st_size > 1000

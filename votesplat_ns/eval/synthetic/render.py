@@ -119,7 +119,7 @@ def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -
     vertex["x"], vertex["y"], vertex["z"] = np.asarray(points, dtype=np.float32).T
     vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours_uint8, dtype=np.uint8).T
     data = PlyData([PlyElement.describe(vertex, "vertex")], text=False)
-    _atomic_write_bytes(path, lambda handle: data.write(handle))
+    _atomic_write_bytes(path, data.write)
 
 
 def _write_mesh_ply(path: str, mesh) -> None:
