@@ -374,3 +374,14 @@ def test_pixel_gradients_stay_on_torch(monkeypatch, device):
     out = call(render_votes_tiled, scene, pixel, options, isect_offsets=offsets, flatten_ids=ids, tile_size=16)
     out.mean_vote.sum().backward()
     assert calls == [] and pixel.grad is not None
+
+
+def test_model_flag_selects_the_backend():
+    import tyro
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    from votesplat_ns.method import votesplat_trainer_config
+
+    config = tyro.cli(TrainerConfig, default=votesplat_trainer_config(), args=["--pipeline.model.vote-backend", "torch"])
+    assert config.pipeline.model.vote_render_options().backend == "torch"
+    assert votesplat_trainer_config().pipeline.model.vote_render_options().backend == "auto"

@@ -103,7 +103,7 @@ def vote_sums(
     """
     n, levels, width = vote_table.shape
     dtype = vote_table.dtype
-    consts = torch.tensor([threshold, alpha_max, open_above, alpha_min, colour_stop], dtype=dtype, device=vote_table.device)
+    consts = _constants((threshold, alpha_max, open_above, alpha_min, colour_stop), dtype, vote_table.device)
     config = (levels, width, bool(alpha_t), _DIST_MODES[distortion])
     count, weight_sum, value_sum, depth_sum, spread = _VoteSums.apply(
         geometry.contiguous(),
@@ -117,6 +117,18 @@ def vote_sums(
     )
     value_sum = value_sum.view(-1, levels, width)[..., : width - 1]
     return count.long(), weight_sum, value_sum, depth_sum, spread
+
+
+_CONSTANTS = {}
+
+
+def _constants(values: Tuple[float, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The walk's constants in the data's dtype (compared as torch compares them), put on the device once:
+    a fresh host-to-device copy each call would stall the step, and a Python float argument is float32."""
+    key = (values, dtype, device)
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = torch.tensor(values, dtype=dtype, device=device)
+    return _CONSTANTS[key]
 
 
 def _pow2(x: int) -> int:
