@@ -36,6 +36,7 @@ without a GPU.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from typing import Optional, Tuple
 
@@ -131,6 +132,11 @@ def _constants(values: Tuple[float, ...], dtype: torch.dtype, device: torch.devi
     return _CONSTANTS[key]
 
 
+def _on(device: torch.device):
+    """Triton launches on the current CUDA device: make it the tensors' one."""
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
+
+
 def _pow2(x: int) -> int:
     return 1 << max(0, (int(x) - 1).bit_length())
 
@@ -148,12 +154,13 @@ class _VoteSums(torch.autograd.Function):
         depth_sum = torch.empty(p, levels, dtype=dtype, device=device)
         spread = torch.empty(p, levels, dtype=dtype, device=device)
         if p > 0:
-            _vote_fwd_kernel[(p,)](
-                geometry, table, pixel_xy, run_start, run_end, flatten_ids, consts,
-                count, last, weight_sum, value_sum, depth_sum, spread,
-                LEVELS=levels, LP=_pow2(levels), D1=width, LDP=_pow2(levels * width),
-                ALPHA_T=alpha_t, DIST=dist, BLOCK=BLOCK, num_warps=NUM_WARPS,
-            )
+            with _on(device):
+                _vote_fwd_kernel[(p,)](
+                    geometry, table, pixel_xy, run_start, run_end, flatten_ids, consts,
+                    count, last, weight_sum, value_sum, depth_sum, spread,
+                    LEVELS=levels, LP=_pow2(levels), D1=width, LDP=_pow2(levels * width),
+                    ALPHA_T=alpha_t, DIST=dist, BLOCK=BLOCK, num_warps=NUM_WARPS,
+                )
         ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum)
         ctx.config = config
         ctx.mark_non_differentiable(count, depth_sum)
@@ -176,12 +183,13 @@ class _VoteSums(torch.autograd.Function):
         g_spread = dense(g_spread, (p, levels))
         g_table = torch.zeros_like(table)
         g_geometry = torch.zeros_like(geometry) if geometry_grad else g_table  # a dummy pointer when unused
-        _vote_bwd_kernel[(p,)](
-            geometry, table, pixel_xy, run_start, last, count, depth_sum, flatten_ids, consts,
-            g_weight_sum, g_value_sum, g_spread, g_table, g_geometry,
-            LEVELS=levels, LP=_pow2(levels), D1=width, LDP=_pow2(levels * width),
-            ALPHA_T=alpha_t, DIST=dist, GEOMETRY_GRAD=geometry_grad, BLOCK=BLOCK, num_warps=NUM_WARPS,
-        )
+        with _on(table.device):
+            _vote_bwd_kernel[(p,)](
+                geometry, table, pixel_xy, run_start, last, count, depth_sum, flatten_ids, consts,
+                g_weight_sum, g_value_sum, g_spread, g_table, g_geometry,
+                LEVELS=levels, LP=_pow2(levels), D1=width, LDP=_pow2(levels * width),
+                ALPHA_T=alpha_t, DIST=dist, GEOMETRY_GRAD=geometry_grad, BLOCK=BLOCK, num_warps=NUM_WARPS,
+            )
         return (
             g_geometry if geometry_grad else None,
             g_table if ctx.needs_input_grad[1] else None,
@@ -305,7 +313,7 @@ if triton is not None:
                         geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
                     )
                     pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
-                    for level in tl.static_range(LEVELS):
+                    for level in range(LEVELS):
                         z_i = tl.load(table_ptr + gid_i * LD1 + level * D1 + (D1 - 1), mask=vis_i, other=0.0)
                         z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
                         gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
@@ -397,7 +405,7 @@ if triton is not None:
                     gid_j, _al2, vis_j, _dx2, _dy2, _a2, _b2, _c2, _f2, _r2 = _block_alpha(
                         geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
                     )
-                    for level in tl.static_range(LEVELS):
+                    for level in range(LEVELS):
                         z_i = tl.load(table_ptr + gid * LD1 + level * D1 + (D1 - 1), mask=visible, other=0.0)
                         z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
                         gap = z_i[:, None] - z_j[None, :]

@@ -60,7 +60,7 @@ CALL_BUDGET_S=${CALL_BUDGET_S:-570}
 EVAL_RESERVE_S=${EVAL_RESERVE_S:-45}
 GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_vote_kernel.py tests/test_rasterize_torch.py tests/test_viewer.py"}
 # Triton kernel variants (walk block width x warps per program) that bench-vote times next to the torch vote pass
-KERNEL_CONFIGS=${KERNEL_CONFIGS:-"32x2 16x1 32x1 64x4"}
+KERNEL_CONFIGS=${KERNEL_CONFIGS:-"32x2 32x4 16x1 64x4"}
 SYNTH_DOWNSCALE=${SYNTH_DOWNSCALE:-1}
 FOX=${FOX:-.gpu/fox}
 PY=${PY:-python3}
