@@ -353,30 +353,9 @@ if triton is not None:
         g_spread = tl.load(g_spread_ptr + pid * LEVELS + lvl, mask=lvl_ok, other=0.0)
         one = px * 0.0 + 1.0
 
-        # sum over M of g_w * w: what the transmittance of later members passes back to an alpha
-        total = one * 0.0
-        if GEOMETRY_GRAD:
-            t = one
-            for p0 in range(start, stop, BLOCK):
-                offs = p0 + lane
-                gid, alpha, visible, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
-                    geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min
-                )
-                keep = 1.0 - tl.where(visible, alpha, 0.0)
-                t_after = t * tl.cumprod(keep, axis=0)
-                t_before = t_after / keep
-                w = tl.where(visible, alpha * t_before, 0.0)
-                rows = tl.load(
-                    table_ptr + gid[:, None] * LD1 + cols[None, :], mask=visible[:, None] & value_col[None, :], other=0.0
-                )
-                g_w = g_wsum + tl.sum(rows * g_row[None, :], axis=1)
-                total += tl.sum(w * g_w, axis=0)
-                t = tl.min(t_after, axis=0)
-
         if DIST == 2:
             mean = tl.load(zsum_ptr + pid * LEVELS + lvl, mask=lvl_ok, other=0.0) / tl.maximum(count, 1).to(px.dtype)
         t = one
-        prefix = one * 0.0
         for p0 in range(start, stop, BLOCK):
             offs = p0 + lane
             gid, alpha, visible, dx, dy, ca, cb, cc, falloff, raw = _block_alpha(
@@ -413,11 +392,33 @@ if triton is not None:
                         sign = tl.where(visible[:, None] & vis_j[None, :], sign, 0.0)
                         signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)
                 tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask)
-            if GEOMETRY_GRAD:
-                rows = tl.load(table_ptr + row_ptrs, mask=row_mask, other=0.0)
+            if ALPHA_T:
+                t = tl.min(t_after, axis=0)
+
+        if GEOMETRY_GRAD:
+            # Back to front, as gsplat's backward: the transmittance in front of each block from the one
+            # behind it (t is now T after the last member), and the sum over later members of g_w * w
+            # as a suffix sum, so an alpha near alpha_max (1 - alpha small, divided by below) gets no
+            # rounding from the members in front of it.
+            t_end = t
+            behind_block = one * 0.0
+            blocks = (stop - start + BLOCK - 1) // BLOCK
+            for k in range(0, blocks):
+                offs = start + (blocks - 1 - k) * BLOCK + lane
+                gid, alpha, visible, dx, dy, ca, cb, cc, falloff, raw = _block_alpha(
+                    geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min
+                )
+                keep = 1.0 - tl.where(visible, alpha, 0.0)
+                running = tl.cumprod(keep, axis=0)
+                t_start = t_end / tl.min(running, axis=0)
+                t_before = t_start * running / keep
+                w = tl.where(visible, alpha * t_before, 0.0)
+                rows = tl.load(
+                    table_ptr + gid[:, None] * LD1 + cols[None, :], mask=visible[:, None] & value_col[None, :], other=0.0
+                )
                 g_w = g_wsum + tl.sum(rows * g_row[None, :], axis=1)
                 contribution = tl.where(visible, g_w * w, 0.0)
-                behind = total - (prefix + tl.cumsum(contribution, axis=0))
+                behind = behind_block + (tl.cumsum(contribution, axis=0, reverse=True) - contribution)
                 g_alpha = tl.where(visible, g_w * t_before - behind / keep, 0.0)
                 # alpha = min(opacity * exp(-max(sigma, 0)), alpha_max); members have sigma >= 0
                 g_raw = tl.where(raw <= alpha_max, g_alpha, 0.0)
@@ -430,6 +431,5 @@ if triton is not None:
                 tl.atomic_add(g_geom_ptr + base + 3, g_sigma * dx * dy, mask=visible)
                 tl.atomic_add(g_geom_ptr + base + 4, g_sigma * 0.5 * dy * dy, mask=visible)
                 tl.atomic_add(g_geom_ptr + base + 5, g_opacity, mask=visible)
-                prefix += tl.sum(contribution, axis=0)
-            if ALPHA_T:
-                t = tl.min(t_after, axis=0)
+                behind_block += tl.sum(contribution, axis=0)
+                t_end = t_start
