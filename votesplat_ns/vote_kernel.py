@@ -23,8 +23,13 @@ What a kernel program does (one program per sampled pixel):
 * backward: re-walks [run start, last member] and scatters, with atomic adds, the gradient
   of every member's table row (weight x row gradient, plus the depth term: sum_j
   sign(z_i - z_j) or 2 (z_i - mean)) and, for alpha*T weights with geometry gradients, of
-  its means2d, conic and opacity (the transmittance's dependence on earlier alphas through
-  the suffix sum of g_w * w, found in a first re-walk).
+  its means2d, conic and opacity: a second walk, back to front as gsplat's backward, carries
+  the suffix sum of g_w * w over later members, through which their transmittance depends
+  on this alpha.
+
+A program's work is a few blocks of gathers, so at training sizes the torch ops around the
+two launches (input checks, vote table, normalisation, losses) are expected to cost about as
+much as the kernels (an estimate: bench-vote measures the whole pass).
 
 Why Triton rather than CUDA C++ next to gsplat's extension: Triton ships with torch's CUDA
 wheels, so there is no build step and no compiler to match; the kernels JIT-compile on the
