@@ -56,6 +56,7 @@ except ImportError:  # pragma: no cover - depends on the environment
     tl = None
 
 # Entries of a tile run per block of the walk, and warps per program. Not tuned on a device yet.
+# The gradient scatters use relaxed atomics: only the sums matter, no ordering between programs.
 BLOCK = 32
 NUM_WARPS = 2
 _DIST_MODES = {"none": 0, "l1": 1, "l1_pixels": 1, "squared": 2}
@@ -375,13 +376,13 @@ if triton is not None:
                 w = visible.to(px.dtype)
             row_mask = visible[:, None] & value_col[None, :]
             row_ptrs = gid[:, None] * LD1 + cols[None, :]
-            tl.atomic_add(g_table_ptr + row_ptrs, w[:, None] * g_row[None, :], mask=row_mask)
+            tl.atomic_add(g_table_ptr + row_ptrs, w[:, None] * g_row[None, :], mask=row_mask, sem="relaxed")
             depth_mask = visible[:, None] & lvl_ok[None, :]
             depth_ptrs = gid[:, None] * LD1 + lvl[None, :] * D1 + (D1 - 1)
             if DIST == 2:
                 depth = tl.load(table_ptr + depth_ptrs, mask=depth_mask, other=0.0)
                 g_depth = 2.0 * (depth - mean[None, :]) * g_spread[None, :]
-                tl.atomic_add(g_table_ptr + depth_ptrs, g_depth, mask=depth_mask)
+                tl.atomic_add(g_table_ptr + depth_ptrs, g_depth, mask=depth_mask, sem="relaxed")
             if DIST == 1:
                 signs = tl.zeros([BLOCK, LP], dtype=px.dtype)
                 for q0 in range(start, stop, BLOCK):
@@ -396,7 +397,7 @@ if triton is not None:
                         sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
                         sign = tl.where(visible[:, None] & vis_j[None, :], sign, 0.0)
                         signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)
-                tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask)
+                tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask, sem="relaxed")
             if ALPHA_T:
                 t = tl.min(t_after, axis=0)
 
@@ -418,9 +419,8 @@ if triton is not None:
                 t_start = t_end / tl.min(running, axis=0)
                 t_before = t_start * running / keep
                 w = tl.where(visible, alpha * t_before, 0.0)
-                rows = tl.load(
-                    table_ptr + gid[:, None] * LD1 + cols[None, :], mask=visible[:, None] & value_col[None, :], other=0.0
-                )
+                row_mask = visible[:, None] & value_col[None, :]
+                rows = tl.load(table_ptr + gid[:, None] * LD1 + cols[None, :], mask=row_mask, other=0.0)
                 g_w = g_wsum + tl.sum(rows * g_row[None, :], axis=1)
                 contribution = tl.where(visible, g_w * w, 0.0)
                 behind = behind_block + (tl.cumsum(contribution, axis=0, reverse=True) - contribution)
@@ -430,11 +430,11 @@ if triton is not None:
                 g_opacity = g_raw * falloff
                 g_sigma = -g_raw * raw
                 base = gid * 6
-                tl.atomic_add(g_geom_ptr + base, g_sigma * (ca * dx + cb * dy), mask=visible)
-                tl.atomic_add(g_geom_ptr + base + 1, g_sigma * (cc * dy + cb * dx), mask=visible)
-                tl.atomic_add(g_geom_ptr + base + 2, g_sigma * 0.5 * dx * dx, mask=visible)
-                tl.atomic_add(g_geom_ptr + base + 3, g_sigma * dx * dy, mask=visible)
-                tl.atomic_add(g_geom_ptr + base + 4, g_sigma * 0.5 * dy * dy, mask=visible)
-                tl.atomic_add(g_geom_ptr + base + 5, g_opacity, mask=visible)
+                tl.atomic_add(g_geom_ptr + base, g_sigma * (ca * dx + cb * dy), mask=visible, sem="relaxed")
+                tl.atomic_add(g_geom_ptr + base + 1, g_sigma * (cc * dy + cb * dx), mask=visible, sem="relaxed")
+                tl.atomic_add(g_geom_ptr + base + 2, g_sigma * 0.5 * dx * dx, mask=visible, sem="relaxed")
+                tl.atomic_add(g_geom_ptr + base + 3, g_sigma * dx * dy, mask=visible, sem="relaxed")
+                tl.atomic_add(g_geom_ptr + base + 4, g_sigma * 0.5 * dy * dy, mask=visible, sem="relaxed")
+                tl.atomic_add(g_geom_ptr + base + 5, g_opacity, mask=visible, sem="relaxed")
                 behind_block += tl.sum(contribution, axis=0)
                 t_end = t_start
