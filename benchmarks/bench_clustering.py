@@ -26,9 +26,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from votesplat_ns.clustering import cluster_votes_detailed  # noqa: E402
-from votesplat_ns.export import export_instances  # noqa: E402
-from votesplat_ns.ply_io import write_gaussian_ply  # noqa: E402
+from votesplat_ns.core.clustering import cluster_votes_detailed  # noqa: E402
+from votesplat_ns.ns.export import export_instances  # noqa: E402
+from votesplat_ns.core.ply_io import write_gaussian_ply  # noqa: E402
 
 
 def synthetic_scene(num_gaussians: int, num_instances: int, seed: int = 0):

@@ -45,7 +45,7 @@ def bench(model_type: str, image: np.ndarray, repeats: int, device: str) -> dict
     import torch
     from segment_anything import sam_model_registry
 
-    from votesplat_ns.mask_sources import SamMaskSource
+    from votesplat_ns.core.mask_sources import SamMaskSource
 
     torch.manual_seed(0)
     sam = sam_model_registry[model_type](checkpoint=None)
@@ -108,7 +108,7 @@ def main(argv=None) -> int:
     for row in rows:
         print(f"| {row['model_type']} | {row['encoder_s']:.3f} | {row['masks_s']:.2f} | {row['masks_per_level']} | {row['peak_mib']:.0f} |")
     if args.json is not None:
-        from votesplat_ns.ply_io import atomic_write
+        from votesplat_ns.core.ply_io import atomic_write
 
         with atomic_write(args.json, "w") as handle:
             json.dump({"device": gpu, "width": args.width, "height": args.height, "rows": rows}, handle, indent=2)

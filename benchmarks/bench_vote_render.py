@@ -9,7 +9,7 @@ Times, on random Gaussians seen by one camera:
     levels: L = 1 with [N, 3] votes, L > 1 with [N, L, 3] votes in one call
     (one walk, every level blended over it) and, for comparison, as L
     separate single-level calls; with each backend of ``--backends``: the
-    torch code and the fused Triton kernels (``votesplat_ns.vote_kernel``),
+    torch code and the fused Triton kernels (``votesplat_ns.core.vote_kernel``),
     the latter once per ``--kernel-configs`` block width x warps.
 Prints a markdown table of median milliseconds, peak extra GPU memory, both
 also as a ratio to the RGB pass, and per step the host reads
@@ -157,7 +157,7 @@ def main(argv=None) -> int:
     cache = None
     if args.device == "cuda" and "triton" in args.backends and "TRITON_CACHE_DIR" not in os.environ:
         # an empty Triton cache, so the first call's time is the kernels' full JIT build
-        from votesplat_ns.ply_io import make_temp_dir
+        from votesplat_ns.core.ply_io import make_temp_dir
 
         cache = make_temp_dir(Path(tempfile.gettempdir()) / "votesplat_triton_cache", "bench")
         os.environ["TRITON_CACHE_DIR"] = str(cache)
@@ -179,10 +179,10 @@ def _run(args: argparse.Namespace) -> int:
             )
         from gsplat import rasterization
     else:
-        from votesplat_ns.rasterize_torch import rasterize_torch as rasterization
+        from votesplat_ns.core.rasterize_torch import rasterize_torch as rasterization
 
-    from votesplat_ns import vote_kernel
-    from votesplat_ns.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
+    from votesplat_ns.core import vote_kernel
+    from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
 
     backends = list(args.backends)
     if "triton" in backends and vote_kernel.unavailable_reason(device) is not None:

@@ -49,7 +49,7 @@ from typing import Dict, List, Optional, Sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from votesplat_ns.ply_io import atomic_write  # noqa: E402  (after the path set-up)
+from votesplat_ns.core.ply_io import atomic_write  # noqa: E402  (after the path set-up)
 
 ABLATIONS: Dict[str, Dict[str, str]] = {
     "full": {},
@@ -155,8 +155,8 @@ def summary_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
 
 def train_base_scene(scene: Path, args) -> Path:
     """The scene's geometry without votes (the retrofit source), trained once and reused."""
-    from votesplat_ns.method import train_in_process
-    from votesplat_ns.model import latest_checkpoint
+    from votesplat_ns.ns.method import train_in_process
+    from votesplat_ns.ns.model import latest_checkpoint
 
     base_dir = args.work_dir / scene.resolve().name / f"base_{args.base_steps}"
     for config_path in sorted(base_dir.glob("*/votesplat/run/config.yml")):  # <experiment>/<method>/<timestamp>
@@ -202,8 +202,8 @@ def level_row(metrics: dict, level: str) -> dict:
 
 def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, seed: int = 42, **overrides) -> List[dict]:
     """Train once, score every level of ``args.levels``: one row per level."""
-    from votesplat_ns.evaluate_cli import evaluate_run
-    from votesplat_ns.method import train_in_process
+    from votesplat_ns.cli.evaluate_cli import evaluate_run
+    from votesplat_ns.ns.method import train_in_process
 
     start = time.time()
     config_path = train_in_process(
@@ -321,8 +321,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     import torch
 
-    from votesplat_ns.evaluate_cli import write_noisy_masks
-    from votesplat_ns.mask_noise import MaskNoise
+    from votesplat_ns.cli.evaluate_cli import write_noisy_masks
+    from votesplat_ns.eval.mask_noise import MaskNoise
 
     if args.device == "auto":
         args.device = "cuda" if torch.cuda.is_available() else "cpu"

@@ -7,12 +7,12 @@
 
 ``--family tuning|test`` takes every scene of that family set (``--family-dir``, default
 ``build/family_<set>``, written by ``votesplat-synth family-set``), checked against the seeds in
-votesplat_ns/synthetic/family.py: defaults are chosen on the tuning set only, the test set reports
+votesplat_ns/eval/synthetic/family.py: defaults are chosen on the tuning set only, the test set reports
 them. ``--scenes`` takes any votesplat-synth folders instead.
 
 A training variant is ``name:field=value,...`` (model config fields; ``dm.<field>`` for the
 datamanager's); ``default`` alone trains with the defaults. A clustering variant is
-``name:key=value,...`` of :func:`votesplat_ns.clustering.cluster_levels` keywords. Every
+``name:key=value,...`` of :func:`votesplat_ns.core.clustering.cluster_levels` keywords. Every
 (scene, masks, training variant, seed) trains once in its own process (``--jobs`` at a time: a
 small scene leaves most of a GPU idle); every clustering variant then scores that run with
 ``votesplat-eval``'s scorer at the instance and the part level. Rows go to
@@ -37,7 +37,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from votesplat_ns.ply_io import atomic_write  # noqa: E402  (after the path set-up)
+from votesplat_ns.core.ply_io import atomic_write  # noqa: E402  (after the path set-up)
 
 LEVELS = ("instance", "part")
 
@@ -82,9 +82,9 @@ def run_job(job: dict) -> List[dict]:
     """Train one run and score it with every clustering variant (runs inside a worker process)."""
     import torch
 
-    from votesplat_ns.clustering import cluster_levels
-    from votesplat_ns.evaluate_cli import evaluate_run
-    from votesplat_ns.method import train_in_process
+    from votesplat_ns.core.clustering import cluster_levels
+    from votesplat_ns.cli.evaluate_cli import evaluate_run
+    from votesplat_ns.ns.method import train_in_process
 
     run_dir = Path(job["run_dir"])
     model, datamanager = split_overrides(job["train_settings"])
@@ -173,7 +173,7 @@ def parse_args(argv: Optional[List[str]] = None):
     if args.family is not None:
         if args.scenes is not None:
             parser.error("pass either --scenes or --family, not both")
-        from votesplat_ns.synthetic.family import read_family_set
+        from votesplat_ns.eval.synthetic.family import read_family_set
 
         try:
             name, args.scenes = read_family_set(args.family_dir or Path("build") / f"family_{args.family}")
@@ -203,8 +203,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         rows = [row for path in args.summarize for row in json.loads(path.read_text())["rows"]]
         print(table(rows))
         return 0
-    from votesplat_ns.evaluate_cli import write_noisy_masks
-    from votesplat_ns.mask_noise import MaskNoise
+    from votesplat_ns.cli.evaluate_cli import write_noisy_masks
+    from votesplat_ns.eval.mask_noise import MaskNoise
 
     work = args.work_dir.resolve()
     jobs = []

@@ -15,7 +15,7 @@ DEMO_VOTE_START = 40
 
 def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, **model_overrides) -> Path:
     """Train votesplat in-process on CPU and return the run's config.yml."""
-    from votesplat_ns.method import train_in_process
+    from votesplat_ns.ns.method import train_in_process
 
     # CPU budget: render at 64 px (splatfacto's resolution schedule stays at 1/2 for the whole
     # run) and sample 1024 vote pixels per step; the vote loss is a mean over masked pixels,

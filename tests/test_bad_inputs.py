@@ -320,7 +320,7 @@ def read_only_cache_folder_of_votesplat_masks(ws, fixtures):
 
 @case
 def damaged_cache_entry(ws, fixtures):
-    from votesplat_ns.masks_cli import MasksConfig, main as make_masks
+    from votesplat_ns.cli.masks_cli import MasksConfig, main as make_masks
 
     scene = ws.scene()
     cache = ws.root / "cache"

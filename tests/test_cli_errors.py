@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from votesplat_ns import cli_errors
-from votesplat_ns.cli_errors import (
+from votesplat_ns.cli import cli_errors
+from votesplat_ns.cli.cli_errors import (
     VoteSplatInputError,
     check_device_available,
     check_writable_folder,
@@ -23,7 +23,7 @@ from votesplat_ns.cli_errors import (
     one_line_message,
     writing_into,
 )
-from votesplat_ns.datamanager import VoteDataManagerConfig, check_data_input, check_vote_schedule
+from votesplat_ns.ns.datamanager import VoteDataManagerConfig, check_data_input, check_vote_schedule
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
 

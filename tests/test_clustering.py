@@ -5,7 +5,7 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from votesplat_ns.clustering import (
+from votesplat_ns.core.clustering import (
     background_mask,
     cluster_levels,
     cluster_votes,

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import votesplat_ns  # noqa: F401  (registers the safe globals on import)
-from votesplat_ns import compat
+from votesplat_ns.ns import compat
 
 
 def test_checkpoint_with_numpy_scalars_loads_with_weights_only(tmp_path):

@@ -6,7 +6,7 @@ import pytest
 import tyro
 from nerfstudio.engine.trainer import TrainerConfig
 
-from votesplat_ns.method import votesplat_trainer_config
+from votesplat_ns.ns.method import votesplat_trainer_config
 
 PRESETS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.args"))
 
@@ -29,7 +29,7 @@ def test_preset_parses_and_sets_the_model(path):
 
 
 def test_vote_step_schedule():
-    from votesplat_ns.model import vote_step_due
+    from votesplat_ns.ns.model import vote_step_due
 
     assert [step for step in range(10) if vote_step_due(step, 3, 1)] == [3, 4, 5, 6, 7, 8, 9]
     assert [step for step in range(12) if vote_step_due(step, 3, 4)] == [3, 7, 11]

@@ -10,9 +10,9 @@ from PIL import Image
 
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-from votesplat_ns.datamanager import VoteDataManagerConfig, default_cache_dir
-from votesplat_ns.masks_cli import MasksConfig, main as masks_main
-from votesplat_ns.vote_maps import round_half_away_from_zero
+from votesplat_ns.ns.datamanager import VoteDataManagerConfig, default_cache_dir
+from votesplat_ns.cli.masks_cli import MasksConfig, main as masks_main
+from votesplat_ns.core.vote_maps import round_half_away_from_zero
 
 WIDTH, HEIGHT, FRAMES = 32, 24, 3
 BORDER_ID = 3  # the instance id that touches the image border in every frame

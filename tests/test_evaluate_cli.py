@@ -14,10 +14,10 @@ import pytest
 import torch
 from PIL import Image
 
-from votesplat_ns.cameras import PinholeView
-from votesplat_ns.evaluation import match_instances
-import votesplat_ns.evaluate_cli as evaluate_cli
-from votesplat_ns.evaluate_cli import (
+from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.eval.evaluation import match_instances
+import votesplat_ns.cli.evaluate_cli as evaluate_cli
+from votesplat_ns.cli.evaluate_cli import (
     GroundTruthDataset,
     LabelledView,
     MaskNoise,
@@ -30,8 +30,8 @@ from votesplat_ns.evaluate_cli import (
     surface_labels,
     write_noisy_masks,
 )
-from votesplat_ns.mask_sources import FolderMaskSource
-from votesplat_ns.synthetic.render import read_views
+from votesplat_ns.core.mask_sources import FolderMaskSource
+from votesplat_ns.eval.synthetic.render import read_views
 
 from conftest import DEMO_SCENE  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -394,7 +394,7 @@ def test_noisy_masks_are_a_folder_mask_source_with_the_datasets_views(tmp_path, 
     assert manifest["noise"]["split_rate"] == 0.3 and manifest["num_views"] == 34
 
     # the datamanager reads the folder as the two levels the model needs
-    from votesplat_ns.datamanager import VoteDataManagerConfig
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 
     config = VoteDataManagerConfig(data=DEMO_SCENE, mask_source="folder", mask_folder=out)
     assert config.resolved_levels() == ("instance", "part")
@@ -443,8 +443,8 @@ def test_noisy_masks_bad_inputs(tmp_path, monkeypatch, capsys):
 
 def test_written_files_and_folders_follow_the_umask(tmp_path):
     """Noisy-mask folders, comparison pictures and label files get the user's umask, not 0600/0700."""
-    from votesplat_ns.evaluation import save_comparison_png
-    from votesplat_ns.lerf_ovs import frame_from_masks, write_label_frame
+    from votesplat_ns.eval.evaluation import save_comparison_png
+    from votesplat_ns.eval.lerf_ovs import frame_from_masks, write_label_frame
 
     previous = os.umask(0o022)
     try:

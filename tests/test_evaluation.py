@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from votesplat_ns.evaluation import (
+from votesplat_ns.eval.evaluation import (
     check_reconstruction,
     contingency,
     flat_image_psnr,

@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 import torch
 
-import votesplat_ns.export as export_module
-from votesplat_ns.export import (
+import votesplat_ns.ns.export as export_module
+from votesplat_ns.ns.export import (
     SUBCOMMAND_NAME,
     ExportVoteSplatInstances,
     export_instances,
     install_ns_export_hook,
 )
-from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
-from votesplat_ns.instances import InstanceSet
-from votesplat_ns.ply_io import read_gaussian_ply, read_ply_header
+from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.core.instances import InstanceSet
+from votesplat_ns.core.ply_io import read_gaussian_ply, read_ply_header
 
 from test_instances import brute_force_rasterize  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -404,7 +404,7 @@ def subcommands(commands):
 @pytest.mark.parametrize("case", ["during_import", "before_import", "after_import"])
 def test_hook_extends_the_exporter_commands(tmp_path, monkeypatch, case):
     name = f"fake_exporter_{case}"
-    hook = f"import votesplat_ns.export\nvotesplat_ns.export.install_ns_export_hook({name!r})" if case == "during_import" else ""
+    hook = f"import votesplat_ns.ns.export\nvotesplat_ns.ns.export.install_ns_export_hook({name!r})" if case == "during_import" else ""
     (tmp_path / f"{name}.py").write_text(textwrap.dedent(FAKE_EXPORTER.format(hook=hook)))
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(sys, "meta_path", list(sys.meta_path))

@@ -1,12 +1,12 @@
-"""Foreground by rendering weight (votesplat_ns.foreground) against a forward-only reference."""
+"""Foreground by rendering weight (votesplat_ns.core.foreground) against a forward-only reference."""
 
 import math
 
 import pytest
 import torch
 
-from votesplat_ns.foreground import foreground_from_exposure, mask_exposure
-from votesplat_ns.rasterize_torch import rasterize_torch
+from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
+from votesplat_ns.core.rasterize_torch import rasterize_torch
 
 WIDTH, HEIGHT = 24, 20
 
@@ -88,8 +88,8 @@ def test_object_cut_by_the_frame_in_all_views_but_one_stays_foreground():
     """A large object touching the image border in every view but one: border masks must not make it background."""
     import numpy as np
 
-    from votesplat_ns.clustering import cluster_levels
-    from votesplat_ns.vote_maps import mask_centroids
+    from votesplat_ns.core.clustering import cluster_levels
+    from votesplat_ns.core.vote_maps import mask_centroids
 
     generator = torch.Generator().manual_seed(5)
     # a 2 x 1.6 slab of small opaque Gaussians in front of the camera, at depth 4 +- 0.3

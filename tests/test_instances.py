@@ -7,7 +7,7 @@ import pytest
 import torch
 from PIL import Image
 
-from votesplat_ns.instances import (
+from votesplat_ns.core.instances import (
     IDS_NAME,
     MANIFEST_NAME,
     InstanceSet,

@@ -1,4 +1,4 @@
-"""LERF-OVS labels: parsing, rasterisation, the 3D-selection metrics and the writer (votesplat_ns.lerf_ovs)."""
+"""LERF-OVS labels: parsing, rasterisation, the 3D-selection metrics and the writer (votesplat_ns.eval.lerf_ovs)."""
 
 import json
 import re
@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from votesplat_ns.lerf_ovs import (
+from votesplat_ns.eval.lerf_ovs import (
     LabelFrame,
     LabelWarning,
     category_masks,
@@ -28,7 +28,7 @@ from votesplat_ns.lerf_ovs import (
     summarise_scenes,
     write_label_frame,
 )
-from votesplat_ns.semantics import instance_features, query_text, select_instances
+from votesplat_ns.core.semantics import instance_features, query_text, select_instances
 
 LOCAL_LABELS = Path(__file__).resolve().parent / "data" / "lerf_ovs"
 SHARED_LABELS = Path(__file__).resolve().parents[2] / "shared" / "data" / "lerf_ovs_labels"

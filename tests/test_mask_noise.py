@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from votesplat_ns.mask_noise import MaskNoise, dilate, erode
+from votesplat_ns.eval.mask_noise import MaskNoise, dilate, erode
 
 
 def _scene_labels(dtype=np.uint16):

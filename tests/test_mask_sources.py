@@ -9,7 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
-from votesplat_ns.mask_sources import (
+from votesplat_ns.core.mask_sources import (
     SAM_CHECKPOINT_FILES,
     DatasetMaskSource,
     FolderMaskSource,

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from nerfstudio.plugins.registry import discover_methods
 
-from votesplat_ns.method import VOTESPLAT_DESCRIPTION
-from votesplat_ns.model import VOTE_PARAM_NAMES, VoteSplatModelConfig
+from votesplat_ns.ns.method import VOTESPLAT_DESCRIPTION
+from votesplat_ns.ns.model import VOTE_PARAM_NAMES, VoteSplatModelConfig
 
 
 def test_votesplat_is_discovered_through_the_entry_point():
@@ -50,7 +50,7 @@ def test_own_options_have_short_complete_docstrings():
     from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
     from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
-    from votesplat_ns.datamanager import VoteDataManagerConfig
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 
     for cls, base in ((VoteDataManagerConfig, FullImageDatamanagerConfig), (VoteSplatModelConfig, SplatfactoModelConfig)):
         fields = own_fields(cls, base)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from votesplat_ns.ply_io import (
+from votesplat_ns.core.ply_io import (
     MIN_OPACITY_LOGIT,
     gaussian_property_names,
     read_gaussian_ply,
@@ -142,7 +142,7 @@ def test_bad_input_leaves_existing_file_untouched(tmp_path):
 
 
 def test_failed_write_leaves_no_partial_file(tmp_path):
-    from votesplat_ns.ply_io import atomic_write
+    from votesplat_ns.core.ply_io import atomic_write
 
     (tmp_path / "f.bin").write_bytes(b"old")
     with pytest.raises(RuntimeError):
@@ -155,7 +155,7 @@ def test_failed_write_leaves_no_partial_file(tmp_path):
 
 @pytest.mark.parametrize("umask, expected", [(0o022, 0o644), (0o077, 0o600)])
 def test_atomic_write_follows_the_umask(tmp_path, umask, expected):
-    from votesplat_ns.ply_io import atomic_write
+    from votesplat_ns.core.ply_io import atomic_write
 
     (tmp_path / "old.bin").write_bytes(b"old")
     previous = os.umask(umask)

@@ -141,7 +141,7 @@ def sweep():
 
 
 def test_sweep_family_option_reads_the_set_folder(sweep, tmp_path):
-    from votesplat_ns.synthetic.family import SET_MANIFEST, TEST_SEEDS, TUNING_SEEDS, scene_folder
+    from votesplat_ns.eval.synthetic.family import SET_MANIFEST, TEST_SEEDS, TUNING_SEEDS, scene_folder
 
     with pytest.raises(SystemExit):
         sweep.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # no family_set.json

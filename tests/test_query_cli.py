@@ -15,10 +15,10 @@ import torch.nn.functional as F
 from PIL import Image
 
 import votesplat_ns
-from votesplat_ns.lerf_ovs import category_masks, load_scene_labels, mask_iou
-from votesplat_ns.ply_io import read_gaussian_ply
-from votesplat_ns.clustering import cluster_levels
-from votesplat_ns.query_cli import (
+from votesplat_ns.eval.lerf_ovs import category_masks, load_scene_labels, mask_iou
+from votesplat_ns.core.ply_io import read_gaussian_ply
+from votesplat_ns.core.clustering import cluster_levels
+from votesplat_ns.cli.query_cli import (
     ClusteringOptions,
     Query,
     QueryEval,
@@ -30,7 +30,7 @@ from votesplat_ns.query_cli import (
     run_query,
     write_scene_labels,
 )
-from votesplat_ns.semantics import InstanceFeatures
+from votesplat_ns.core.semantics import InstanceFeatures
 
 DEMO_SCENE = Path(votesplat_ns.__file__).resolve().parent / "data" / "demo"
 TRANSFORMS = json.loads((DEMO_SCENE / "transforms.json").read_text())

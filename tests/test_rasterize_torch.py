@@ -16,7 +16,7 @@ from gsplat.cuda._torch_impl import (
     _spherical_harmonics,
 )
 
-from votesplat_ns.rasterize_torch import (
+from votesplat_ns.core.rasterize_torch import (
     ALPHA_MIN,
     GSPLAT_ALPHA_MAX,
     TRANSMITTANCE_STOP,
@@ -511,6 +511,106 @@ def test_gaussian_exactly_at_camera_centre_gives_finite_gradients():
         assert torch.isfinite(g).all(), name
 
 
+def _near_camera_floater_scene(dtype):
+    """Floaters a few centimetres in front of the camera over a distant background.
+
+    Modelled on trained scenes whose background Gaussians end up around a held-out camera
+    (depths 0.011-0.08 just above near_plane 0.01, opacity logit ~17, projected radii of
+    hundreds to thousands of pixels on a small image, centres projected off screen): a blob
+    in front of the lens, a thin disc at the near plane, one whose centre projects far
+    outside the image (so _persp_proj's clamp of the Jacobian is active), one just inside
+    the near plane (culled), one behind the camera, and a background that they hide.
+    """
+    gen = torch.Generator().manual_seed(77)
+    width, height = 64, 48
+    Ks = torch.tensor([[61.5, 0.0, 32.0], [0.0, 61.5, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)[None]
+    viewmat = _look_at_viewmat((0.3, -0.2, -2.0), (0.0, 0.0, 0.0))
+    n_back = 24
+    cam_means = torch.cat(
+        [
+            torch.tensor(
+                [
+                    [0.005, -0.003, 0.04],  # blob in front of the lens
+                    [0.002, 0.001, 0.0115],  # thin disc at the near plane
+                    [0.012, 0.002, 0.011],  # centre projects to x ~ 99 px of 64
+                    [0.0, 0.0, 0.0099],  # inside the near plane: culled
+                    [0.0, 0.0, -0.5],  # behind the camera
+                ],
+                dtype=torch.float64,
+            ),
+            (torch.rand(n_back, 3, generator=gen, dtype=torch.float64) - 0.5) * torch.tensor([1.6, 1.2, 1.0])
+            + torch.tensor([0.0, 0.0, 2.0]),
+        ]
+    )
+    cam_to_world = torch.inverse(viewmat)
+    means = cam_means @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
+    n = means.shape[0]
+    quats = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    scales = torch.cat(
+        [
+            torch.tensor(
+                [[0.03, 0.03, 0.03], [1.5e-4, 0.1, 0.016], [0.004, 0.03, 0.01], [0.05, 0.05, 0.05], [0.3, 0.3, 0.3]],
+                dtype=torch.float64,
+            ),
+            torch.exp(torch.randn(n_back, 3, generator=gen, dtype=torch.float64) * 0.4) * 0.12,
+        ]
+    )
+    opacities = torch.sigmoid(torch.full((n,), 17.23, dtype=torch.float64))
+    opacities[5:] = 0.6 + 0.39 * torch.rand(n_back, generator=gen, dtype=torch.float64)
+    colors = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    scene = dict(
+        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmat[None], Ks=Ks,
+        backgrounds=torch.zeros(1, 3, dtype=torch.float64),
+    )
+    scene = {k: v.to(dtype) for k, v in scene.items()}
+    scene.update(width=width, height=height, sh_degree=None)
+    return scene
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["float32", "float64"])
+def test_near_camera_floaters_match_gsplat_reference(dtype):
+    """Gaussians just beyond the near plane with radii far beyond the image: projection and
+    tile lists as gsplat's own _torch_impl, compositing as the kernel's per-pixel rule."""
+    scene = _near_camera_floater_scene(dtype)
+    width, height = scene["width"], scene["height"]
+    leaves = _leaves(scene, names=())
+    ref_radii, ref_means2d, ref_depths, ref_conics, _ = reference_project(leaves, width, height)
+    image, alpha, info = _fast(leaves, scene, use_background=False)
+
+    # the condition is there: near floaters visible with huge radii, one centre off screen,
+    # the one inside the near plane and the one behind the camera culled
+    radii = info["radii"][0]
+    assert radii[:3].min() > 2 * width and radii.max() > 20 * width
+    assert info["means2d"][0, 2, 0] > width
+    assert radii[3] == 0 and radii[4] == 0
+    assert (radii[5:] > 0).sum() > 10
+
+    assert torch.equal(info["radii"], ref_radii.to(torch.int32))
+    visible = ref_radii > 0
+    rtol = 1e-6 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(info["means2d"][visible], ref_means2d[visible], rtol=rtol, atol=0.0)
+    torch.testing.assert_close(info["conics"][visible], ref_conics[visible], rtol=rtol, atol=0.0)
+    torch.testing.assert_close(info["depths"], ref_depths, rtol=rtol, atol=0.0)
+
+    tile_width, tile_height = math.ceil(width / 16), math.ceil(height / 16)
+    ref_tpg, ref_ids, ref_flat = _isect_tiles(ref_means2d, ref_radii, ref_depths, 16, tile_width, tile_height)
+    assert torch.equal(info["tiles_per_gauss"], ref_tpg)
+    assert torch.equal(info["flatten_ids"], ref_flat)
+    assert torch.equal(info["isect_offsets"], _isect_offset_encode(ref_ids, 1, tile_width, tile_height))
+
+    opacities = leaves["opacities"][None].expand_as(ref_depths)
+    ref_image, ref_alpha, chosen = reference_composite(
+        ref_means2d, ref_conics, leaves["colors"][None], opacities, ref_radii, ref_depths, width, height
+    )
+    tol = dict(rtol=1e-5, atol=1e-6) if dtype == torch.float32 else dict(rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(image, ref_image, **tol)
+    torch.testing.assert_close(alpha, ref_alpha, **tol)
+    # the floaters are what the camera sees: the first Gaussian of nearly every pixel is one
+    # of them and the background is hidden wherever they reach the 1e-4 stop
+    first = torch.tensor([ch[0] if ch else -1 for ch in chosen[0]])
+    assert ((first >= 0) & (first < 3)).float().mean() > 0.95
+
+
 # ---------------------------------------------------------------------------------------
 # tests: tile intersection lists
 # ---------------------------------------------------------------------------------------
@@ -562,7 +662,7 @@ def test_isect_tiles_matches_simple_reference(tile_size, width, height):
 
 def test_isect_tiles_matches_gsplat_torch_reference():
     """gsplat's own pure-torch isect_tiles/isect_offset_encode, including isect_ids."""
-    from votesplat_ns.rasterize_torch import _isect_tiles_with_ids
+    from votesplat_ns.core.rasterize_torch import _isect_tiles_with_ids
 
     width, height, tile_size = 45, 30, 16
     radii, means2d, depths = _projected(30, 2, width, height)

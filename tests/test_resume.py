@@ -12,8 +12,8 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from conftest import DEMO_SCENE
-from votesplat_ns.method import setup_trainer_in_process
-from votesplat_ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
+from votesplat_ns.ns.method import setup_trainer_in_process
+from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
 FIRST_STEPS = 22  # densifies at step 20, so the checkpoint's N differs from the initial one
 MORE_STEPS = 10  # densifies again at step 30

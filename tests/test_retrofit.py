@@ -7,7 +7,7 @@ import torch
 from nerfstudio.utils.eval_utils import eval_setup
 
 from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
-from votesplat_ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
+from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
 
 @pytest.fixture(scope="module")

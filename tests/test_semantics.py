@@ -1,4 +1,4 @@
-"""Instance features, LERF text relevancy, click selection and per-Gaussian masks (votesplat_ns.semantics)."""
+"""Instance features, LERF text relevancy, click selection and per-Gaussian masks (votesplat_ns.core.semantics)."""
 
 import hashlib
 import math
@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from votesplat_ns import semantics
-from votesplat_ns.semantics import (
+from votesplat_ns.core import semantics
+from votesplat_ns.core.semantics import (
     SMALLEST_OPEN_CLIP_MODEL,
     CheckpointNotFoundError,
     ClipEncoder,

@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 
 import votesplat_ns
-from votesplat_ns.synthetic.render import (
+from votesplat_ns.eval.synthetic.render import (
     MITSUBA_MISSING,
     mitsuba_available,
     read_depth_png,
@@ -22,8 +22,8 @@ from votesplat_ns.synthetic.render import (
     read_views,
     scene_from_dataset,
 )
-from votesplat_ns.synthetic.family import TEST_SEEDS, TUNING_SEEDS, covering_block, covers, family_set
-from votesplat_ns.synthetic.scenes import (
+from votesplat_ns.eval.synthetic.family import TEST_SEEDS, TUNING_SEEDS, covering_block, covers, family_set
+from votesplat_ns.eval.synthetic.scenes import (
     FAMILY_PROPERTY_KINDS,
     FRUITS,
     GENERATOR_VERSION,
@@ -324,7 +324,7 @@ def test_bad_recipe_arguments():
 
 
 def test_missing_mitsuba_message(monkeypatch):
-    from votesplat_ns.synthetic import render
+    from votesplat_ns.eval.synthetic import render
 
     monkeypatch.setitem(sys.modules, "mitsuba", None)  # makes "import mitsuba" fail
     with pytest.raises(ImportError, match=r"mitsuba not installed \(pip install votesplat_ns\[synthetic\]\)"):
@@ -342,7 +342,7 @@ TINY = ["--seed", "1", "--views", "3", "--eval-views", "1", "--width", "40", "--
 def tiny_dataset(tmp_path_factory):
     if not mitsuba_available():
         pytest.skip(MITSUBA_MISSING)
-    from votesplat_ns.synthetic.cli import main
+    from votesplat_ns.eval.synthetic.cli import main
 
     out = tmp_path_factory.mktemp("synth") / "tiny"
     assert main(["tabletop360", "--output-dir", str(out)] + TINY) == 0
@@ -351,7 +351,7 @@ def tiny_dataset(tmp_path_factory):
 
 @needs_mitsuba
 def test_generator_is_deterministic(tiny_dataset, tmp_path):
-    from votesplat_ns.synthetic.cli import main
+    from votesplat_ns.eval.synthetic.cli import main
 
     again = tmp_path / "again"
     assert main(["tabletop360", "--output-dir", str(again)] + TINY) == 0
@@ -422,7 +422,7 @@ def test_sparse_points_lie_on_visible_surfaces(tiny_dataset):
 @needs_mitsuba
 @pytest.mark.parametrize("recipe", ["nested", "forward"])
 def test_other_recipes_render_consistent_labels(recipe, tmp_path):
-    from votesplat_ns.synthetic.render import RenderSettings, write_dataset
+    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset
 
     scene = make_scene(recipe, seed=0, num_views=2, num_eval_views=0, width=48, height=36)
     write_dataset(scene, tmp_path, RenderSettings(spp=1, num_points=200))
@@ -438,7 +438,7 @@ def tiny_family(tmp_path_factory):
     """A cut-by-frame family scene of the test set at 64x48, 1 sample per pixel, JPEG images."""
     if not mitsuba_available():
         pytest.skip(MITSUBA_MISSING)
-    from votesplat_ns.synthetic.render import RenderSettings, write_dataset
+    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset
 
     seed = next(s for s in TEST_SEEDS if family_properties(s).capture == "360" and family_properties(s).cut_object)
     scene = make_scene("family", seed=seed, num_views=6, num_eval_views=2, width=64, height=48)
@@ -449,7 +449,7 @@ def tiny_family(tmp_path_factory):
 
 @needs_mitsuba
 def test_family_renders_consistent_labels(tiny_family, tmp_path):
-    from votesplat_ns.synthetic.render import RenderSettings, write_dataset
+    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset
 
     scene, out = tiny_family
     meta = json.loads((out / "transforms.json").read_text())
@@ -478,7 +478,7 @@ def test_family_renders_consistent_labels(tiny_family, tmp_path):
 @pytest.mark.parametrize("capture", ["360", "forward"])
 def test_family_cut_object_touches_the_border_in_most_rendered_views(capture):
     """The labels themselves (ray cast at 64x48): the cut object's mask reaches the image border in most views."""
-    from votesplat_ns.synthetic.render import SceneRenderer
+    from votesplat_ns.eval.synthetic.render import SceneRenderer
 
     seed = next(s for s in TEST_SEEDS if family_properties(s).capture == capture and family_properties(s).cut_object)
     scene = make_scene("family", seed=seed, num_views=48, num_eval_views=6, width=64, height=48)
@@ -497,7 +497,7 @@ def test_mitsuba_sensor_matches_the_label_rays():
     """The path-traced RGB and the ray-cast labels must see through the same pixel centres."""
     import mitsuba as mi
 
-    from votesplat_ns.synthetic.render import SceneRenderer, pixel_rays
+    from votesplat_ns.eval.synthetic.render import SceneRenderer, pixel_rays
 
     scene = make_scene("forward", seed=1, num_views=2, num_eval_views=0, width=40, height=30)
     renderer = SceneRenderer(scene)
@@ -515,7 +515,7 @@ def test_mitsuba_sensor_matches_the_label_rays():
 
 @needs_mitsuba
 def test_cli_refuses_to_overwrite(tiny_dataset, capsys):
-    from votesplat_ns.synthetic.cli import main
+    from votesplat_ns.eval.synthetic.cli import main
 
     assert main(["tabletop360", "--output-dir", str(tiny_dataset)] + TINY) == 2
     assert "--overwrite" in capsys.readouterr().err

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from nerfstudio.utils.eval_utils import eval_setup
 
-from votesplat_ns.model import VoteSplatModel
+from votesplat_ns.ns.model import VoteSplatModel
 
 
 def load(config_path):

@@ -1,4 +1,4 @@
-"""Tests for votesplat_ns.viewer: overlay, click/text selection, isolate/hide, votes picture, export.
+"""Tests for votesplat_ns.ns.viewer: overlay, click/text selection, isolate/hide, votes picture, export.
 
 Model-free scenes (random Gaussians with known instance ids) rendered by the project's torch
 rasteriser, plus one test of the nerfstudio glue on a small real VoteSplatModel.
@@ -14,11 +14,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from votesplat_ns.instances import InstanceSet, LevelInstances, instance_colors, render_instance_ids
-from votesplat_ns.ply_io import read_gaussian_ply
-from votesplat_ns.rasterizer import rasterize
-from votesplat_ns.cameras import PinholeView
-from votesplat_ns.viewer import (
+from votesplat_ns.core.instances import InstanceSet, LevelInstances, instance_colors, render_instance_ids
+from votesplat_ns.core.ply_io import read_gaussian_ply
+from votesplat_ns.ns.rasterizer import rasterize
+from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.ns.viewer import (
     DISPLAY_ALL,
     DISPLAY_HIDE,
     DISPLAY_ISOLATE,
@@ -497,8 +497,8 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
     from nerfstudio.viewer.utils import parse_object
     from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
-    from votesplat_ns.model import VoteSplatModelConfig
-    from votesplat_ns.viewer import VoteSplatViewerState, scene_from_model, view_from_camera
+    from votesplat_ns.ns.model import VoteSplatModelConfig
+    from votesplat_ns.ns.viewer import VoteSplatViewerState, scene_from_model, view_from_camera
 
     # splatfacto's get_viewmat is torch.compile'd; compiling it costs ~10 s on CPU and tests nothing here.
     monkeypatch.setattr(splatfacto, "get_viewmat", getattr(splatfacto.get_viewmat, "_torchdynamo_orig_callable", splatfacto.get_viewmat))

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import votesplat_ns.vote_cache as vote_cache_module
-from votesplat_ns.mask_sources import FolderMaskSource, MaskSource
-from votesplat_ns.vote_cache import VoteCache, VoteOptions
+import votesplat_ns.core.vote_cache as vote_cache_module
+from votesplat_ns.core.mask_sources import FolderMaskSource, MaskSource
+from votesplat_ns.core.vote_cache import VoteCache, VoteOptions
 
 
 class ThresholdMaskSource(MaskSource):

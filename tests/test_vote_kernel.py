@@ -1,4 +1,4 @@
-"""The fused Triton vote kernels (votesplat_ns.vote_kernel) held to the torch vote pass.
+"""The fused Triton vote kernels (votesplat_ns.core.vote_kernel) held to the torch vote pass.
 
 Each case renders the same inputs through ``render_votes_tiled`` twice, with
 ``backend="torch"`` (itself held to the dense reference and the brute-force oracle in
@@ -28,8 +28,8 @@ from test_vote_render import (
     tile_lists_everything,
     tile_lists_gsplat,
 )
-from votesplat_ns import vote_kernel, vote_render
-from votesplat_ns.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
+from votesplat_ns.core import vote_kernel, vote_render
+from votesplat_ns.core.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
 
 
 def _skip_reason(device: str):
@@ -266,7 +266,7 @@ def test_kernel_membership_rule(opacities, threshold, expected_members, dtype, d
     ids=option_id,
 )
 def test_kernel_training_sized(options, device):
-    from votesplat_ns.rasterizer import project_for_votes
+    from votesplat_ns.ns.rasterizer import project_for_votes
 
     # the interpreter runs a small version of it
     n, width, height, pixels = (20000, 320, 240, 4096) if device == "cuda" else (150, 48, 32, 16)
@@ -397,7 +397,7 @@ def test_model_flag_selects_the_backend():
     import tyro
     from nerfstudio.engine.trainer import TrainerConfig
 
-    from votesplat_ns.method import votesplat_trainer_config
+    from votesplat_ns.ns.method import votesplat_trainer_config
 
     config = tyro.cli(TrainerConfig, default=votesplat_trainer_config(), args=["--pipeline.model.vote-backend", "torch"])
     assert config.pipeline.model.vote_render_options().backend == "torch"

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from votesplat_ns.vote_maps import (
+from votesplat_ns.core.vote_maps import (
     VoteMaps,
     gather_vote_targets,
     labels_from_binary_masks,

@@ -1,4 +1,4 @@
-"""Tests for votesplat_ns.vote_render (paper section 3.3)."""
+"""Tests for votesplat_ns.core.vote_render (paper section 3.3)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from gsplat.cuda._torch_impl import (
 
 from torch.overrides import TorchFunctionMode
 
-from votesplat_ns import vote_render
-from votesplat_ns.vote_render import (
+from votesplat_ns.core import vote_render
+from votesplat_ns.core.vote_render import (
     ALPHA_MIN,
     COLOUR_STOP_T,
     VOTE_THRESHOLD_RTOL,

@@ -44,7 +44,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/../.." || exit 2
 
-# --- votesplat's CLI flags (owned by votesplat_ns/datamanager.py and model.py; update here if
+# --- votesplat's CLI flags (owned by votesplat_ns/ns/datamanager.py and model.py; update here if
 # --- they are renamed) --------------------------------------------------------------------
 VOTE_MASK_SOURCE_FLAG=--pipeline.datamanager.mask-source
 VOTE_MASK_FOLDER_FLAG=--pipeline.datamanager.mask-folder
@@ -123,7 +123,7 @@ def _write_stats():
 atexit.register(_write_stats)
 command = sys.argv[1]
 sys.argv = [f"ns-{command}"] + sys.argv[2:]
-from votesplat_ns.compat import offline_lpips
+from votesplat_ns.ns.compat import offline_lpips
 
 if command == "train":
     from nerfstudio.scripts.train import entrypoint

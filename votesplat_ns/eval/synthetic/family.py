@@ -22,7 +22,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
-from votesplat_ns.synthetic.scenes import FAMILY_PROPERTY_KINDS, FamilyProperties, family_properties
+from votesplat_ns.eval.synthetic.scenes import FAMILY_PROPERTY_KINDS, FamilyProperties, family_properties
 
 SET_SIZE = 6
 TUNING_START, TEST_START = 1000, 2000
@@ -74,11 +74,11 @@ def write_family_set(
     """Render every scene of set ``name`` into ``output_dir/family_<seed>/`` and write ``family_set.json``
     (seeds, properties, render settings, seconds and bytes per scene); returns the manifest's path.
 
-    ``settings``: a :class:`~votesplat_ns.synthetic.render.RenderSettings` (default: JPEG images at
+    ``settings``: a :class:`~votesplat_ns.eval.synthetic.render.RenderSettings` (default: JPEG images at
     quality 95, 64 samples per pixel). ``progress(scene, scenes, view, views)`` is called per view.
     """
-    from votesplat_ns.synthetic.render import RenderSettings, write_dataset, write_json
-    from votesplat_ns.synthetic.scenes import make_scene
+    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset, write_json
+    from votesplat_ns.eval.synthetic.scenes import make_scene
 
     members = family_set(name)
     settings = settings if settings is not None else RenderSettings(image_format="jpg")
@@ -117,7 +117,7 @@ def write_family_set(
             "scene_options": SET_OPTIONS,
             "render": {"spp": settings.spp, "max_depth": settings.max_depth, "image_format": settings.image_format,
                        "jpeg_quality": settings.jpeg_quality, "points": settings.num_points},
-            "note": "no default may be tuned on the test set (votesplat_ns/synthetic/family.py)",
+            "note": "no default may be tuned on the test set (votesplat_ns/eval/synthetic/family.py)",
             "scenes": scenes,
             "total_bytes": sum(s["bytes"] for s in scenes),
             "total_render_seconds": round(sum(s["render_seconds"] for s in scenes), 1),

@@ -9,21 +9,21 @@
 How a query is answered. The run's 3D votes are clustered into instances with the same defaults
 as ``votesplat-export`` (or an export's ``instance_ids.npz`` is reused with ``--instances``). The
 instance ids of the Gaussians are rendered into id maps of training views
-(:func:`~votesplat_ns.instances.render_instance_ids`), each instance's crops of the training images
-are encoded with CLIP and averaged (:func:`~votesplat_ns.semantics.instance_features`), and the text
-is ranked against them by LERF relevancy (:func:`~votesplat_ns.semantics.query_text`). The
+(:func:`~votesplat_ns.core.instances.render_instance_ids`), each instance's crops of the training images
+are encoded with CLIP and averaged (:func:`~votesplat_ns.core.semantics.instance_features`), and the text
+is ranked against them by LERF relevancy (:func:`~votesplat_ns.core.semantics.query_text`). The
 features are cached beside the run (``<run>/votesplat_query/instance_features_<level>.npz``) with
 the encoder and a fingerprint of the Gaussians, instances and views that made them; a cache made
 differently is rebuilt.
 
 Masks. The mask of a selection in a view is OpenGaussian's LERF-OVS rule, used by ``query`` and
 ``query-eval`` alike: render only the selected Gaussians and keep pixels whose accumulated opacity
-exceeds 0.7 (:func:`~votesplat_ns.lerf_ovs.silhouette_mask`). It ignores occluders, like the benchmark.
+exceeds 0.7 (:func:`~votesplat_ns.eval.lerf_ovs.silhouette_mask`). It ignores occluders, like the benchmark.
 
 Pixel coordinates (``click --x --y``) are continuous in the training image of that view at its
 stored resolution: pixel column c spans [c, c + 1), so x = 64 and x = 64.7 both hit column 64.
 
-nerfstudio is imported only inside functions, so ``import votesplat_ns.query_cli`` stays cheap.
+nerfstudio is imported only inside functions, so ``import votesplat_ns.cli.query_cli`` stays cheap.
 """
 
 from __future__ import annotations
@@ -43,11 +43,11 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
-from votesplat_ns.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
-from votesplat_ns.cli_errors import check_writable_folder, load_run, one_line_errors, writing_into
-from votesplat_ns.clustering import cluster_levels
-from votesplat_ns.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
-from votesplat_ns.lerf_ovs import (
+from votesplat_ns.core.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
+from votesplat_ns.cli.cli_errors import check_writable_folder, load_run, one_line_errors, writing_into
+from votesplat_ns.core.clustering import cluster_levels
+from votesplat_ns.core.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
+from votesplat_ns.eval.lerf_ovs import (
     SILHOUETTE_THRESHOLD,
     LabelFrame,
     SceneScore,
@@ -57,8 +57,8 @@ from votesplat_ns.lerf_ovs import (
     silhouette_mask,
     write_label_frame,
 )
-from votesplat_ns.ply_io import atomic_write, gaussian_vertex_table, write_gaussian_table
-from votesplat_ns.semantics import (
+from votesplat_ns.core.ply_io import atomic_write, gaussian_vertex_table, write_gaussian_table
+from votesplat_ns.core.semantics import (
     DEFAULT_NEGATIVES,
     ClipEncoder,
     EncoderProtocol,
@@ -188,7 +188,7 @@ class QueryScene:
     def from_config(cls, load_config: Path, level: Optional[str] = None, instances: Optional[Path] = None,
                     clustering: Optional[ClusteringOptions] = None) -> "QueryScene":
         """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``."""
-        from votesplat_ns.export import _read_params
+        from votesplat_ns.ns.export import _read_params
 
         load_config = Path(load_config)
         _, pipeline, _, _ = load_run(load_config)
@@ -247,7 +247,7 @@ class QueryScene:
 
     def id_map(self, camera: PinholeView) -> np.ndarray:
         """Rendered instance id map [H, W] int32 (-1 = none) of ``camera`` (the last few are kept)."""
-        from votesplat_ns.rasterizer import rasterize
+        from votesplat_ns.ns.rasterizer import rasterize
 
         key = (camera.width, camera.height, camera.viewmat.cpu().numpy().tobytes(), camera.K.cpu().numpy().tobytes())
         if key in self._id_maps:
@@ -266,14 +266,14 @@ class QueryScene:
 
     def instance_at(self, view: int, x: float, y: float) -> Optional[int]:
         """The instance under continuous pixel (x, y) of training view ``view`` (None: background)."""
-        from votesplat_ns.semantics import click_select
+        from votesplat_ns.core.semantics import click_select
 
         return click_select(self.id_map(self.train_camera(view)), float(x), float(y))
 
     @torch.no_grad()
     def render(self, keep: np.ndarray, camera: PinholeView) -> Tuple[np.ndarray, np.ndarray]:
         """RGB [H, W, 3] in [0, 1] (black background) and accumulated opacity [H, W] of the kept Gaussians."""
-        from votesplat_ns.rasterizer import rasterize
+        from votesplat_ns.ns.rasterizer import rasterize
 
         keep = torch.as_tensor(np.asarray(keep, dtype=bool)[self.finite], device=self.device)
         if not bool(keep.any()):

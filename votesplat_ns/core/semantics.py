@@ -22,8 +22,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from votesplat_ns.cli_errors import load_failure_reason
-from votesplat_ns.ply_io import atomic_write
+from votesplat_ns.cli.cli_errors import load_failure_reason
+from votesplat_ns.core.ply_io import atomic_write
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 

@@ -43,7 +43,7 @@ Two implementations share the alpha, walk and reduction helpers:
   launches and host synchronisations rather than arithmetic, so this path
   reads device values on the host as rarely as it can (see its docstring).
   On CUDA it hands the walk and the blend sums to the fused Triton kernels
-  of ``votesplat_ns.vote_kernel`` (one launch forward, one backward; see
+  of ``votesplat_ns.core.vote_kernel`` (one launch forward, one backward; see
   ``VoteRenderOptions.backend``); the torch code stays the CPU path.
 
 Conventions (shared by the whole project): OpenCV world-to-camera ``viewmat``
@@ -121,7 +121,7 @@ class VoteRenderOptions:
         votes stay finite; in scene units, like gsplat's near_plane. The
         depth regulariser uses the unclamped depth.
     backend: how ``render_votes_tiled`` walks and blends. "auto": the fused
-        Triton kernels (``votesplat_ns.vote_kernel``) for float32/float64
+        Triton kernels (``votesplat_ns.core.vote_kernel``) for float32/float64
         tensors on CUDA when Triton imports, else the torch code; the
         environment variable VOTESPLAT_VOTE_BACKEND=torch|triton overrides
         "auto". "torch": always the torch code. "triton": always the kernels
@@ -397,7 +397,7 @@ def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> 
             raise ValueError(f"{BACKEND_ENV} must be one of {_BACKENDS}, got {backend!r}")
     if backend == "torch":
         return False
-    from votesplat_ns import vote_kernel
+    from votesplat_ns.core import vote_kernel
 
     reason = vote_kernel.unavailable_reason(votes.device)
     if reason is None and votes.dtype not in (torch.float32, torch.float64):
@@ -424,7 +424,7 @@ def _render_with_kernel(
     options: VoteRenderOptions,
 ) -> VoteRender:
     """render_votes_tiled's walk and blend sums in the fused Triton kernels; the rest as the torch path."""
-    from votesplat_ns import vote_kernel
+    from votesplat_ns.core import vote_kernel
 
     n, levels = votes.shape[0], 1 if votes.ndim == 2 else votes.shape[1]
     geometry = _geometry_table(means2d, conics, opacities, options)

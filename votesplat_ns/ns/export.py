@@ -43,11 +43,11 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
-from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
-from votesplat_ns.cli_errors import VoteSplatInputError, check_writable_folder, load_run, one_line_errors, writing_into
-from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.instances import IDS_NAME, MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
-from votesplat_ns.ply_io import SH_C0, gaussian_vertex_table, make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
+from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_writable_folder, load_run, one_line_errors, writing_into
+from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
+from votesplat_ns.core.instances import IDS_NAME, MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
+from votesplat_ns.core.ply_io import SH_C0, gaussian_vertex_table, make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
 
 VOTE_OFFSETS_KEY = "vote_offsets"
 VOTE_SUPPORT_KEY = "vote_support"
@@ -451,7 +451,7 @@ def training_views(pipeline, num_views: int, max_width: int = 320) -> List[Pinho
 def default_rasterizer() -> Optional[Callable[..., tuple]]:
     """The plugin's rasteriser entry point (gsplat on CUDA tensors, pure torch on CPU tensors)."""
     try:
-        from votesplat_ns.rasterizer import rasterize
+        from votesplat_ns.ns.rasterizer import rasterize
     except ImportError:
         return None
     return rasterize

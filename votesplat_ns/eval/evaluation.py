@@ -49,7 +49,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from votesplat_ns.ply_io import atomic_write
+from votesplat_ns.core.ply_io import atomic_write
 
 
 def _as_views(maps, what: str) -> list:

@@ -1,4 +1,4 @@
-"""Render a :mod:`~votesplat_ns.synthetic.scenes` scene with mitsuba 3 and write a nerfstudio dataset.
+"""Render a :mod:`~votesplat_ns.eval.synthetic.scenes` scene with mitsuba 3 and write a nerfstudio dataset.
 
 * RGB: mitsuba's path tracer (``scalar_rgb`` variant, CPU), box pixel filter, sRGB 8-bit PNG (or JPEG
   with ``RenderSettings(image_format="jpg")``: 4:4:4 chroma, for datasets that must travel small).
@@ -30,8 +30,8 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from votesplat_ns.ply_io import atomic_write
-from votesplat_ns.synthetic.scenes import (
+from votesplat_ns.core.ply_io import atomic_write
+from votesplat_ns.eval.synthetic.scenes import (
     GENERATOR_VERSION,
     Camera,
     Part,
@@ -553,7 +553,7 @@ class DatasetView:
 
 def scene_from_dataset(meta: dict) -> Scene:
     """Rebuild the generating scene (exact geometry, no rendering) from a dataset's transforms.json."""
-    from votesplat_ns.synthetic.scenes import make_scene
+    from votesplat_ns.eval.synthetic.scenes import make_scene
 
     info = meta.get("votesplat_synthetic")
     if info is None:

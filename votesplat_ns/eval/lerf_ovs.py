@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
-from votesplat_ns.ply_io import atomic_write
+from votesplat_ns.core.ply_io import atomic_write
 
 try:  # torch is optional here: predictions may be numpy arrays or tensors.
     import torch

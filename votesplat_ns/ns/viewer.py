@@ -15,7 +15,7 @@ Three layers:
    attributes of the pipeline and of its ``nn.Module`` children) and turns a model and a
    ``Cameras`` into a :class:`SplatScene` and a :class:`PinholeView`.
 
-Colours come from :func:`votesplat_ns.instances.instance_colors`, a pure function of the instance
+Colours come from :func:`votesplat_ns.core.instances.instance_colors`, a pure function of the instance
 id, so an instance has the same colour in every view and session (and in the exported pictures).
 """
 
@@ -34,8 +34,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from votesplat_ns.cameras import PinholeView
-from votesplat_ns.instances import InstanceSet, instance_colors, render_instance_ids
+from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.core.instances import InstanceSet, instance_colors, render_instance_ids
 
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras
@@ -236,7 +236,7 @@ RasterizeFn = Callable[..., Tuple[Tensor, Tensor, Dict[str, Any]]]
 
 
 def _default_rasterize() -> RasterizeFn:
-    from votesplat_ns.rasterizer import rasterize
+    from votesplat_ns.ns.rasterizer import rasterize
 
     return rasterize
 
@@ -287,7 +287,7 @@ def render_rgb(scene: SplatScene, view: PinholeView, rasterize_fn: Optional[Rast
 @torch.no_grad()
 def render_instance_map(scene: SplatScene, view: PinholeView, instance_ids: Tensor,
                         rasterize_fn: Optional[RasterizeFn] = None) -> Tensor:
-    """Instance id [H, W] (-1 none) per pixel, by :func:`votesplat_ns.instances.render_instance_ids`."""
+    """Instance id [H, W] (-1 none) per pixel, by :func:`votesplat_ns.core.instances.render_instance_ids`."""
     if instance_ids.shape != (scene.num_gaussians,):
         raise ValueError(f"instance_ids must be [N] = [{scene.num_gaussians}], got {tuple(instance_ids.shape)}")
     return render_instance_ids(
@@ -346,8 +346,8 @@ FeatureViewsFn = Callable[[], Sequence[Tuple[PinholeView, np.ndarray]]]
 
 
 def cluster_scene(scene: SplatScene, level_names: Sequence[str]) -> InstanceSet:
-    """Instances of every level from the scene's votes (:func:`votesplat_ns.clustering.cluster_levels`)."""
-    from votesplat_ns.clustering import cluster_levels
+    """Instances of every level from the scene's votes (:func:`votesplat_ns.core.clustering.cluster_levels`)."""
+    from votesplat_ns.core.clustering import cluster_levels
 
     if scene.vote_offsets is None:
         raise ValueError("this model has no vote offsets (gauss_params['vote_offsets']); load a votesplat checkpoint")
@@ -476,7 +476,7 @@ class InstanceViewerState:
         return 0 if self.instances is None else self.instances.level(self.level).num_instances
 
     def _instance_features(self, scene: SplatScene) -> Any:
-        from votesplat_ns.semantics import instance_features
+        from votesplat_ns.core.semantics import instance_features
 
         if self.level in self._features:
             return self._features[self.level]
@@ -584,7 +584,7 @@ class InstanceViewerState:
         return outputs
 
     def _resolve_click(self, instance_map: Tensor) -> None:
-        from votesplat_ns.semantics import click_select
+        from votesplat_ns.core.semantics import click_select
 
         screen_pos, self._pending_click = self._pending_click, None
         height, width = instance_map.shape
@@ -596,7 +596,7 @@ class InstanceViewerState:
             self.status = self._selection_status()
 
     def _resolve_query(self, scene: SplatScene) -> None:
-        from votesplat_ns.semantics import query_text, select_instances
+        from votesplat_ns.core.semantics import query_text, select_instances
 
         text, self._pending_query = self._pending_query, None
         if not self.has_encoder:
@@ -621,7 +621,7 @@ class InstanceViewerState:
         ``gauss_params`` holds splatfacto's raw parameters (means, features_dc, features_rest,
         opacities as logits, scales as logs, quats) of the scene the instances were computed for.
         """
-        from votesplat_ns.ply_io import write_gaussian_ply
+        from votesplat_ns.core.ply_io import write_gaussian_ply
 
         if self.instances is None or self.selected is None:
             raise ValueError("nothing selected: compute instances and click an instance (or type a query) first")
@@ -819,7 +819,7 @@ class VoteSplatViewerState:
 
     # -------------------------------------------------------------- CLIP
     def _make_encoder(self) -> Any:
-        from votesplat_ns.semantics import ClipEncoder
+        from votesplat_ns.core.semantics import ClipEncoder
 
         return ClipEncoder.from_checkpoint(self.clip_model_name, self.clip_checkpoint, device=self.model.device)
 

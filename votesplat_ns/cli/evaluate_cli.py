@@ -6,17 +6,17 @@ defaults), renders instance-id maps of the dataset's held-out views and scores t
 dataset's exact label images:
 
 * 2D (per vote level with a ground truth of the same name, ``instance`` / ``part``):
-  :func:`~votesplat_ns.evaluation.match_instances` over all chosen views jointly (mIoU, precision
+  :func:`~votesplat_ns.eval.evaluation.match_instances` over all chosen views jointly (mIoU, precision
   and recall at IoU 0.5). Views are the pipeline's own cameras (nerfstudio's split, orientation and
   scale), so they are exactly the frames nerfstudio would render; the GT label image of a view is
   found through its transforms.json frame (``<level>_mask_path``) by image file name.
 * Reconstruction check: each scored view is also rendered in RGB by the model itself (as
   nerfstudio's eval renders it) and its PSNR against the dataset image is recorded;
-  :func:`~votesplat_ns.evaluation.check_reconstruction` flags views where the reconstruction failed
+  :func:`~votesplat_ns.eval.evaluation.check_reconstruction` flags views where the reconstruction failed
   (far below the run's median PSNR, or no better than a flat image of the view's mean colour). Every
   2D score is reported over all views and again over the valid views only (``*_valid_views``),
   so a broken render shows as what it is instead of silently lowering the instance score.
-* 3D: :func:`~votesplat_ns.evaluation.gaussian_purity` of the per-Gaussian instance ids. The GT
+* 3D: :func:`~votesplat_ns.eval.evaluation.gaussian_purity` of the per-Gaussian instance ids. The GT
   label of a Gaussian comes from the scene's exact geometry when the dataset was written by
   ``votesplat-synth`` (see :func:`surface_labels`): its mean is mapped back from nerfstudio's
   normalised frame to the dataset's world frame with the run's ``dataparser_transforms.json``, and
@@ -30,7 +30,7 @@ each view) and ``comparison_<level>.png`` (GT | prediction per view, a matched p
 its GT instance's colour), plus a short table and the flagged views on stdout.
 
 ``votesplat-noisy-masks --data <dataset> --output <folder>`` writes the dataset's GT label images
-corrupted by :class:`~votesplat_ns.mask_noise.MaskNoise` in the folder mask source's layout
+corrupted by :class:`~votesplat_ns.eval.mask_noise.MaskNoise` in the folder mask source's layout
 (``<folder>/<level>/<image_stem>.png``), to train with
 ``--pipeline.datamanager.mask-source folder --pipeline.datamanager.mask-folder <folder>`` and
 measure how VoteSplat copes with imperfect SAM masks.
@@ -52,10 +52,10 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple, Uni
 import numpy as np
 import torch
 
-from votesplat_ns.cameras import PinholeView, viewmat_from_camera_to_world
-from votesplat_ns.cli_errors import VoteSplatInputError
-from votesplat_ns.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.evaluation import (
+from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
+from votesplat_ns.eval.evaluation import (
     DEFAULT_MAX_PSNR_DROP_DB,
     DEFAULT_MIN_GAIN_DB,
     check_reconstruction,
@@ -65,10 +65,10 @@ from votesplat_ns.evaluation import (
     psnr,
     save_comparison_png,
 )
-from votesplat_ns.instances import render_instance_ids
-from votesplat_ns.mask_noise import MaskNoise
-from votesplat_ns.mask_sources import read_label_png
-from votesplat_ns.ply_io import atomic_write, make_temp_dir, temp_sibling
+from votesplat_ns.core.instances import render_instance_ids
+from votesplat_ns.eval.mask_noise import MaskNoise
+from votesplat_ns.core.mask_sources import read_label_png
+from votesplat_ns.core.ply_io import atomic_write, make_temp_dir, temp_sibling
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"
@@ -268,7 +268,7 @@ class GroundTruthDataset:
 
     def scene(self):
         """The generating scene (exact geometry) or None when it cannot be rebuilt."""
-        from votesplat_ns.synthetic.render import scene_from_dataset
+        from votesplat_ns.eval.synthetic.render import scene_from_dataset
 
         try:
             return scene_from_dataset(self.meta)
@@ -284,7 +284,7 @@ def gaussian_ground_truth(
     surface_tolerance_px: float = 3.0,
 ) -> Tuple[Dict[str, np.ndarray], Dict[str, object]]:
     """GT label per Gaussian for each level (means in the dataset's world frame) and how it was made."""
-    from votesplat_ns.synthetic.render import read_views
+    from votesplat_ns.eval.synthetic.render import read_views
 
     meta, views = read_views(dataset.root)
     train = set(dataset.train_names())
@@ -629,7 +629,7 @@ def evaluate_run(
     """
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from votesplat_ns.rasterizer import rasterize
+    from votesplat_ns.ns.rasterizer import rasterize
 
     if views not in ("eval", "train", "all"):
         raise ValueError(f"views must be 'eval', 'train' or 'all' (got {views!r})")
@@ -861,7 +861,7 @@ def write_noisy_masks(
     The folder is built beside ``output`` and renamed into place; an existing ``output`` is
     replaced only with ``overwrite`` and only if it holds a previous noisy-mask folder.
     """
-    from votesplat_ns.synthetic.render import write_png
+    from votesplat_ns.eval.synthetic.render import write_png
 
     dataset = GroundTruthDataset.open(data)
     levels = tuple(levels)

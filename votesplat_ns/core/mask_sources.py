@@ -4,7 +4,7 @@ Every source returns, per image, one integer label image per level (0 = no mask,
 at the image's resolution or a uniformly scaled copy of it (the vote maps are resized to the
 training resolution later). ``config_key()`` lists every argument that changes the output, and
 ``view_fingerprint()`` the per-view inputs other than the image itself (e.g. label files), so
-that :mod:`votesplat_ns.vote_cache` can tell when cached votes are stale.
+that :mod:`votesplat_ns.core.vote_cache` can tell when cached votes are stale.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from votesplat_ns.cli_errors import VoteSplatInputError, load_failure_reason
-from votesplat_ns.vote_maps import labels_from_binary_masks
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, load_failure_reason
+from votesplat_ns.core.vote_maps import labels_from_binary_masks
 
 PathLike = Union[str, Path]
 

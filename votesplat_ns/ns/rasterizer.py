@@ -2,7 +2,7 @@
 
 splatfacto calls the module-level name ``nerfstudio.models.splatfacto.rasterization``. We
 rebind that name once to :func:`rasterize`, which
-- sends CPU tensors to :func:`votesplat_ns.rasterize_torch.rasterize_torch` (gsplat's own
+- sends CPU tensors to :func:`votesplat_ns.core.rasterize_torch.rasterize_torch` (gsplat's own
   ``rasterization`` JIT-builds CUDA code and cannot run on CPU), and
 - records the cameras it was called with in the returned ``info`` (``info["viewmats"]``,
   ``info["Ks"]``) so the vote pass projects votes with exactly the camera splatfacto used
@@ -26,7 +26,7 @@ def rasterize(means: torch.Tensor, *args: Any, **kwargs: Any) -> Tuple[torch.Ten
 
         render, alpha, info = gsplat_rasterization(means, *args, **kwargs)
     else:
-        from votesplat_ns.rasterize_torch import rasterize_torch
+        from votesplat_ns.core.rasterize_torch import rasterize_torch
 
         render, alpha, info = rasterize_torch(means, *args, **kwargs)
     info["viewmats"] = kwargs.get("viewmats", args[4] if len(args) > 4 else None)
@@ -73,7 +73,7 @@ def project_for_votes(
         _, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
         isect_offsets = isect_offset_encode(isect_ids, 1, tile_width, tile_height)
     else:
-        from votesplat_ns.rasterize_torch import isect_tiles_torch, project_gaussians_torch
+        from votesplat_ns.core.rasterize_torch import isect_tiles_torch, project_gaussians_torch
 
         radii, means2d, depths, conics, _ = project_gaussians_torch(means, quats, scales, viewmats, Ks, width, height)
         tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)

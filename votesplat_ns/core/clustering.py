@@ -54,7 +54,7 @@ from typing import Callable, Dict, Literal, Optional, Sequence
 
 import numpy as np
 
-from votesplat_ns.instances import InstanceSet, LevelInstances
+from votesplat_ns.core.instances import InstanceSet, LevelInstances
 
 NoiseRule = Literal["nearest", "drop"]
 
@@ -352,7 +352,7 @@ def background_mask(vote_support, level: int) -> np.ndarray:
 
     vote_support [N, L] counts the supervised pixels each Gaussian voted for at each level; the model
     negates the count of Gaussians whose rendering weight lies mostly outside the masks (see
-    ``votesplat_ns.foreground``), so only > 0 is foreground.
+    ``votesplat_ns.core.foreground``), so only > 0 is foreground.
     """
     support = _to_numpy(vote_support)
     if support.ndim != 2:

@@ -1293,7 +1293,7 @@ def forward(
 
 
 # --------------------------------------------------------------------------------------------
-# the randomised family (votesplat_ns/synthetic/family.py names its tuning and test seeds)
+# the randomised family (votesplat_ns/eval/synthetic/family.py names its tuning and test seeds)
 
 _STREAM_FAMILY = 6
 SCREEN_SRGB = (28, 32, 40)

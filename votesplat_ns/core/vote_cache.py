@@ -34,9 +34,9 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from votesplat_ns.mask_sources import MaskSource, file_digest, read_image_rgb
-from votesplat_ns.ply_io import TEMP_MARKER, atomic_write
-from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps, vote_maps_from_labels
+from votesplat_ns.core.mask_sources import MaskSource, file_digest, read_image_rgb
+from votesplat_ns.core.ply_io import TEMP_MARKER, atomic_write
+from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps, vote_maps_from_labels
 
 PathLike = Union[str, Path]
 ImageLoader = Callable[[int, Path], np.ndarray]

@@ -18,9 +18,9 @@ from typing import Dict, List, Literal, Optional, Tuple
 import cv2
 import numpy as np
 
-from votesplat_ns.cli_errors import VoteSplatInputError, one_line_errors, writing_into
-from votesplat_ns.vote_cache import VoteCache, VoteOptions, atomic_write_bytes, load_image_rgb
-from votesplat_ns.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, one_line_errors, writing_into
+from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, atomic_write_bytes, load_image_rgb
+from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps
 
 PREVIEW_FOLDER_NAME = "votesplat_previews"
 
@@ -136,7 +136,7 @@ def write_png(path: Path, image_rgb: np.ndarray) -> None:
 
 def main(config: MasksConfig) -> Dict[str, object]:
     """Make all views' vote maps and the previews; returns where they went."""
-    from votesplat_ns.datamanager import (
+    from votesplat_ns.ns.datamanager import (
         VoteDataManagerConfig,
         check_cache_outside_dataset,
         check_data_input,

@@ -3,7 +3,7 @@
 Importing this module (nerfstudio does so at start-up of every ``ns-*`` command) also
 applies the plugin's compatibility fixes: checkpoint loading under torch >= 2.6 and the
 ``ns-export votesplat-instances`` subcommand, and installs the hook that reports bad input
-(:class:`~votesplat_ns.cli_errors.VoteSplatInputError`) as one line instead of a traceback.
+(:class:`~votesplat_ns.cli.cli_errors.VoteSplatInputError`) as one line instead of a traceback.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from votesplat_ns.cli_errors import install_excepthook
-from votesplat_ns.compat import register_checkpoint_safe_globals
-from votesplat_ns.datamanager import VoteDataManagerConfig
-from votesplat_ns.model import VoteSplatModelConfig
+from votesplat_ns.cli.cli_errors import install_excepthook
+from votesplat_ns.ns.compat import register_checkpoint_safe_globals
+from votesplat_ns.ns.datamanager import VoteDataManagerConfig
+from votesplat_ns.ns.model import VoteSplatModelConfig
 
 register_checkpoint_safe_globals()
 # bad input (missing --data, no CUDA, ...) ends ns-* commands with one line, not a traceback
@@ -34,7 +34,7 @@ install_excepthook()
 def _install_export_hook() -> None:
     """Add ``ns-export votesplat-instances``; a failure here must not break every ns-* command."""
     try:
-        from votesplat_ns.export import install_ns_export_hook
+        from votesplat_ns.ns.export import install_ns_export_hook
 
         install_ns_export_hook()
     except Exception as err:  # pragma: no cover - reported, not fatal

@@ -1,6 +1,6 @@
 """Fused vote pass in Triton: one launch for the forward of every level, one for the backward.
 
-Same membership rule, levels and ablation switches as :mod:`votesplat_ns.vote_render` (read
+Same membership rule, levels and ablation switches as :mod:`votesplat_ns.core.vote_render` (read
 its module docstring); this module only replaces the walk and the blending sums of
 ``render_votes_tiled``. The torch code keeps what is cheap and per pixel or per Gaussian:
 the vote table (``_vote_table``: world vote, its projection for 2D blending, its camera depth)

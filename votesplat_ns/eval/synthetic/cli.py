@@ -5,7 +5,7 @@ Example (the bundled demo scene)::
     votesplat-synth tabletop360 --seed 3 --views 30 --eval-views 4 --width 128 --height 128 \\
         --objects 5 --spp 64 --output-dir votesplat_ns/data/demo --overwrite
 
-A whole set of the ``family`` benchmark (votesplat_ns/synthetic/family.py: tuning or test seeds)::
+A whole set of the ``family`` benchmark (votesplat_ns/eval/synthetic/family.py: tuning or test seeds)::
 
     votesplat-synth family-set --set test --output-dir build/family_test
 """
@@ -17,7 +17,7 @@ import sys
 import time
 from typing import List, Optional
 
-from votesplat_ns.synthetic.scenes import RECIPES
+from votesplat_ns.eval.synthetic.scenes import RECIPES
 
 _DEFAULT_VIEWS = {"tabletop360": 48, "nested": 48, "forward": 24, "family": 48}
 FAMILY_SET_COMMAND = "family-set"
@@ -56,12 +56,12 @@ def _add_image_arguments(parser: argparse.ArgumentParser, default_format: str) -
 
 
 def build_family_set_parser() -> argparse.ArgumentParser:
-    from votesplat_ns.synthetic.family import FAMILY_SETS, SET_OPTIONS
+    from votesplat_ns.eval.synthetic.family import FAMILY_SETS, SET_OPTIONS
 
     parser = argparse.ArgumentParser(
         prog=f"votesplat-synth {FAMILY_SET_COMMAND}",
         description=(
-            "Render every scene of a family set (votesplat_ns/synthetic/family.py) into <output-dir>/family_<seed>/ "
+            "Render every scene of a family set (votesplat_ns/eval/synthetic/family.py) into <output-dir>/family_<seed>/ "
             f"at {SET_OPTIONS['width']}x{SET_OPTIONS['height']}, {SET_OPTIONS['num_views']} train + "
             f"{SET_OPTIONS['num_eval_views']} held-out views, plus family_set.json. No default may be tuned on the test set."
         ),
@@ -79,8 +79,8 @@ def build_family_set_parser() -> argparse.ArgumentParser:
 
 def family_set_main(argv: List[str]) -> int:
     args = build_family_set_parser().parse_args(argv)
-    from votesplat_ns.synthetic.family import write_family_set
-    from votesplat_ns.synthetic.render import RenderSettings
+    from votesplat_ns.eval.synthetic.family import write_family_set
+    from votesplat_ns.eval.synthetic.render import RenderSettings
 
     start = time.time()
 
@@ -108,8 +108,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if argv[:1] == [FAMILY_SET_COMMAND]:
         return family_set_main(argv[1:])
     args = build_parser().parse_args(argv)
-    from votesplat_ns.synthetic.render import RenderSettings, write_dataset
-    from votesplat_ns.synthetic.scenes import make_scene
+    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset
+    from votesplat_ns.eval.synthetic.scenes import make_scene
 
     options = dict(width=args.width, height=args.height)
     options["num_views"] = args.views if args.views is not None else _DEFAULT_VIEWS[args.recipe]

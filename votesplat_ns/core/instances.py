@@ -26,7 +26,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from votesplat_ns.ply_io import atomic_write
+from votesplat_ns.core.ply_io import atomic_write
 
 MANIFEST_NAME = "instances.json"
 IDS_NAME = "instance_ids.npz"

@@ -39,8 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from votesplat_ns.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
-from votesplat_ns.cli_errors import VoteSplatInputError
+from votesplat_ns.core.cameras import PinholeView, scaled_view, viewmat_from_camera_to_world
+from votesplat_ns.cli.cli_errors import VoteSplatInputError
 
 FRAMES = ("dataparser", "dataset", "colmap")
 """The frames a retrofit PLY can be in, in the order they are preferred when they coincide."""

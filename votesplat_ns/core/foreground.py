@@ -11,7 +11,7 @@ The weights come from one rasteriser call per view with 2 colour channels per le
 the gradient of ``sum_p inside_l(p) C_{2l}(p) + outside_l(p) C_{2l+1}(p)`` with respect to
 Gaussian i's colour is exactly its weight summed over the pixels inside (outside) the masks.
 No nerfstudio import: ``rasterize_fn`` has gsplat 1.4's ``rasterization`` signature (gsplat on
-CUDA, ``votesplat_ns.rasterize_torch`` on CPU).
+CUDA, ``votesplat_ns.core.rasterize_torch`` on CPU).
 """
 
 from __future__ import annotations

@@ -1,0 +1,562 @@
+"""Full-image datamanager that adds each training view's 2D vote maps to the batch.
+
+``next_train`` returns splatfacto's ``(camera, data)`` plus
+  - ``data["vote_labels"]``: int32 [L, H, W] mask ids (0 = no mask),
+  - ``data["vote_centroids"]``: float32 [L, Kmax+1, 2] (column, row) per id in pixel-index
+    coordinates, NaN-padded (row 0 is always NaN),
+both at exactly the resolution of ``data["image"]``. The level names are published as
+``train_dataset.metadata["vote_levels"]`` (the pipeline passes that metadata to the model).
+
+Masks are made once per view by a :mod:`mask source <votesplat_ns.core.mask_sources>` at the image
+file's resolution and cached on disk by :class:`~votesplat_ns.core.vote_cache.VoteCache`; the
+datamanager only maps them to the training frame:
+  - images downscaled (dataparser ``images_N/``, ``camera_res_scale_factor``): labels
+    nearest-neighbour, centroids rescaled in the continuous frame (``resize_vote_maps``);
+  - images undistorted by nerfstudio (cameras with distortion): the label images are warped
+    with the same maps nerfstudio uses for the image (nearest-neighbour) and cropped alike, and
+    the centroids are recomputed from the warped masks, since undistortion is not a similarity
+    and does not carry a mask's mean to the warped mask's mean.
+
+Cache location (``cache_dir``): by default ``outputs/<dataset folder name>/votesplat_cache``
+relative to the working directory, i.e. beside ns-train's default run folders
+(``outputs/<experiment>/votesplat/<timestamp>``), shared by all runs on that dataset, never
+inside the dataset. With ``ns-train --output-dir D`` pass ``--pipeline.datamanager.cache-dir``
+as well to keep the cache beside the runs.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+from collections import OrderedDict
+from copy import deepcopy
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type
+
+import cv2
+import numpy as np
+import torch
+
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_device_available, writing_into
+from votesplat_ns.core.mask_sources import (
+    SAM_CHECKPOINT_FILES,
+    SAM_LEVELS,
+    DatasetMaskSource,
+    FolderMaskSource,
+    MaskSource,
+    image_file_size,
+    make_mask_source,
+    read_image_rgb,
+)
+from votesplat_ns.ns.retrofit import retrofit_reference
+from votesplat_ns.core.vote_cache import VoteCache, VoteOptions
+from votesplat_ns.core.vote_maps import (
+    DEFAULT_BORDER_MASKS,
+    VoteMaps,
+    resize_label_images,
+    resize_vote_maps,
+    vote_maps_from_labels,
+)
+
+DEFAULT_OUTPUT_DIR = Path("outputs")
+DATASET_LEVELS = ("instance", "part")
+CACHE_FOLDER_NAME = "votesplat_cache"
+
+
+def dataset_dir(data: Path) -> Path:
+    """The dataset folder for a ``--data`` argument (a folder or its transforms.json)."""
+    data = Path(data)
+    return data.parent if data.suffix == ".json" else data
+
+
+def default_cache_dir(data: Path, output_dir: Path = DEFAULT_OUTPUT_DIR) -> Path:
+    """``<output_dir>/<dataset folder name>/votesplat_cache``, matching ns-train's experiment folder."""
+    name = dataset_dir(data).resolve().name or "dataset"
+    return Path(output_dir) / name / CACHE_FOLDER_NAME
+
+
+def check_cache_outside_dataset(cache_dir: Path, data: Path) -> None:
+    cache_resolved = Path(cache_dir).resolve()
+    data_resolved = dataset_dir(data).resolve()
+    if cache_resolved == data_resolved or data_resolved in cache_resolved.parents:
+        raise VoteSplatInputError(
+            f"vote cache folder {cache_dir} lies inside the dataset {data_resolved}; "
+            "pass --pipeline.datamanager.cache-dir <folder outside the dataset> (or run from another folder)"
+        )
+
+
+CACHE_DIR_FLAG = "--pipeline.datamanager.cache-dir"
+
+
+def check_vote_schedule(model, start_step: int, num_steps: int) -> None:
+    """Raise :class:`VoteSplatInputError` when no step in ``start_step .. start_step + num_steps - 1`` runs the vote loss.
+
+    Such a run trains splatfacto only and ends with every Gaussian's vote support at zero. A
+    retrofit run (vote-only) votes on every step; a run with both vote loss weights at 0 trains
+    without votes on purpose (e.g. the splatfacto base of a retrofit benchmark).
+    """
+    config = model.config
+    if getattr(model, "vote_only", False) or num_steps <= 0:
+        return
+    if config.vote_loss_weight == 0 and config.distortion_loss_weight == 0:
+        return
+    start, every = int(config.vote_start_step), max(1, int(config.vote_every_n_steps))
+    first_vote = start if start_step <= start else start + -(-(start_step - start) // every) * every
+    last_step = start_step + num_steps - 1
+    if first_vote > last_step:
+        raise VoteSplatInputError(
+            f"--pipeline.model.vote-start-step {start} is past the last training step {last_step} "
+            f"(--max-num-iterations {num_steps}{f', resuming at step {start_step}' if start_step else ''}): "
+            "the vote loss would never run and the run would learn no instances; "
+            "lower --pipeline.model.vote-start-step or raise --max-num-iterations"
+        )
+
+
+MAKE_DATASET_HINT = "give the folder that holds transforms.json (ns-process-data makes one from images or a video)"
+
+
+def frame_image_path(data_dir: Path, file_path: str, downscale_factor: Optional[int]) -> Path:
+    """The image file nerfstudio's dataparser opens for a frame (``images_N/`` with ``--downscale-factor N``)."""
+    if downscale_factor is not None and downscale_factor > 1:
+        return data_dir / f"images_{downscale_factor}" / Path(file_path).name
+    return data_dir / file_path
+
+
+def check_data_input(
+    config: "VoteDataManagerConfig",
+    check_images: bool = True,
+    where: Optional[str] = None,
+    mask_source_flag: str = "--pipeline.datamanager.mask-source",
+) -> None:
+    """Raise :class:`VoteSplatInputError`, saying what to do, for a dataset that would fail later or train wrongly.
+
+    Checks that the data path exists and, for the nerfstudio dataparser, that it holds a readable
+    transforms.json with frames and (``check_images``) the frames themselves (:func:`check_frames`).
+    ``where`` names the path in the message (default ``--data <path>``), ``mask_source_flag`` the
+    option that picks the mask source.
+    """
+    data = config.dataset_path
+    where = where or f"--data {data}"
+    nerfstudio_data = isinstance(config.dataparser, NerfstudioDataParserConfig)
+    if not data.exists():
+        what = "file" if data.suffix else "folder"
+        hint = MAKE_DATASET_HINT if nerfstudio_data else "give the dataset folder"
+        raise VoteSplatInputError(f"{where}: {what} not found; {hint}")
+    if not nerfstudio_data:
+        return
+    if data.is_dir():
+        transforms = data / "transforms.json"
+        if not transforms.is_file():
+            if config.data is None and data == Path("."):
+                raise VoteSplatInputError(f"no --data given and the current folder holds no transforms.json; {MAKE_DATASET_HINT}")
+            raise VoteSplatInputError(f"{where}: this folder holds no transforms.json; {MAKE_DATASET_HINT}")
+    elif data.suffix == ".json":
+        transforms = data
+    else:
+        raise VoteSplatInputError(f"{where} is a file, not a dataset; {MAKE_DATASET_HINT}, or that transforms.json itself")
+    try:
+        meta = json.loads(transforms.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise VoteSplatInputError(f"{transforms} is not valid JSON ({err}); fix it or make it again with ns-process-data") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and "file_path" in f for f in frames):
+        raise VoteSplatInputError(
+            f"{transforms} lists no frames (a 'frames' list whose entries have file_path and transform_matrix); "
+            "make it again with ns-process-data"
+        )
+    if not check_images:
+        return
+    check_frames(transforms, meta, config, where, mask_source_flag)
+
+
+CAMERA_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+
+
+def _is_finite_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _frame_name(number: int, frame: dict) -> str:
+    return f"frame {number} ({frame['file_path']})"
+
+
+def check_frames(
+    transforms: Path, meta: dict, config: "VoteDataManagerConfig", where: str, mask_source_flag: str = "--pipeline.datamanager.mask-source"
+) -> None:
+    """Check every frame of a transforms.json before anything is trained or cached.
+
+    One place for what would otherwise fail late, with a traceback, or silently: a pose or camera
+    value that is not a finite number (sklearn's "Input X contains NaN" in splatfacto's set-up),
+    the same image listed twice (trained double-weighted), mask paths on only some frames (the
+    'auto' mask source would switch to SAM), image files that are missing, not images, or not the
+    size the frame's camera says (later blamed on their masks).
+    """
+    frames = meta["frames"]
+    name = transforms.name
+    remake = "or make the dataset again with ns-process-data"
+
+    def check_camera_values(entry: dict, what: str) -> None:
+        for key in CAMERA_KEYS:
+            value = entry.get(key)
+            if value is not None and not (_is_finite_number(value) and (value > 0 or key in ("cx", "cy"))):
+                bound = "" if key in ("cx", "cy") else " > 0"
+                raise VoteSplatInputError(
+                    f"{transforms}: {what} has camera value {key}={value!r}; it must be a finite number{bound}; fix it, {remake}"
+                )
+
+    check_camera_values(meta, "the file")
+    for number, frame in enumerate(frames):
+        matrix = frame.get("transform_matrix")
+        rows = np.asarray(matrix, dtype=object) if isinstance(matrix, list) else None
+        if rows is None or rows.shape not in ((4, 4), (3, 4)) or not all(_is_finite_number(v) for v in rows.ravel()):
+            problem = "no transform_matrix" if matrix is None else "a transform_matrix that is not a 4x4 (or 3x4) grid of finite numbers"
+            raise VoteSplatInputError(
+                f"{transforms}: {_frame_name(number, frame)} has {problem} (NaN/Inf in a pose usually means a camera "
+                f"COLMAP failed to register); fix or remove that frame, {remake}"
+            )
+        check_camera_values(frame, _frame_name(number, frame))
+    seen: Dict[str, int] = {}
+    for number, frame in enumerate(frames):
+        path = os.path.normpath(str(frame["file_path"]))
+        if path in seen:
+            raise VoteSplatInputError(
+                f"{transforms}: frames {seen[path]} and {number} both list {frame['file_path']} (it would be trained twice as often); "
+                "remove the duplicate frame"
+            )
+        seen[path] = number
+    if config.mask_source in ("auto", "dataset"):
+        levels = ("instance",) if config.mask_source == "auto" else (config.mask_levels or DATASET_LEVELS)
+        for level in levels:
+            key = f"{level}_mask_path"
+            lacking = [number for number, frame in enumerate(frames) if key not in frame]
+            if 0 < len(lacking) < len(frames) or (lacking and config.mask_source == "dataset"):
+                first = lacking[0]
+                raise VoteSplatInputError(
+                    f"{transforms}: {len(lacking)} of {len(frames)} frames list no {key} (first: {_frame_name(first, frames[first])}); "
+                    f"give every frame one, or make masks another way with {mask_source_flag} sam (or folder)"
+                )
+
+    downscale_factor = config.dataparser.downscale_factor
+    downscaled = downscale_factor is not None and downscale_factor > 1
+    images = [frame_image_path(transforms.parent, frame["file_path"], downscale_factor) for frame in frames]
+    missing = [image for image in images if not image.is_file()]
+    if missing:
+        if downscaled:
+            fix = f"put the downscaled images in images_{downscale_factor}/ (--downscale-factor {downscale_factor})"
+        else:
+            fix = f"put the images where the file_path entries of {name} point"
+        raise VoteSplatInputError(
+            f"{where}: {len(missing)} of {len(images)} images listed in {name} are missing (first: {missing[0]}); "
+            f"{fix}, {remake}"
+        )
+    scale = float(downscale_factor) if downscaled else 1.0
+    for number, (frame, image) in enumerate(zip(frames, images)):
+        width, height = frame.get("w", meta.get("w")), frame.get("h", meta.get("h"))
+        if width is None or height is None:
+            continue
+        actual_w, actual_h = image_file_size(image)
+        if abs(actual_w - width / scale) > 1 or abs(actual_h - height / scale) > 1:
+            expected = f"{int(width // scale)}x{int(height // scale)}"
+            raise VoteSplatInputError(
+                f"image {image} is {actual_w}x{actual_h} but {name} gives its camera ({_frame_name(number, frame)}) as "
+                f"{expected}{f' at --downscale-factor {downscale_factor}' if downscaled else ''}; "
+                f"replace the image with one of the camera's size, or fix w/h and the intrinsics in {name}"
+            )
+
+
+@dataclass
+class VoteDataManagerConfig(FullImageDatamanagerConfig):
+    """FullImageDatamanager plus per-view 2D vote maps (VoteSplat Sec. 3.2)."""
+
+    _target: Type = field(default_factory=lambda: VoteDataManager)
+    mask_source: Literal["auto", "dataset", "folder", "sam"] = "auto"
+    """Where masks come from: dataset (<level>_mask_path in transforms.json), folder, sam; auto: dataset if listed, else sam."""
+    mask_levels: Optional[Tuple[str, ...]] = None
+    """Mask levels in order, one vote map each (default: instance part / the mask folder's sub-folders / SAM's 4 levels)."""
+    mask_folder: Optional[Path] = None
+    """For mask-source folder: a folder holding <level>/<image file stem>.png label images (0 = no mask)."""
+    sam_checkpoint: Optional[Path] = None
+    """For mask-source sam: the SAM checkpoint file, e.g. sam_vit_h_4b8939.pth (never downloaded)."""
+    sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = "vit_h"
+    """SAM backbone of that checkpoint."""
+    sam_device: Optional[str] = None
+    """Device SAM runs on (default: cuda when available, else cpu)."""
+    sam_points_per_side: int = 32
+    """SAM automatic mask generator: points per image side."""
+    sam_pred_iou_thresh: float = 0.7
+    """SAM automatic mask generator: lowest predicted IoU of a kept mask."""
+    sam_stability_score_thresh: float = 0.85
+    """SAM automatic mask generator: lowest stability score of a kept mask."""
+    sam_crop_n_layers: int = 1
+    """SAM automatic mask generator: layers of image crops (0: whole image only)."""
+    sam_min_mask_region_area: int = 100
+    """SAM automatic mask generator: smallest mask region kept, in pixels."""
+    sam_max_long_side: Optional[int] = 1080
+    """Images are shrunk to this long side before SAM (None: full size); LangSplat uses 1080."""
+    border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
+    """A mask touching the image border: vote (its visible part's centroid), mask_only (no vote target) or drop."""
+    cache_dir: Optional[Path] = None
+    """Where masks and 2D votes are cached (default: outputs/<dataset folder name>/votesplat_cache)."""
+    vote_maps_in_memory: int = 128
+    """Training views whose vote maps stay in RAM (about 4 MB per view of 960x540 with 2 levels)."""
+
+    @property
+    def dataset_path(self) -> Path:
+        return Path(self.data if self.data is not None else self.dataparser.data)
+
+    def resolved_mask_source(self) -> str:
+        """The mask source 'auto' stands for on this dataset."""
+        if self.mask_source != "auto":
+            return self.mask_source
+        return "dataset" if DatasetMaskSource.has_masks(self.dataset_path) else "sam"
+
+    def resolved_levels(self) -> Tuple[str, ...]:
+        """The mask levels, known without building the source (no SAM checkpoint needed)."""
+        if self.mask_levels:
+            return tuple(self.mask_levels)
+        kind = self.resolved_mask_source()
+        if kind == "dataset":
+            return DATASET_LEVELS
+        if kind == "sam":
+            return SAM_LEVELS
+        return FolderMaskSource(self._require_mask_folder()).levels
+
+    def _require_mask_folder(self) -> Path:
+        if self.mask_folder is None:
+            raise VoteSplatInputError("mask source 'folder' needs --pipeline.datamanager.mask-folder <root> (<root>/<level>/<image_stem>.png)")
+        return Path(self.mask_folder)
+
+    def make_mask_source(self) -> MaskSource:
+        kind = self.resolved_mask_source()
+        if kind == "sam" and self.sam_checkpoint is None:
+            reason = "this dataset lists no instance_mask_path, so masks come from SAM; " if self.mask_source == "auto" else ""
+            raise VoteSplatInputError(
+                f"{reason}give the SAM checkpoint with --pipeline.datamanager.sam-checkpoint /path/to/"
+                f"{SAM_CHECKPOINT_FILES[self.sam_model_type]} (the official checkpoints are listed in the README of "
+                "facebookresearch/segment-anything; nothing is downloaded), or use --pipeline.datamanager.mask-source folder"
+            )
+        if kind == "folder":
+            self._require_mask_folder()
+        return make_mask_source(
+            kind,
+            data=self.dataset_path,
+            levels=self.mask_levels,
+            mask_folder=self.mask_folder,
+            sam_checkpoint=self.sam_checkpoint,
+            sam_model_type=self.sam_model_type,
+            sam_device=self.sam_device,
+            sam_options=dict(
+                points_per_side=self.sam_points_per_side,
+                pred_iou_thresh=self.sam_pred_iou_thresh,
+                stability_score_thresh=self.sam_stability_score_thresh,
+                crop_n_layers=self.sam_crop_n_layers,
+                min_mask_region_area=self.sam_min_mask_region_area,
+                max_long_side=self.sam_max_long_side,
+            ),
+        )
+
+
+class VoteDataManager(FullImageDatamanager[InputDataset]):
+    config: VoteDataManagerConfig
+
+    def __init__(self, config: VoteDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
+        # bad input fails here with one actionable line (cli_errors), before images are loaded or masks made
+        check_device_available(device)
+        where = None if test_mode == "val" else f"dataset {config.dataset_path} (the data path of the run's config.yml)"
+        check_data_input(config, check_images=test_mode != "inference", where=where)
+        try:
+            super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
+        except FileNotFoundError as err:
+            if err.filename is None:
+                raise
+            raise VoteSplatInputError(
+                f"{where or f'--data {config.dataset_path}'}: {err.filename} not found; check that the dataset folder is complete"
+            ) from err
+        # nerfstudio overwrites the train cameras when it undistorts images; the label images
+        # must be warped from the cameras as loaded.
+        self._cameras_as_loaded: Cameras = deepcopy(self.train_dataset.cameras)
+        self._vote_cache: Optional[VoteCache] = None
+        self._vote_keys: Optional[List[str]] = None
+        # per train view: the batch tensors at the last requested resolution (an LRU of vote_maps_in_memory views)
+        self._in_memory: "OrderedDict[int, Dict[str, torch.Tensor]]" = OrderedDict()
+        # the pipeline hands train_dataset.metadata to the model, which sizes its offsets by it
+        self.train_dataset.metadata["vote_levels"] = self.config.resolved_levels()
+        # a retrofit from a PLY (model.retrofit_from) finds the file's frame with these frames and views
+        self.train_dataset.metadata["retrofit_reference"] = functools.partial(retrofit_reference, self)
+        if test_mode == "val":  # ns-train: make all masks now, before training starts
+            self._prepare_votes()
+
+    # ------------------------------------------------------------------ vote cache
+    @property
+    def vote_levels(self) -> Tuple[str, ...]:
+        """Names of the vote levels, in the order of ``data["vote_labels"]``."""
+        return tuple(self.train_dataset.metadata["vote_levels"])
+
+    @property
+    def vote_cache_dir(self) -> Path:
+        data = self.config.dataset_path
+        cache_dir = Path(self.config.cache_dir) if self.config.cache_dir is not None else default_cache_dir(data)
+        check_cache_outside_dataset(cache_dir, data)
+        return cache_dir
+
+    def _prepare_votes(self) -> None:
+        if self._vote_keys is not None:
+            return
+        source = self.config.make_mask_source()
+        if tuple(source.levels) != self.vote_levels:
+            raise ValueError(f"mask source levels {list(source.levels)} differ from the announced {list(self.vote_levels)}")
+        cache_dir = self.vote_cache_dir
+        views = [(index, Path(path)) for index, path in enumerate(self.train_dataset.image_filenames)]
+        with writing_into(cache_dir, CACHE_DIR_FLAG):
+            cache = VoteCache(cache_dir, source, VoteOptions(border_masks=self.config.border_masks))
+            CONSOLE.log(f"Vote maps: {source.name} masks, levels {list(source.levels)}, cache {cache.entry_dir}")
+            self._vote_keys = cache.build_all(views, description=f"Making vote maps ({source.name} masks)")
+        self._vote_cache = cache
+        if not any(self._view_has_votes(key) for key in self._vote_keys):
+            # training would run to the end without a single vote; only the export would notice
+            border = f", or touches the image border (--pipeline.datamanager.border-masks {self.config.border_masks})"
+            CONSOLE.print(
+                f"Warning: no mask of the {len(views)} training views gives a vote (every mask is empty"
+                f"{border if self.config.border_masks != 'vote' else ''}), so this run learns no instances; "
+                f"look at the masks with: votesplat-masks --data {self.config.dataset_path} --preview 4",
+                style="bold yellow",
+                soft_wrap=True,
+                markup=False,
+            )
+
+    def _view_has_votes(self, key: str) -> bool:
+        assert self._vote_cache is not None
+        stored = self._vote_cache.load(key)
+        # a mask votes when its centroid is finite (border_masks=mask_only keeps masks without one)
+        return stored is not None and any(bool(np.isfinite(table[1:]).any()) for table in stored.centroids)
+
+    def get_training_callbacks(self, training_callback_attributes) -> List:
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        trainer = training_callback_attributes.trainer
+        model = getattr(training_callback_attributes.pipeline, "model", None)
+        if trainer is not None and model is not None:  # the step range is known only now, after a --load-dir
+            check_vote_schedule(model, trainer._start_step, trainer.config.max_num_iterations)
+        return callbacks
+
+    def _load_images(self, split: Literal["train", "eval"], cache_images_device: Literal["cpu", "gpu"]):
+        try:
+            return super()._load_images(split, cache_images_device)
+        except Exception:
+            # nerfstudio's loader names no file (PIL: "image file is truncated"); find it and name it
+            dataset = self.train_dataset if split == "train" else self.eval_dataset
+            for path in dataset.image_filenames:
+                read_image_rgb(path)
+            raise
+
+    def vote_maps_for_train_view(self, index: int, height: int, width: int) -> VoteMaps:
+        """The view's vote maps mapped to a training image of ``height`` x ``width`` pixels."""
+        self._prepare_votes()
+        assert self._vote_cache is not None and self._vote_keys is not None
+        image_path = Path(self.train_dataset.image_filenames[index])
+        stored = self._vote_cache.load(self._vote_keys[index])
+        if stored is None:  # entry removed or damaged since start-up
+            with writing_into(self._vote_cache.entry_dir, CACHE_DIR_FLAG):
+                stored = self._vote_cache.get(index, image_path)
+        return self._to_training_frame(stored, index, height, width, image_path)
+
+    def _to_training_frame(self, stored: VoteMaps, index: int, height: int, width: int, image_path: Path) -> VoteMaps:
+        camera = self._cameras_as_loaded[index].reshape(())
+        distortion = camera.distortion_params
+        if distortion is None or bool(torch.all(distortion == 0)):
+            return resize_vote_maps(stored, height, width)
+        loaded_h, loaded_w = int(camera.height.item()), int(camera.width.item())
+        labels = resize_label_images(stored.labels, loaded_h, loaded_w)
+        warped = [undistort_label_image(np.asarray(level_labels), camera) for level_labels in labels]
+        if warped[0].shape != (height, width):
+            raise ValueError(
+                f"undistorted vote labels of {image_path} are {warped[0].shape[1]}x{warped[0].shape[0]} "
+                f"but nerfstudio's undistorted image is {width}x{height}"
+            )
+        return vote_maps_from_labels(warped, self.config.border_masks, stored.level_names)
+
+    # ------------------------------------------------------------------ batches
+    def next_train(self, step: int) -> Tuple[Cameras, Dict]:
+        camera, data = super().next_train(step)
+        assert camera.metadata is not None
+        index = int(camera.metadata["cam_idx"])
+        # Host tensors: the model copies them to its device only on the steps that vote
+        # (vote_every_n_steps), instead of ~4 MB host-to-device on every step.
+        data.update(self.host_vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
+        return camera, data
+
+    def vote_batch(self, index: int, height: Optional[int] = None, width: Optional[int] = None) -> Dict[str, torch.Tensor]:
+        """``vote_labels`` [L,H,W] and ``vote_centroids`` [L,K+1,2] of train view ``index``, on the device.
+
+        At the training image's resolution unless ``height``/``width`` are given.
+        """
+        return {name: tensor.to(self.device) for name, tensor in self.host_vote_batch(index, height, width).items()}
+
+    def host_vote_batch(self, index: int, height: Optional[int] = None, width: Optional[int] = None) -> Dict[str, torch.Tensor]:
+        """``vote_batch`` in host memory (the kept copy: do not modify it)."""
+        if height is None or width is None:
+            camera = self.train_dataset.cameras[index]
+            height, width = int(camera.height.item()), int(camera.width.item())
+        cached = self._in_memory.get(index)
+        if cached is None or tuple(cached["vote_labels"].shape[1:]) != (height, width):
+            # reading, resizing or undistorting a view costs ms to 0.2 s of CPU: keep the result
+            vote_maps = self.vote_maps_for_train_view(index, height, width)
+            cached = {
+                "vote_labels": torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32)),
+                "vote_centroids": torch.from_numpy(vote_maps.padded_centroids()),
+            }
+            self._in_memory[index] = cached
+            while len(self._in_memory) > max(0, self.config.vote_maps_in_memory):
+                self._in_memory.popitem(last=False)
+        else:
+            self._in_memory.move_to_end(index)
+        return dict(cached)
+
+
+def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
+    """Warp and crop a label image exactly as nerfstudio 1.1.5 undistorts the image, without blending ids.
+
+    Mirrors ``full_images_datamanager._undistort_image`` (same new camera matrix, same crop)
+    but samples nearest-neighbour instead of bilinearly.
+    """
+    max_id = int(labels.max()) if labels.size else 0
+    if max_id > np.iinfo(np.uint16).max:
+        raise ValueError(f"a view has {max_id} masks; at most 65535 masks per level can be undistorted")
+    source = np.ascontiguousarray(labels.astype(np.uint16))
+    height, width = source.shape
+    K = camera.get_intrinsics_matrices().numpy().astype(np.float64)
+    params = camera.distortion_params.numpy().astype(np.float64)
+    camera_type = camera.camera_type.item()
+    if camera_type == CameraType.PERSPECTIVE.value:
+        if params[3] != 0:
+            raise ValueError("nerfstudio cannot undistort with the 4th Brown parameter (k4); only k1, k2, k3, p1, p2 may be non-zero")
+        opencv_params = np.array([params[0], params[1], params[4], params[5], params[2], params[3], 0, 0])
+        K[0, 2] -= 0.5  # OpenCV's pixel centres are at integers
+        K[1, 2] -= 0.5
+        if np.any(opencv_params):
+            new_K, roi = cv2.getOptimalNewCameraMatrix(K, opencv_params, (width, height), 0)
+            map_x, map_y = cv2.initUndistortRectifyMap(K, opencv_params, None, new_K, (width, height), cv2.CV_32FC1)
+            warped = cv2.remap(source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        else:
+            warped, roi = source, (0, 0, width, height)
+        x, y, w, h = roi
+        return warped[y : y + h, x : x + w].astype(np.int32)
+    if camera_type == CameraType.FISHEYE.value:
+        K[0, 2] -= 0.5
+        K[1, 2] -= 0.5
+        fisheye_params = params[:4]
+        new_K = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(K, fisheye_params, (width, height), np.eye(3), balance=0)
+        map_x, map_y = cv2.fisheye.initUndistortRectifyMap(K, fisheye_params, np.eye(3), new_K, (width, height), cv2.CV_32FC1)
+        warped = cv2.remap(source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return warped.astype(np.int32)
+    raise ValueError(
+        f"vote maps for distorted cameras of type {CameraType(camera_type).name} are not supported; "
+        "undistort the images first (e.g. COLMAP image_undistorter) so the cameras are pinhole"
+    )

@@ -1,0 +1,529 @@
+"""VoteSplat model: splatfacto + per-Gaussian vote offsets + the RVD loss (paper Eq. 13).
+
+Thin nerfstudio glue. The maths lives in :mod:`votesplat_ns.core.vote_render` (vote pass and
+losses); this module only
+- adds ``gauss_params["vote_offsets"]`` [N, L, 3] and ``gauss_params["vote_support"]`` [N, L]
+  so splatfacto's densify/prune strategy carries them,
+- runs splatfacto's own ``get_outputs`` (on CPU through our torch rasteriser), and
+- in ``get_loss_dict`` samples pixels that carry a 2D vote and adds the vote and distortion
+  losses, reusing the projection and tile lists of the RGB pass (no second projection).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+
+import numpy as np
+import torch
+from torch.nn import Parameter
+
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
+from votesplat_ns.core.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
+from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
+from votesplat_ns.ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
+from votesplat_ns.ns.retrofit import resolve_frame
+from votesplat_ns.ns.viewer import VoteSplatViewerState
+from votesplat_ns.core.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
+
+VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
+SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+
+
+def latest_checkpoint(path: Path) -> Path:
+    """``path`` itself if it is a file, else the newest step-*.ckpt under it (or its nerfstudio_models/)."""
+    path = Path(path)
+    if path.suffix == ".ckpt" and path.is_file():
+        return path
+    if path.name == "config.yml":
+        path = path.parent
+    candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
+    if not candidates:
+        raise VoteSplatInputError(
+            f"no checkpoint found at {path}: give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
+        )
+    return candidates[-1]
+
+
+def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
+    """splatfacto's Gaussian parameters from a nerfstudio checkpoint (splatfacto or votesplat)."""
+    state = torch.load(checkpoint, map_location="cpu")
+    pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
+    missing = [name for name in SPLAT_PARAM_NAMES if f"_model.gauss_params.{name}" not in pipeline_state]
+    if missing:
+        raise VoteSplatInputError(
+            f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
+            "retrofit needs one written by ns-train splatfacto or votesplat"
+        )
+    return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in SPLAT_PARAM_NAMES}
+
+
+def gaussians_from_ply_arrays(arrays: Dict[str, np.ndarray]) -> Dict[str, torch.Tensor]:
+    """``ply_io.read_3dgs_ply`` arrays as splatfacto's Gaussian parameters (opacities [N, 1])."""
+    return {
+        "means": torch.from_numpy(arrays["means"]),
+        "scales": torch.from_numpy(arrays["log_scales"]),
+        "quats": torch.from_numpy(arrays["quats"]),
+        "features_dc": torch.from_numpy(arrays["features_dc"]),
+        "features_rest": torch.from_numpy(arrays["features_rest"]),
+        "opacities": torch.from_numpy(arrays["opacity_logits"])[:, None],
+    }
+
+
+def _pixels_and_targets(
+    pixel_index: torch.Tensor, width: int, flat_labels: torch.Tensor, centroids: torch.Tensor, scale: float
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pixel centres [P,2], their 2D votes per level [P,L,2] (continuous frame, scaled to the
+    render resolution) and whether each level carries a vote there [P,L].
+
+    flat_labels [L, H*W] mask labels (0 = no mask), centroids [L, K+1, 2] pixel-index centroids
+    (NaN: no vote, e.g. row 0 and masks cut by the image border under ``border_masks=mask_only``).
+    """
+    rows = torch.div(pixel_index, width, rounding_mode="floor")
+    cols = pixel_index - rows * width
+    pixel_xy = (torch.stack([cols, rows], dim=-1).float() + 0.5) * scale
+    pixel_labels = flat_labels[:, pixel_index].long()  # [L, P]
+    level_index = torch.arange(flat_labels.shape[0], device=pixel_index.device)[:, None]
+    target_xy = (centroids[level_index, pixel_labels] + 0.5) * scale  # [L, P, 2]
+    return pixel_xy, target_xy.transpose(0, 1), torch.isfinite(target_xy[..., 0]).transpose(0, 1)
+
+
+def pixels_carrying_votes(flat_labels: torch.Tensor, centroids: torch.Tensor) -> torch.Tensor:
+    """[H*W] bool: the pixel carries a 2D vote at some level (its mask there has a finite centroid)."""
+    level_index = torch.arange(flat_labels.shape[0], device=flat_labels.device)[:, None]
+    return torch.isfinite(centroids[level_index, flat_labels.long(), 0]).any(dim=0)
+
+
+def vote_step_due(step: int, start: int, every: int) -> bool:
+    """Whether the vote losses run at ``step``: from ``start`` on, every ``every``-th step."""
+    if every < 1:
+        raise ValueError(f"vote_every_n_steps must be >= 1, got {every}")
+    return step >= start and (step - start) % every == 0
+
+
+@dataclass
+class VoteSplatModelConfig(SplatfactoModelConfig):
+    """splatfacto plus VoteSplat's vote offsets and RVD loss."""
+
+    _target: Type = field(default_factory=lambda: VoteSplatModel)
+    vote_levels: Optional[Tuple[str, ...]] = None
+    """Names of the mask levels, one 3D offset per Gaussian per level. Default: the datamanager's levels."""
+    vote_loss_weight: float = 1.0
+    """lambda_vote: weight of the L1 vote loss (in pixels)."""
+    distortion_loss_weight: float = 0.05
+    """lambda_d: weight of the vote depth distortion (with l1_pixels: its mean pairwise gap in pixels)."""
+    vote_start_step: int = 500
+    """Step at which the vote losses start (geometry settles first)."""
+    vote_pixels_per_step: int = 4096
+    """Pixels with a 2D vote sampled per vote step, shared by all levels (the loss is a mean, so a sample suffices)."""
+    vote_every_n_steps: int = 4
+    """Run the vote pass every n-th step (1: every step, as the paper, ~1.5x splatfacto's time; 4: ~1.15x, BENCHMARKS.md)."""
+    vote_transmittance: float = 0.01
+    """Voting transmittance threshold: a Gaussian votes while the transmittance in front of it stays above this."""
+    vote_weighting: Literal["uniform", "alpha_t"] = "uniform"
+    """Ablation: 'alpha_t' blends votes with alpha*T weights instead of the paper's uniform mean."""
+    vote_blend_space: Literal["3d", "2d"] = "3d"
+    """Ablation: '2d' projects each Gaussian's vote first, then blends (the paper blends in 3D)."""
+    vote_distortion: Literal["l1", "l1_pixels", "squared", "none"] = "l1_pixels"
+    """Depth distortion of the votes: l1_pixels (scale-free, chosen on the tuning scenes), the paper's pair sum l1, squared, none."""
+    votes_move_geometry: bool = False
+    """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
+    vote_backend: Literal["auto", "torch", "triton"] = "auto"
+    """Vote pass implementation: auto (fused Triton kernels on CUDA, torch on CPU), torch, or triton (VoteRenderOptions.backend)."""
+    retrofit_from: Optional[Path] = None
+    """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
+    retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
+    """Frame of a --pipeline.model.retrofit-from .ply: dataparser, dataset, colmap, or auto (README: retrofit frames)."""
+    foreground_min_masked_share: Optional[float] = DEFAULT_MIN_MASKED_SHARE
+    """After training, a Gaussian stays foreground at a level only if more than this share of its weight is in masks (None: all)."""
+    clip_model_name: str = "ViT-B-16"
+    """open_clip model name used by the viewer's text query box."""
+    clip_checkpoint: Optional[Path] = None
+    """open_clip weights file for the viewer's text query box (never downloaded); unset disables the box."""
+
+    def vote_render_options(self) -> VoteRenderOptions:
+        return VoteRenderOptions(
+            weighting=self.vote_weighting,
+            blend_space=self.vote_blend_space,
+            distortion=self.vote_distortion,
+            vote_transmittance=self.vote_transmittance,
+            detach_geometry=not self.votes_move_geometry,
+            backend=self.vote_backend,
+        )
+
+
+class VoteSplatModel(SplatfactoModel):
+    config: VoteSplatModelConfig
+
+    def populate_modules(self):
+        if self.config.vote_loss_weight < 0 or self.config.distortion_loss_weight < 0:
+            raise ValueError(
+                "vote_loss_weight and distortion_loss_weight must be >= 0 "
+                f"(got {self.config.vote_loss_weight}, {self.config.distortion_loss_weight})"
+            )
+        if self.config.vote_every_n_steps < 1:
+            raise ValueError(f"vote_every_n_steps must be >= 1 (got {self.config.vote_every_n_steps})")
+        self.config.vote_levels = self._resolve_vote_levels()
+        install_in_splatfacto()
+        # built on the CPU (splatfacto hard-codes one .cuda()); the pipeline moves the model to its device
+        with offline_lpips(), cuda_calls_stay_on_cpu(model_on_cpu=True):
+            super().populate_modules()
+        self.retrofitted = False
+        self.retrofit_source_frame: Optional[str] = None  # the frame a retrofit PLY was read in
+        if self.config.retrofit_from is not None:
+            self._load_retrofit_source()
+        num_points = self.gauss_params["means"].shape[0]
+        num_levels = len(self.config.vote_levels)
+        device = self.gauss_params["means"].device
+        self.gauss_params["vote_offsets"] = Parameter(torch.zeros(num_points, num_levels, 3, device=device))
+        # Not optimised (its optimizer never sees a gradient); it lives in gauss_params only so
+        # that densification copies a parent's support to its children and pruning drops it.
+        self.gauss_params["vote_support"] = Parameter(torch.zeros(num_points, num_levels, device=device))
+        self.vote_options = self.config.vote_render_options()
+        self.viewer_state = VoteSplatViewerState(self)
+
+    @property
+    def vote_only(self) -> bool:
+        """Train only the offsets on a frozen scene (retrofit)."""
+        return self.config.retrofit_from is not None
+
+    def _load_retrofit_source(self) -> None:
+        source = Path(self.config.retrofit_from)
+        if not source.exists():
+            # Fine when a trained retrofit run is being loaded (its own checkpoint follows);
+            # ns-train stops in get_training_callbacks with a clear message.
+            return
+        if source.suffix.lower() == ".ply":
+            gaussians = self._gaussians_from_ply(source)
+            if gaussians is None:
+                return
+        else:
+            gaussians = load_gaussians(latest_checkpoint(source))
+        expected_rest = self.gauss_params["features_rest"].shape[1:]
+        if gaussians["features_rest"].shape[1:] != expected_rest:
+            raise VoteSplatInputError(
+                f"{source} has SH features of shape {tuple(gaussians['features_rest'].shape[1:])}, the model expects "
+                f"{tuple(expected_rest)}: pass the --pipeline.model.sh-degree it was trained with"
+            )
+        for name in SPLAT_PARAM_NAMES:
+            self.gauss_params[name] = Parameter(gaussians[name].to(self.gauss_params[name].device), requires_grad=False)
+        self.retrofitted = True
+
+    def _gaussians_from_ply(self, source: Path) -> Optional[Dict[str, torch.Tensor]]:
+        """The Gaussians of a 3DGS PLY, checked and moved into the training frame (None: a checkpoint will follow)."""
+        flag = "--pipeline.model.retrofit-from"
+        make_reference = (self.kwargs.get("metadata") or {}).get("retrofit_reference")
+        if make_reference is None:
+            raise VoteSplatInputError(
+                f"{flag} {source}: a PLY needs votesplat's datamanager, whose cameras and images tell the PLY's frame"
+            )
+        reference = make_reference()
+        if reference.test_mode != "val":
+            return None  # a trained run is loaded to evaluate, view or export it: its checkpoint replaces the Gaussians
+        try:
+            arrays, sh_degree = read_3dgs_ply(source)
+        except GaussianPlyError as err:
+            raise VoteSplatInputError(f"{flag} {err}") from None
+        if sh_degree != self.config.sh_degree:
+            raise VoteSplatInputError(
+                f"{flag} {source} has SH degree {sh_degree} ({arrays['features_rest'].shape[1] * 3} f_rest properties), "
+                f"the model is set to {self.config.sh_degree}: pass --pipeline.model.sh-degree {sh_degree}"
+            )
+        device = torch.device(self.kwargs.get("device") or "cpu")
+        gaussians = {name: value.to(device) for name, value in gaussians_from_ply_arrays(arrays).items()}
+        frame, moved, fits = resolve_frame(gaussians, reference, self.config.retrofit_frame, source, rasterize, sh_degree)
+        self.retrofit_source_frame = frame
+        fit = next(f for f in fits if frame == f.name or frame in f.same_as)
+        CONSOLE.log(
+            f"Retrofit from {source}: {moved['means'].shape[0]} Gaussians in frame '{frame}' "
+            f"({fit.in_view_share:.1%} in the training views, {fit.psnr:.1f} dB PSNR at {len(reference.views()[1])} views)"
+        )
+        return {name: value.cpu() for name, value in moved.items()}
+
+    def get_training_callbacks(self, training_callback_attributes):
+        if self.vote_only and not self.retrofitted:
+            raise ValueError(
+                f"--pipeline.model.retrofit-from {self.config.retrofit_from} does not exist: "
+                "give the trained splatfacto run folder or its step-*.ckpt"
+            )
+        if training_callback_attributes.optimizers is not None:
+            # the trainer asks for callbacks right after loading a checkpoint (ns-train --load-dir)
+            self.adopt_optimizers(training_callback_attributes.optimizers)
+        self.continue_support_counts()
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
+        datamanager = getattr(pipeline, "datamanager", None)
+        if self.config.foreground_min_masked_share is not None and trainer is not None and hasattr(datamanager, "vote_batch"):
+            # after the last step's other callbacks (densification) and before the final checkpoint is saved
+            last_step = trainer._start_step + trainer.config.max_num_iterations - 1
+            callbacks.append(
+                TrainingCallback(
+                    [TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                    lambda step: self.restrict_support_to_masked_gaussians(datamanager),
+                    iters=(last_step,),
+                )
+            )
+        return callbacks
+
+    # ---------------------------------------------------------- resuming (ns-train --load-dir)
+    # Patch of nerfstudio 1.1.5 (upstream issue #3554), all of it here: load_state_dict and adopt_optimizers.
+    # Trainer.setup builds the optimizers from the model's Parameters, then _load_checkpoint runs
+    # pipeline.load_pipeline (SplatfactoModel.load_state_dict replaces every gauss_params entry by a new
+    # Parameter of the checkpoint's N), then optimizers.load_optimizers (which files the checkpoint's Adam
+    # moments under the optimizers' old Parameters). Left alone, a resumed run steps orphaned tensors the
+    # model never renders (it does not train), and densification rebuilds the Gaussians from those orphans
+    # (IndexError once the checkpoint's N differs from the initial one). load_state_dict restores what the
+    # reload undoes; adopt_optimizers, called from get_training_callbacks (the trainer's next call after
+    # loading), points the optimizers at the model's own Parameters and moves the loaded state onto them.
+
+    def load_state_dict(self, state_dict, **kwargs):  # type: ignore[override]
+        super().load_state_dict(state_dict, **kwargs)
+        # densification statistics of the Gaussians before the load mean nothing now: start them afresh
+        # (gsplat sizes them to the loaded N at the next step), as after each densification step
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        if self.vote_only:
+            # the reload made fresh trainable Parameters: the scene stays frozen, and the checkpoint
+            # holds the retrofitted Gaussians even if the retrofit source has gone since
+            for name in SPLAT_PARAM_NAMES:
+                self.gauss_params[name].requires_grad_(False)
+            self.retrofitted = True
+
+    def adopt_optimizers(self, optimizers) -> None:
+        """Point nerfstudio's optimizers at the model's current Parameters, keeping their loaded state.
+
+        A no-op when they already hold them (a fresh run). Optimizer state (Adam moments and step) moves
+        to the new Parameter when its shape fits; otherwise that Parameter starts with fresh state.
+        """
+        for name, params in self.get_param_groups().items():
+            optimizer = optimizers.optimizers.get(name)
+            if optimizer is None:
+                continue
+            held = [param for group in optimizer.param_groups for param in group["params"]]
+            if len(held) != len(params):
+                raise RuntimeError(f"optimizer {name!r} holds {len(held)} tensors, the model has {len(params)}")
+            replacement = {id(old): new for old, new in zip(held, params)}
+            for group in optimizer.param_groups:
+                for index, old in enumerate(group["params"]):
+                    new = replacement[id(old)]
+                    if new is old:
+                        continue
+                    state = optimizer.state.pop(old, None)
+                    fits = state is not None and all(
+                        value.shape == new.shape for value in state.values() if torch.is_tensor(value) and value.dim() > 0
+                    )
+                    if fits:
+                        optimizer.state[new] = state
+                    group["params"][index] = new
+            optimizers.parameters[name] = list(params)
+
+    @torch.no_grad()
+    def continue_support_counts(self) -> None:
+        """Undo the end-of-training sign of vote_support so that a resumed run keeps counting.
+
+        restrict_support_to_masked_gaussians marks background as negative counts when a run ends;
+        counting on from a negative value would mix the two. The end of the resumed run decides
+        foreground again from the full count.
+        """
+        self.gauss_params["vote_support"].abs_()
+
+    @torch.no_grad()
+    def restrict_support_to_masked_gaussians(self, datamanager) -> torch.Tensor:
+        """Negate the vote support of Gaussians whose weight in the training views lies mostly outside the masks.
+
+        Returns the [N, L] foreground mask. See ``votesplat_ns.core.foreground``.
+        """
+        cameras = datamanager.train_dataset.cameras.to(self.device)
+
+        def views():
+            for index in range(cameras.shape[0]):
+                camera = cameras[index : index + 1]
+                labels = datamanager.vote_batch(index, int(camera.height.item()), int(camera.width.item()))["vote_labels"]
+                yield get_viewmat(camera.camera_to_worlds)[0], camera.get_intrinsics_matrices()[0], labels
+
+        exposure = mask_exposure(
+            rasterize,
+            self.means,
+            self.quats,
+            torch.exp(self.scales),
+            torch.sigmoid(self.opacities).squeeze(-1),
+            views(),
+            rasterize_mode=self.config.rasterize_mode,
+        )
+        foreground = foreground_from_exposure(exposure, self.config.foreground_min_masked_share)
+        # > 0: foreground; 0: never supervised (zero offset); < 0: supervised, but seen mostly outside the
+        # masks, so background. Every consumer tests > 0; the count itself is kept.
+        support = self.gauss_params["vote_support"]
+        support.copy_(torch.where(foreground, support.abs(), -support.abs()))
+        return foreground
+
+    def _resolve_vote_levels(self) -> Tuple[str, ...]:
+        data_levels = (self.kwargs.get("metadata") or {}).get("vote_levels")
+        levels = self.config.vote_levels or data_levels
+        if not levels:
+            raise ValueError("no vote levels: set --pipeline.model.vote-levels (e.g. instance part) or use the votesplat datamanager")
+        if data_levels is not None and tuple(levels) != tuple(data_levels):
+            raise ValueError(
+                f"--pipeline.model.vote-levels {' '.join(levels)} does not match the datamanager's mask levels "
+                f"{' '.join(data_levels)}; drop the flag to use the datamanager's levels"
+            )
+        return tuple(levels)
+
+    @property
+    def num_vote_levels(self) -> int:
+        return len(self.config.vote_levels)
+
+    def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = super().get_gaussian_param_groups()
+        for name in VOTE_PARAM_NAMES:
+            groups[name] = [self.gauss_params[name]]
+        return groups
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
+        if self.training and self.vote_only:
+            return self._project_for_votes(camera)
+        with cuda_calls_stay_on_cpu(model_on_cpu=self.device.type == "cpu"):
+            outputs = super().get_outputs(camera)
+        if not self.training:  # ns-viewer's overlay, votes picture and selection (no-op for other callers)
+            outputs.update(self.viewer_state.extra_outputs(camera, outputs))
+        return outputs
+
+    def _project_for_votes(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:
+        """Vote-only training step: project the frozen Gaussians, no colour pass."""
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        K = camera.get_intrinsics_matrices()[0].to(self.device)
+        width, height = int(camera.width.item()), int(camera.height.item())
+        camera.rescale_output_resolution(scale)
+        viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
+        self.info = project_for_votes(
+            self.means,
+            self.quats,
+            torch.exp(self.scales),
+            torch.sigmoid(self.opacities).squeeze(-1),
+            viewmat,
+            K,
+            width,
+            height,
+        )
+        return {}
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        if self.training and self.vote_only:
+            return {"gaussian_count": self.num_points}
+        return super().get_metrics_dict(outputs, batch)
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        metrics, images = super().get_image_metrics_and_images(outputs, batch)
+        if isinstance(self.lpips, UnavailableMetric):
+            metrics.pop("lpips", None)
+        return metrics, images
+
+    # ----------------------------------------------------------------- vote losses
+    def votes_active(self) -> bool:
+        if not self.training:
+            return False
+        if self.vote_only:  # a retrofit step is a vote step and nothing else
+            return True
+        return vote_step_due(self.step, self.config.vote_start_step, self.config.vote_every_n_steps)
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, torch.Tensor]:
+        if self.training and self.vote_only:
+            loss_dict: Dict[str, torch.Tensor] = {}
+        else:
+            loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.votes_active() and "vote_labels" in batch:
+            vote_loss, distortion = self.vote_loss_terms(batch)
+            loss_dict["vote_loss"] = self.config.vote_loss_weight * vote_loss
+            if self.config.vote_distortion != "none":
+                loss_dict["vote_distortion"] = self.config.distortion_loss_weight * distortion
+        return loss_dict
+
+    def vote_loss_terms(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Vote L1 and distortion, summed over levels, on pixels sampled from the vote maps."""
+        labels, centroids = self._vote_maps(batch)
+        # splatfacto renders at 1/d of the image resolution early in training; positions in the
+        # continuous pixel frame (pixel centre = index + 0.5) scale by exactly 1/d.
+        scale = 1.0 / self._get_downscale_factor()
+        flat_labels = labels.reshape(labels.shape[0], -1)
+        carries_vote = pixels_carrying_votes(flat_labels, centroids)
+        if not bool(carries_vote.any()):  # a view with no masks: no vote supervision here
+            # zero but connected to the offsets, so the backward stays valid
+            zero = self.gauss_params["vote_offsets"].sum() * 0.0
+            return zero, zero
+        # one pixel sample and one walk for all levels: membership depends only on geometry
+        pixel_index = torch.multinomial(carries_vote.float(), self.config.vote_pixels_per_step, replacement=True)
+        pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, scale)
+        losses = vote_losses(self.render_votes(pixel_xy), target_xy, valid, self.vote_options)
+        return losses["vote"].sum(), losses["distortion"].sum()
+
+    def render_votes(self, pixel_xy: torch.Tensor) -> VoteRender:
+        """The vote pass of every level at ``pixel_xy`` [P,2], on the projection of the last get_outputs call."""
+        info = self.info
+        means = self.gauss_params["means"]
+        if not self.config.votes_move_geometry:
+            means = means.detach()
+        return render_votes_tiled(
+            info["means2d"][0],
+            info["conics"][0],
+            info["opacities"][0],
+            info["depths"][0],
+            means[:, None, :] + self.gauss_params["vote_offsets"],
+            info["viewmats"][0],
+            info["Ks"][0],
+            pixel_xy,
+            info["isect_offsets"][0],
+            info["flatten_ids"],
+            info["tile_size"],
+            self.vote_options,
+        )
+
+    @torch.no_grad()
+    def vote_pixel_error(self, camera: Cameras, batch: Dict[str, torch.Tensor]) -> torch.Tensor:
+        """Mean L1 distance in pixels between rendered and 2D votes, per level, over every pixel with a vote.
+
+        Rendered at the camera's full resolution; pixels whose voting set is empty are left out.
+        Levels without any vote in this view give NaN.
+        """
+        labels, centroids = self._vote_maps(batch)
+        self.get_outputs(camera.to(self.device))
+        flat_labels = labels.reshape(labels.shape[0], -1)
+        pixel_index = torch.nonzero(pixels_carrying_votes(flat_labels, centroids)).squeeze(-1)
+        pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, 1.0)
+        render = self.render_votes(pixel_xy)
+        used = valid & (render.count > 0)[:, None]  # [P, L]
+        error = (render.projected_vote - target_xy).abs().sum(-1)  # [P, L]
+        errors = [error[used[:, level], level].mean() for level in range(labels.shape[0])]  # NaN when empty
+        return torch.stack(errors)
+
+    def _vote_maps(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
+        labels = batch["vote_labels"].to(self.device)  # [L, H, W] at the datamanager's image resolution
+        centroids = batch["vote_centroids"].to(self.device)  # [L, K+1, 2] pixel-index coordinates
+        if labels.shape[0] != self.num_vote_levels:
+            raise ValueError(
+                f"the vote maps have {labels.shape[0]} levels but the model has vote_levels={self.config.vote_levels}; "
+                "make --pipeline.model.vote-levels match the datamanager's mask levels"
+            )
+        return labels, centroids
+
+    @torch.no_grad()
+    def record_vote_support(self) -> None:
+        """Count, per Gaussian and level, the steps in which its offset received a vote gradient.
+
+        A Gaussian gets a vote gradient exactly when it is in the voting set M of a sampled
+        pixel that carries a 2D vote, so support > 0 marks the foreground for clustering.
+        """
+        grad = self.gauss_params["vote_offsets"].grad
+        if grad is not None:
+            self.gauss_params["vote_support"].add_((grad.abs().sum(dim=-1) > 0).float())
+
+    def step_post_backward(self, step):
+        self.record_vote_support()
+        if not self.vote_only:  # a retrofit keeps the trained scene as it is: no densify/prune
+            super().step_post_backward(step)
