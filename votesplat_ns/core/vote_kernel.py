@@ -372,11 +372,15 @@ if triton is not None:
                 t_after = t * tl.cumprod(keep, axis=0)
                 t_before = t_after / keep
                 w = tl.where(visible, alpha * t_before, 0.0)
+                g_rows = w[:, None] * g_row[None, :]
             else:
-                w = visible.to(px.dtype)
+                # every member weighs 1: its row gradient is g_row (row_mask keeps the members). No
+                # per-entry weight from ``visible``: Triton 3.6's layout pass (float64, BLOCK 8) breaks
+                # a cast or select of it broadcast against the row ("cast incompatible")
+                g_rows = tl.zeros([BLOCK, LDP], dtype=px.dtype) + g_row[None, :]
             row_mask = visible[:, None] & value_col[None, :]
             row_ptrs = gid[:, None] * LD1 + cols[None, :]
-            tl.atomic_add(g_table_ptr + row_ptrs, w[:, None] * g_row[None, :], mask=row_mask, sem="relaxed")
+            tl.atomic_add(g_table_ptr + row_ptrs, g_rows, mask=row_mask, sem="relaxed")
             depth_mask = visible[:, None] & lvl_ok[None, :]
             depth_ptrs = gid[:, None] * LD1 + lvl[None, :] * D1 + (D1 - 1)
             if DIST == 2:
