@@ -8,10 +8,15 @@ Times, on random Gaussians seen by one camera:
     (as the model does: geometry comes from the RGB pass's info), for L mask
     levels: L = 1 with [N, 3] votes, L > 1 with [N, L, 3] votes in one call
     (one walk, every level blended over it) and, for comparison, as L
-    separate single-level calls.
-Prints a markdown table of median milliseconds, peak extra GPU memory, and
-per step the host reads (device-to-host syncs) and torch calls made from
-Python in the forward pass (each call is one or more kernel launches).
+    separate single-level calls; with each backend of ``--backends``: the
+    torch code and the fused Triton kernels (``votesplat_ns.core.vote_kernel``),
+    the latter once per ``--kernel-configs`` block width x warps.
+Prints a markdown table of median milliseconds, peak extra GPU memory, both
+also as a ratio to the RGB pass, and per step the host reads
+(device-to-host syncs) and torch calls made from Python in the forward pass
+(each call is one or more kernel launches). For the Triton kernels it first
+prints the first call's wall time with an empty Triton cache (JIT
+compilation of the forward and backward kernels: their "build time").
 
     python benchmarks/bench_vote_render.py --num-gaussians 500000 --width 1440 --height 1080 --pixels 4096 16384
 
@@ -23,8 +28,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import shutil
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable, List, Optional, Tuple
@@ -55,6 +63,18 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="render_votes_tiled chunk sizes to time ('auto' = the default, chunk=None)",
     )
     parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 4], help="mask levels L of the vote pass")
+    parser.add_argument(
+        "--backends", nargs="+", choices=["torch", "triton"], default=["torch", "triton"],
+        help="vote pass implementations to time (VoteRenderOptions.backend); triton needs CUDA",
+    )
+    parser.add_argument(
+        "--kernel-configs", nargs="+", default=["32x2"],
+        help="Triton kernel BLOCKxNUM_WARPS variants to time (walk block width x warps per program)",
+    )
+    parser.add_argument(
+        "--distortion", default="l1_pixels", choices=["l1", "l1_pixels", "squared", "none"],
+        help="VoteRenderOptions.distortion of the vote pass (the model's default: l1_pixels)",
+    )
     parser.add_argument("--sh-degree", type=int, default=3)
     parser.add_argument("--tile-size", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=20)
@@ -134,6 +154,22 @@ class CallCounter(TorchFunctionMode):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    cache = None
+    if args.device == "cuda" and "triton" in args.backends and "TRITON_CACHE_DIR" not in os.environ:
+        # an empty Triton cache, so the first call's time is the kernels' full JIT build
+        from votesplat_ns.core.ply_io import make_temp_dir
+
+        cache = make_temp_dir(Path(tempfile.gettempdir()) / "votesplat_triton_cache", "bench")
+        os.environ["TRITON_CACHE_DIR"] = str(cache)
+    try:
+        return _run(args)
+    finally:
+        if cache is not None:
+            shutil.rmtree(cache, ignore_errors=True)
+            del os.environ["TRITON_CACHE_DIR"]
+
+
+def _run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
     if device.type == "cuda":
         if not torch.cuda.is_available():
@@ -145,7 +181,21 @@ def main(argv=None) -> int:
     else:
         from votesplat_ns.core.rasterize_torch import rasterize_torch as rasterization
 
+    from votesplat_ns.core import vote_kernel
     from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
+
+    backends = list(args.backends)
+    if "triton" in backends and vote_kernel.unavailable_reason(device) is not None:
+        print(f"skipping the triton backend: {vote_kernel.unavailable_reason(device)}")
+        backends.remove("triton")
+    variants = [("torch", None)] if "torch" in backends else []
+    if "triton" in backends:
+        for config in args.kernel_configs:
+            try:
+                block, warps = (int(x) for x in config.lower().split("x"))
+            except ValueError:
+                sys.exit(f"--kernel-configs: {config!r} is not BLOCKxWARPS (e.g. 32x2)")
+            variants.append(("triton", (block, warps)))
 
     scene = random_gaussians(args.num_gaussians, args.width, args.height, args.sh_degree, device, args.seed)
     params = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
@@ -178,8 +228,10 @@ def main(argv=None) -> int:
         _, _, info = rasterize()
     max_levels = max(args.levels)
     offsets = torch.zeros(args.num_gaussians, max_levels, 3, device=device, requires_grad=True)
-    options = VoteRenderOptions()
     rows = []
+    compile_rows = []
+    cache_dir = os.environ.get("TRITON_CACHE_DIR")
+    cache_was_empty = cache_dir is not None and not any(Path(cache_dir).iterdir())
     for pixels in args.pixels:
         g = torch.Generator(device=device).manual_seed(args.seed + 1)
         flat = torch.randint(0, args.width * args.height, (pixels,), generator=g, device=device)
@@ -187,12 +239,17 @@ def main(argv=None) -> int:
         target_xy = pixel_xy[:, None, :] + 20.0 * torch.randn(pixels, max_levels, 2, generator=g, device=device)
         # a pixel carries a 2D vote at some levels and not others, as with nested SAM masks
         valid = torch.rand(pixels, max_levels, generator=g, device=device) < 0.8
-        for chunk in args.chunks:
+        runs = [(backend, config, chunk) for backend, config in variants for chunk in (args.chunks if backend == "torch" else ["-"])]
+        for backend, config, chunk in runs:
+            options = VoteRenderOptions(distortion=args.distortion, backend=backend)
+            if config is not None:
+                vote_kernel.BLOCK, vote_kernel.NUM_WARPS = config
+            backend_label = backend if config is None else f"triton {config[0]}x{config[1]}"
             with torch.no_grad():
                 count = render_votes_tiled(
                     info["means2d"][0], info["conics"][0], info["opacities"][0], info["depths"][0],
                     params["means"], viewmat, K, pixel_xy, info["isect_offsets"][0], info["flatten_ids"],
-                    info["tile_size"], options, chunk=chunk,
+                    info["tile_size"], options, chunk=None if chunk == "-" else chunk,
                 ).count.float()
             count_stats = (count.mean().item(), int(count.max().item()))
             for levels in args.levels:
@@ -211,7 +268,7 @@ def main(argv=None) -> int:
                         info["flatten_ids"],
                         info["tile_size"],
                         options,
-                        chunk=chunk,
+                        chunk=None if chunk == "-" else chunk,
                     )
 
                 def one_call_step(levels=levels):
@@ -232,18 +289,24 @@ def main(argv=None) -> int:
                     total.backward()
 
                 if levels == 1:
-                    variants = [("votes [N,3]", one_call_step)]
+                    steps = [("votes [N,3]", one_call_step)]
                 else:
-                    variants = [
-                        ("votes [N,L,3], one call", one_call_step),
-                        ("votes [N,3], one call per level", separate_calls_step),
-                    ]
-                for label, step in variants:
+                    steps = [("votes [N,L,3], one call", one_call_step)]
+                    if backend == "torch":
+                        steps.append(("votes [N,3], one call per level", separate_calls_step))
+                for label, step in steps:
+                    if backend == "triton" and device.type == "cuda":
+                        # the first call of a new (levels, switches, block) combination JIT-compiles
+                        torch.cuda.synchronize()
+                        start_s = time.perf_counter()
+                        step()
+                        torch.cuda.synchronize()
+                        compile_rows.append((backend_label, levels, pixels, time.perf_counter() - start_s))
                     ms, mib = measure(step, args.warmup, args.repeats, device)
                     with CallCounter() as counter:
                         step()
                     counts = (counter.host_reads, counter.calls)
-                    rows.append((label, levels, pixels, chunk, ms, mib) + counts + count_stats)
+                    rows.append((f"{backend_label}: {label}", levels, pixels, chunk, ms, mib) + counts + count_stats)
 
     run_starts = info["isect_offsets"][0].reshape(-1).long()
     runs = torch.diff(torch.cat([run_starts, run_starts.new_tensor([info["flatten_ids"].numel()])])).float()
@@ -252,20 +315,30 @@ def main(argv=None) -> int:
         f"\n{device_name}, torch {torch.__version__}; {args.num_gaussians} Gaussians at "
         f"{args.width}x{args.height}, SH degree {args.sh_degree}, tile {args.tile_size}; "
         f"{int((info['radii'][0] > 0).sum())} in view, tile runs mean {runs.mean():.0f} / max {runs.max():.0f}; "
-        f"median of {args.repeats}\n"
+        f"median of {args.repeats}; vote distortion {args.distortion}\n"
     )
+    if compile_rows:
+        cache_note = "an empty cache" if cache_was_empty else f"TRITON_CACHE_DIR={os.environ.get('TRITON_CACHE_DIR')}"
+        print(f"First call of each Triton variant (JIT compilation; the first row started from {cache_note}):\n")
+        print("| kernels | levels | pixels | first call s |")
+        print("| --- | --- | --- | --- |")
+        for label, levels, pixels, seconds in compile_rows:
+            print(f"| {label} | {levels} | {pixels} | {seconds:.2f} |")
+        print()
     print(
-        "| pass | levels | pixels | chunk | fwd+bwd ms | peak extra MiB | host reads | torch calls (fwd) "
-        "| mean \\|M\\| | max \\|M\\| |"
+        "| pass | levels | pixels | chunk | fwd+bwd ms | x RGB time | peak extra MiB | x RGB memory | host reads "
+        "| torch calls (fwd) | mean \\|M\\| | max \\|M\\| |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     print(
-        f"| RGB rasterization | - | {args.width * args.height} | - | {rgb_ms:.2f} | {_mib(rgb_mib)} | - | - | - | - |"
+        f"| RGB rasterization | - | {args.width * args.height} | - | {rgb_ms:.2f} | 1 | {_mib(rgb_mib)} | 1 "
+        f"| - | - | - | - |"
     )
     for label, levels, pixels, chunk, ms, mib, reads, calls, mean_count, max_count in rows:
+        memory_ratio = "-" if mib is None or not rgb_mib else f"{mib / rgb_mib:.2f}"
         print(
-            f"| {label} | {levels} | {pixels} | {'auto' if chunk is None else chunk} | {ms:.2f} | {_mib(mib)} "
-            f"| {reads} | {calls} | {mean_count:.1f} | {max_count} |"
+            f"| {label} | {levels} | {pixels} | {'auto' if chunk is None else chunk} | {ms:.2f} | {ms / rgb_ms:.2f} "
+            f"| {_mib(mib)} | {memory_ratio} | {reads} | {calls} | {mean_count:.1f} | {max_count} |"
         )
     return 0
 

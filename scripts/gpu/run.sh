@@ -7,8 +7,11 @@
 # machine has not been set up, so each call can stand alone on a fresh machine):
 #   setup             ~30 s with .gpu/gsplat_build.tar.gz carried, ~240 s without (gsplat's
 #                     CUDA JIT build, ~200 s; the fresh build comes back as $OUT/gsplat_build.tar.gz)
-#   tests             ~60 s   pytest of $GPU_TESTS (CUDA-only tests run here, skipped on CPU)
-#   bench-vote        ~60-120 s  benchmarks/bench_vote_render.py at 500k@1440x1080 and 100k@720x540
+#   tests             ~60 s + ~2-4 min of Triton JIT builds for test_vote_kernel.py: pytest of $GPU_TESTS
+#                     (CUDA-only tests run here, skipped on CPU)
+#   bench-vote        ~100-200 s  benchmarks/bench_vote_render.py at 500k@1440x1080 and 100k@720x540:
+#                     RGB pass, torch vote pass and the Triton kernels ($KERNEL_CONFIGS), first-call
+#                     JIT time from an empty Triton cache, peak memory, ratios to the RGB pass
 #   train-fox         per method at STEPS=7000: splatfacto ~215 s (measured 214 s), votesplat
 #                     ~250-400 s (not measured yet), + ~30 s ns-eval each. BOTH in one call may
 #                     pass the 600 s limit: run METHODS=splatfacto and METHODS=votesplat as two
@@ -38,7 +41,7 @@
 #   train_fox.json + train_fox.log, train_synthetic.json + train_synthetic.log
 #
 # Environment: STEPS (7000), METHODS ("splatfacto votesplat"), CALL_BUDGET_S (570),
-# GPU_TESTS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods).
+# GPU_TESTS, KERNEL_CONFIGS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods).
 set -uo pipefail
 cd "$(dirname "$0")/../.." || exit 2
 
@@ -56,7 +59,9 @@ STEPS=${STEPS:-7000}
 METHODS=${METHODS:-"splatfacto votesplat"}
 CALL_BUDGET_S=${CALL_BUDGET_S:-570}
 EVAL_RESERVE_S=${EVAL_RESERVE_S:-45}
-GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_rasterize_torch.py tests/test_viewer.py"}
+GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_vote_kernel.py tests/test_rasterize_torch.py tests/test_viewer.py"}
+# Triton kernel variants (walk block width x warps per program) that bench-vote times next to the torch vote pass
+KERNEL_CONFIGS=${KERNEL_CONFIGS:-"32x2 32x4 16x1 64x4"}
 SYNTH_DOWNSCALE=${SYNTH_DOWNSCALE:-1}
 FOX=${FOX:-.gpu/fox}
 PY=${PY:-python3}
@@ -275,8 +280,9 @@ stage_bench_vote() {
     read -r -a dims <<<"$config"
     set -- "${dims[@]}"
     log "bench_vote_render --num-gaussians $1 --width $2 --height $3" | tee -a "$OUT/bench_vote.log"
+    # shellcheck disable=SC2086
     timeout "$(limit_s)" "$PY" benchmarks/bench_vote_render.py --num-gaussians "$1" --width "$2" --height "$3" \
-      2>&1 | tee -a "$OUT/bench_vote.log"
+      --backends torch triton --kernel-configs $KERNEL_CONFIGS 2>&1 | tee -a "$OUT/bench_vote.log"
     [ "${PIPESTATUS[0]}" = 0 ] || rc=1
   done
   return "$rc"

@@ -42,6 +42,9 @@ Two implementations share the alpha, walk and reduction helpers:
   compact [pixels, max |M|] table. A training step is bound by kernel
   launches and host synchronisations rather than arithmetic, so this path
   reads device values on the host as rarely as it can (see its docstring).
+  On CUDA it hands the walk and the blend sums to the fused Triton kernels
+  of ``votesplat_ns.core.vote_kernel`` (one launch forward, one backward; see
+  ``VoteRenderOptions.backend``); the torch code stays the CPU path.
 
 Conventions (shared by the whole project): OpenCV world-to-camera ``viewmat``
 [4,4], intrinsics ``K`` [3,3], continuous pixel frame in which the centre of
@@ -50,6 +53,7 @@ pixel column x / row y is (x + 0.5, y + 0.5) (gsplat's).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Dict, NamedTuple, Optional, Tuple
 
@@ -75,6 +79,8 @@ AUTO_MIN_CHUNK = 32
 _WEIGHTINGS = ("uniform", "alpha_t")
 _BLEND_SPACES = ("3d", "2d")
 _DISTORTIONS = ("l1", "l1_pixels", "squared", "none")
+_BACKENDS = ("auto", "torch", "triton")
+BACKEND_ENV = "VOTESPLAT_VOTE_BACKEND"
 
 
 @dataclass(frozen=True)
@@ -114,6 +120,14 @@ class VoteRenderOptions:
         behind the camera) are projected as if at this depth, so projected
         votes stay finite; in scene units, like gsplat's near_plane. The
         depth regulariser uses the unclamped depth.
+    backend: how ``render_votes_tiled`` walks and blends. "auto": the fused
+        Triton kernels (``votesplat_ns.core.vote_kernel``) for float32/float64
+        tensors on CUDA when Triton imports, else the torch code; the
+        environment variable VOTESPLAT_VOTE_BACKEND=torch|triton overrides
+        "auto". "torch": always the torch code. "triton": always the kernels
+        (an error where they cannot run; on CPU they run only under Triton's
+        interpreter, TRITON_INTERPRET=1, for tests). The dense reference
+        ignores it. Values agree to rounding, gradients too.
     """
 
     weighting: str = "uniform"
@@ -123,6 +137,7 @@ class VoteRenderOptions:
     detach_geometry: bool = True
     alpha_max: float = 0.999
     vote_near_plane: float = 0.01
+    backend: str = "auto"
 
     def __post_init__(self) -> None:
         if self.weighting not in _WEIGHTINGS:
@@ -143,6 +158,8 @@ class VoteRenderOptions:
             raise ValueError(f"VoteRenderOptions.alpha_max must be in (1/255, 1), got {self.alpha_max!r}")
         if not float(self.vote_near_plane) > 0.0:
             raise ValueError(f"VoteRenderOptions.vote_near_plane must be > 0, got {self.vote_near_plane!r}")
+        if self.backend not in _BACKENDS:
+            raise ValueError(f"VoteRenderOptions.backend must be one of {_BACKENDS}, got {self.backend!r}")
 
 
 class VoteRender(NamedTuple):
@@ -273,7 +290,7 @@ def render_votes_tiled(
             default): about ``AUTO_PAIRS_PER_STEP`` pixel-Gaussian pairs per
             step (``AUTO_PAIRS_PER_STEP_CPU`` on CPU), at least
             ``AUTO_MIN_CHUNK``. Never wider than the longest run among the
-            pixels' tiles.
+            pixels' tiles. The Triton kernels (``options.backend``) ignore it.
 
     A pixel at continuous position (x, y) reads tile (floor(x / tile_size),
     floor(y / tile_size)); positions outside the tile grid get count 0.
@@ -335,6 +352,10 @@ def render_votes_tiled(
     if n == 0 or longest <= 0:
         return _empty_render(p, votes, viewmat, K, options)
 
+    if _use_kernel(options, votes, pixel_xy):
+        return _render_with_kernel(
+            means2d, conics, opacities, votes, viewmat, K, pixel_xy, run_start, run_end, flatten_ids, options
+        )
     if chunk is None:
         pairs = AUTO_PAIRS_PER_STEP_CPU if votes.device.type == "cpu" else AUTO_PAIRS_PER_STEP
         chunk = max(AUTO_MIN_CHUNK, pairs // p)
@@ -364,6 +385,81 @@ def render_votes_tiled(
         weight_sum = count.to(votes.dtype)
     value_sum = (weights[:, :, None, None] * member_votes[..., :-1]).sum(dim=1)
     distortion = _distortion(member_votes[..., -1], filled, count, value_sum, options, K_)
+    return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options, votes.ndim == 2)
+
+
+def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
+    """Whether render_votes_tiled runs the Triton kernels (see VoteRenderOptions.backend)."""
+    backend = options.backend
+    if backend == "auto":
+        backend = os.environ.get(BACKEND_ENV, "auto") or "auto"
+        if backend not in _BACKENDS:
+            raise ValueError(f"{BACKEND_ENV} must be one of {_BACKENDS}, got {backend!r}")
+    if backend == "torch":
+        return False
+    from votesplat_ns.core import vote_kernel
+
+    reason = vote_kernel.unavailable_reason(votes.device)
+    if reason is None and votes.dtype not in (torch.float32, torch.float64):
+        reason = f"the Triton vote kernels take float32 or float64 tensors, got {votes.dtype}"
+    if reason is None and pixel_xy.requires_grad:
+        reason = "the Triton vote kernels give pixel_xy no gradient; pass pixel_xy without requires_grad"
+    if backend == "triton" and reason is not None:
+        raise ValueError(f"VoteRenderOptions.backend='triton' cannot run: {reason}; use backend='auto' or 'torch'")
+    # auto: the kernels on CUDA only (the interpreter is far too slow to be a CPU path)
+    return reason is None and (backend == "triton" or votes.device.type == "cuda")
+
+
+def _render_with_kernel(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    votes: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    pixel_xy: Tensor,
+    run_start: Tensor,
+    run_end: Tensor,
+    flatten_ids: Tensor,
+    options: VoteRenderOptions,
+) -> VoteRender:
+    """render_votes_tiled's walk and blend sums in the fused Triton kernels; the rest as the torch path."""
+    from votesplat_ns.core import vote_kernel
+
+    n, levels = votes.shape[0], 1 if votes.ndim == 2 else votes.shape[1]
+    geometry = _geometry_table(means2d, conics, opacities, options)
+    viewmat_, K_ = _camera(viewmat, K, options)
+    vote_table = _vote_table(votes.reshape(n, levels, 3), viewmat_, K_, options)
+    threshold = _vote_threshold(options)
+    count, weight_sum, value_sum, depth_sum, spread = vote_kernel.vote_sums(
+        geometry,
+        vote_table,
+        pixel_xy,
+        run_start,
+        run_end,
+        flatten_ids,
+        threshold=threshold,
+        open_above=max(threshold, COLOUR_STOP_T),
+        alpha_min=ALPHA_MIN,
+        colour_stop=COLOUR_STOP_T,
+        alpha_max=options.alpha_max,
+        alpha_t=options.weighting == "alpha_t",
+        distortion=options.distortion,
+    )
+    n_members = count.to(spread.dtype)[:, None]
+    if options.distortion == "l1":
+        distortion = spread
+    elif options.distortion == "l1_pixels":
+        # as _distortion: the mean pairwise gap, in pixels at the members' mean depth (held constant)
+        pairs = (n_members * (n_members - 1.0) / 2.0).clamp_min(1.0)
+        with torch.no_grad():
+            mean_z = depth_sum / n_members.clamp_min(1.0)
+            pixels_per_unit = torch.sqrt(K_[0, 0] * K_[1, 1]) / mean_z.clamp_min(options.vote_near_plane)
+        distortion = spread / pairs * pixels_per_unit
+    elif options.distortion == "squared":
+        distortion = n_members * spread
+    else:
+        distortion = value_sum[..., 0] * 0.0
     return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options, votes.ndim == 2)
 
 

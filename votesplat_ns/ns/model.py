@@ -135,6 +135,8 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Depth distortion of the votes: l1_pixels (scale-free, chosen on the tuning scenes), the paper's pair sum l1, squared, none."""
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
+    vote_backend: Literal["auto", "torch", "triton"] = "auto"
+    """Vote pass implementation: auto (fused Triton kernels on CUDA, torch on CPU), torch, or triton (VoteRenderOptions.backend)."""
     retrofit_from: Optional[Path] = None
     """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
     retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
@@ -153,6 +155,7 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
             distortion=self.vote_distortion,
             vote_transmittance=self.vote_transmittance,
             detach_geometry=not self.votes_move_geometry,
+            backend=self.vote_backend,
         )
 
 
