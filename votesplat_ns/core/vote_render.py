@@ -120,9 +120,9 @@ class VoteRenderOptions:
         behind the camera) are projected as if at this depth, so projected
         votes stay finite; in scene units, like gsplat's near_plane. The
         depth regulariser uses the unclamped depth.
-    backend: how ``render_votes_tiled`` walks and blends. "auto": the fused
-        Triton kernels (``votesplat_ns.core.vote_kernel``) for float32/float64
-        tensors on CUDA when Triton imports, else the torch code; the
+    backend: how ``render_votes_tiled`` walks and blends. "auto": the torch
+        code (the fused Triton kernels of ``votesplat_ns.core.vote_kernel`` are
+        not faster yet on an H100: BENCHMARKS.md, "Fused vote kernel"); the
         environment variable VOTESPLAT_VOTE_BACKEND=torch|triton overrides
         "auto". "torch": always the torch code. "triton": always the kernels
         (an error where they cannot run; on CPU they run only under Triton's
@@ -406,8 +406,8 @@ def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> 
         reason = "the Triton vote kernels give pixel_xy no gradient; pass pixel_xy without requires_grad"
     if backend == "triton" and reason is not None:
         raise ValueError(f"VoteRenderOptions.backend='triton' cannot run: {reason}; use backend='auto' or 'torch'")
-    # auto: the kernels on CUDA only (the interpreter is far too slow to be a CPU path)
-    return reason is None and (backend == "triton" or votes.device.type == "cuda")
+    # auto stays on the torch path until the kernels are measured faster (BENCHMARKS.md)
+    return reason is None and backend == "triton"
 
 
 def _render_with_kernel(

@@ -136,7 +136,8 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
     vote_backend: Literal["auto", "torch", "triton"] = "auto"
-    """Vote pass implementation: auto (fused Triton kernels on CUDA, torch on CPU), torch, or triton (VoteRenderOptions.backend)."""
+    """Vote pass implementation: auto (the torch code, until the fused Triton kernels are measured faster), torch, or
+    triton (the kernels, CUDA; VoteRenderOptions.backend)."""
     retrofit_from: Optional[Path] = None
     """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
     retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
