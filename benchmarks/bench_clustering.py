@@ -27,8 +27,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from votesplat_ns.core.clustering import cluster_votes_detailed  # noqa: E402
-from votesplat_ns.ns.export import export_instances  # noqa: E402
 from votesplat_ns.core.ply_io import write_gaussian_ply  # noqa: E402
+from votesplat_ns.ns.export import export_instances  # noqa: E402
 
 
 def synthetic_scene(num_gaussians: int, num_instances: int, seed: int = 0):
@@ -77,7 +77,10 @@ def bench_clustering(size: int, num_instances: int, max_points: int) -> dict:
         "instances_found": result.num_clusters,
         "noise_votes": result.params["num_noise"],
         "matched_fraction": round(matched_fraction(truth, result.labels), 4),
-        "params": {k: result.params[k] for k in ("min_cluster_size", "sample_min_cluster_size", "min_samples", "num_clustered_points")},
+        "params": {
+            k: result.params[k]
+            for k in ("min_cluster_size", "sample_min_cluster_size", "min_samples", "num_clustered_points")
+        },
     }
 
 
@@ -106,12 +109,19 @@ def bench_export(size: int, num_instances: int, max_points: int) -> dict:
         wall = time.perf_counter()
         write_gaussian_ply(
             Path(folder) / "scene.ply",
-            params["means"], params["features_dc"], params["features_rest"], params["opacities"], params["scales"], params["quats"],
+            params["means"],
+            params["features_dc"],
+            params["features_rest"],
+            params["opacities"],
+            params["scales"],
+            params["quats"],
         )
         ply_wall = time.perf_counter() - wall
         ply_mb = (Path(folder) / "scene.ply").stat().st_size / 2**20
         wall, cpu = time.perf_counter(), time.process_time()
-        manifest = export_instances(params, Path(folder) / "export", level_names=("instance", "part"), max_points=max_points, progress=False)
+        manifest = export_instances(
+            params, Path(folder) / "export", level_names=("instance", "part"), max_points=max_points, progress=False
+        )
         export_wall, export_cpu = time.perf_counter() - wall, time.process_time() - cpu
     return {
         "gaussians": size,

@@ -49,7 +49,9 @@ def bench(model_type: str, image: np.ndarray, repeats: int, device: str) -> dict
 
     torch.manual_seed(0)
     sam = sam_model_registry[model_type](checkpoint=None)
-    source = SamMaskSource(model_type=model_type, device=device, sam_model=sam, levels=("s", "m", "l"), max_long_side=None)
+    source = SamMaskSource(
+        model_type=model_type, device=device, sam_model=sam, levels=("s", "m", "l"), max_long_side=None
+    )
     generator = source._build_generator()
     source._generator = generator
     predictor = generator.predictor
@@ -102,11 +104,15 @@ def main(argv=None) -> int:
     image = load_image(args.image, args.width, args.height)
     gpu = torch.cuda.get_device_name() if device == "cuda" else "cpu"
     rows = [bench(model_type, image, args.repeats, device) for model_type in args.model_types]
-    print(f"SAM mask generation, random weights, {args.width}x{args.height}, levels s/m/l, {gpu}, median of {args.repeats}")
+    print(
+        f"SAM mask generation, random weights, {args.width}x{args.height}, levels s/m/l, {gpu}, median of {args.repeats}"
+    )
     print("| model | encoder (s, one pass) | masks, 3 levels (s/image) | masks per level | peak MiB |")
     print("|---|---|---|---|---|")
     for row in rows:
-        print(f"| {row['model_type']} | {row['encoder_s']:.3f} | {row['masks_s']:.2f} | {row['masks_per_level']} | {row['peak_mib']:.0f} |")
+        print(
+            f"| {row['model_type']} | {row['encoder_s']:.3f} | {row['masks_s']:.2f} | {row['masks_per_level']} | {row['peak_mib']:.0f} |"
+        )
     if args.json is not None:
         from votesplat_ns.core.ply_io import atomic_write
 

@@ -64,15 +64,22 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 4], help="mask levels L of the vote pass")
     parser.add_argument(
-        "--backends", nargs="+", choices=["torch", "triton"], default=["torch", "triton"],
+        "--backends",
+        nargs="+",
+        choices=["torch", "triton"],
+        default=["torch", "triton"],
         help="vote pass implementations to time (VoteRenderOptions.backend); triton needs CUDA",
     )
     parser.add_argument(
-        "--kernel-configs", nargs="+", default=["32x2"],
+        "--kernel-configs",
+        nargs="+",
+        default=["32x2"],
         help="Triton kernel BLOCKxNUM_WARPS variants to time (walk block width x warps per program)",
     )
     parser.add_argument(
-        "--distortion", default="l1_pixels", choices=["l1", "l1_pixels", "squared", "none"],
+        "--distortion",
+        default="l1_pixels",
+        choices=["l1", "l1_pixels", "squared", "none"],
         help="VoteRenderOptions.distortion of the vote pass (the model's default: l1_pixels)",
     )
     parser.add_argument("--sh-degree", type=int, default=3)
@@ -239,7 +246,11 @@ def _run(args: argparse.Namespace) -> int:
         target_xy = pixel_xy[:, None, :] + 20.0 * torch.randn(pixels, max_levels, 2, generator=g, device=device)
         # a pixel carries a 2D vote at some levels and not others, as with nested SAM masks
         valid = torch.rand(pixels, max_levels, generator=g, device=device) < 0.8
-        runs = [(backend, config, chunk) for backend, config in variants for chunk in (args.chunks if backend == "torch" else ["-"])]
+        runs = [
+            (backend, config, chunk)
+            for backend, config in variants
+            for chunk in (args.chunks if backend == "torch" else ["-"])
+        ]
         for backend, config, chunk in runs:
             options = VoteRenderOptions(distortion=args.distortion, backend=backend)
             if config is not None:
@@ -247,9 +258,19 @@ def _run(args: argparse.Namespace) -> int:
             backend_label = backend if config is None else f"triton {config[0]}x{config[1]}"
             with torch.no_grad():
                 count = render_votes_tiled(
-                    info["means2d"][0], info["conics"][0], info["opacities"][0], info["depths"][0],
-                    params["means"], viewmat, K, pixel_xy, info["isect_offsets"][0], info["flatten_ids"],
-                    info["tile_size"], options, chunk=None if chunk == "-" else chunk,
+                    info["means2d"][0],
+                    info["conics"][0],
+                    info["opacities"][0],
+                    info["depths"][0],
+                    params["means"],
+                    viewmat,
+                    K,
+                    pixel_xy,
+                    info["isect_offsets"][0],
+                    info["flatten_ids"],
+                    info["tile_size"],
+                    options,
+                    chunk=None if chunk == "-" else chunk,
                 ).count.float()
             count_stats = (count.mean().item(), int(count.max().item()))
             for levels in args.levels:

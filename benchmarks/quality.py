@@ -71,12 +71,30 @@ def _count(value) -> str:
 
 def markdown_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
     header = list(first_columns) + [
-        "level", "mIoU", "views", "mIoU all views", "precision", "recall", "purity", "#GT", "#pred", "Gaussians", "train time"
+        "level",
+        "mIoU",
+        "views",
+        "mIoU all views",
+        "precision",
+        "recall",
+        "purity",
+        "#GT",
+        "#pred",
+        "Gaussians",
+        "train time",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:
         if "error" in row:
-            lines.append("| " + " | ".join([str(row.get(c, "")) for c in first_columns] + [str(row.get("level", "")), f"failed: {row['error']}"] + [""] * 9) + " |")
+            lines.append(
+                "| "
+                + " | ".join(
+                    [str(row.get(c, "")) for c in first_columns]
+                    + [str(row.get("level", "")), f"failed: {row['error']}"]
+                    + [""] * 9
+                )
+                + " |"
+            )
             continue
         values = [str(row[c]) for c in first_columns] + [
             row["level"],
@@ -95,7 +113,17 @@ def markdown_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
-MEAN_METRICS = ("miou", "miou_all_views", "precision", "recall", "purity", "num_gt", "num_pred", "num_gaussians", "train_seconds")
+MEAN_METRICS = (
+    "miou",
+    "miou_all_views",
+    "precision",
+    "recall",
+    "purity",
+    "num_gt",
+    "num_pred",
+    "num_gaussians",
+    "train_seconds",
+)
 
 
 def mean_rows(rows: Sequence[dict], first_columns: Sequence[str]) -> List[dict]:
@@ -117,7 +145,9 @@ def mean_rows(rows: Sequence[dict], first_columns: Sequence[str]) -> List[dict]:
             label += f" ({len(failed[key])} failed: {', '.join(failed[key])})"
         row = {"scene": label, **dict(zip(others, key[:-1])), "level": key[-1], "seed": group[0].get("seed")}
         for metric in MEAN_METRICS:
-            row[metric] = statistics.mean(float(r.get(metric, r["miou"] if metric == "miou_all_views" else 0.0)) for r in group)
+            row[metric] = statistics.mean(
+                float(r.get(metric, r["miou"] if metric == "miou_all_views" else 0.0)) for r in group
+            )
         views = {str(r.get("miou_views", "all")).split()[0] for r in group}  # "valid 5/6" -> "valid"
         row["miou_views"] = views.pop() if len(views) == 1 else "mixed"
         means.append(row)
@@ -148,7 +178,11 @@ def summary_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
         for metric in SUMMARY_METRICS:
             values = [float(row[metric]) for row in group]
             spread = statistics.stdev(values) if len(values) > 1 else 0.0
-            cells.append(f"{statistics.mean(values):.3f} ± {spread:.3f}" if metric != "num_pred" else f"{statistics.mean(values):.1f} ± {spread:.1f}")
+            cells.append(
+                f"{statistics.mean(values):.3f} ± {spread:.3f}"
+                if metric != "num_pred"
+                else f"{statistics.mean(values):.1f} ± {spread:.1f}"
+            )
         lines.append("| " + " | ".join([str(k) for k in key] + [str(len(group))] + cells) + " |")
     return "\n".join(lines)
 
@@ -166,8 +200,17 @@ def train_base_scene(scene: Path, args) -> Path:
         except ValueError:  # an interrupted training: train again
             pass
     # vote start after the last step, vote losses off: plain splatfacto training (the vote cache is still built)
-    return train_in_process(scene, base_dir, args.base_steps, args.base_steps + 1, args.device, "run", num_downscales=0,
-                            vote_loss_weight=0.0, distortion_loss_weight=0.0)
+    return train_in_process(
+        scene,
+        base_dir,
+        args.base_steps,
+        args.base_steps + 1,
+        args.device,
+        "run",
+        num_downscales=0,
+        vote_loss_weight=0.0,
+        distortion_loss_weight=0.0,
+    )
 
 
 def level_row(metrics: dict, level: str) -> dict:
@@ -184,7 +227,11 @@ def level_row(metrics: dict, level: str) -> dict:
 
     views = "all"
     if valid is not None:
-        views = f"valid {scores['num_valid_views']}/{len(metrics['view_names'])}" if "num_valid_views" in scores and "view_names" in metrics else "valid"
+        views = (
+            f"valid {scores['num_valid_views']}/{len(metrics['view_names'])}"
+            if "num_valid_views" in scores and "view_names" in metrics
+            else "valid"
+        )
     return {
         "level": level,
         "miou": on_valid("miou"),
@@ -200,14 +247,25 @@ def level_row(metrics: dict, level: str) -> dict:
     }
 
 
-def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, seed: int = 42, **overrides) -> List[dict]:
+def run_one(
+    scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None, seed: int = 42, **overrides
+) -> List[dict]:
     """Train once, score every level of ``args.levels``: one row per level."""
     from votesplat_ns.ns.evaluate import evaluate_run
     from votesplat_ns.ns.method import train_in_process
 
     start = time.time()
     config_path = train_in_process(
-        scene, run_dir, args.steps, args.vote_start, args.device, "run", mask_folder, seed=seed, num_downscales=0, **overrides
+        scene,
+        run_dir,
+        args.steps,
+        args.vote_start,
+        args.device,
+        "run",
+        mask_folder,
+        seed=seed,
+        num_downscales=0,
+        **overrides,
     )
     train_seconds = time.time() - start
     start = time.time()
@@ -227,23 +285,39 @@ def run_one(scene: Path, run_dir: Path, args, mask_folder: Optional[Path] = None
 
 def parse_args(argv: Optional[List[str]] = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="scene folders (default: the bundled demo scene)")
+    parser.add_argument(
+        "--scenes", nargs="+", type=Path, default=None, help="scene folders (default: the bundled demo scene)"
+    )
     parser.add_argument("--masks", nargs="+", choices=["gt", "noisy"], default=["gt", "noisy"])
-    parser.add_argument("--ablation", action="store_true", help="train the Table 3 variants (GT masks) instead of gt/noisy")
-    parser.add_argument("--variants", nargs="+", choices=sorted(ABLATIONS), default=list(ABLATIONS), help="ablation variants to run")
+    parser.add_argument(
+        "--ablation", action="store_true", help="train the Table 3 variants (GT masks) instead of gt/noisy"
+    )
+    parser.add_argument(
+        "--variants", nargs="+", choices=sorted(ABLATIONS), default=list(ABLATIONS), help="ablation variants to run"
+    )
     parser.add_argument("--steps", type=int, default=800)
     parser.add_argument("--vote-start", type=int, default=100)
     parser.add_argument(
-        "--vote-pixels", type=int, default=None, help="vote_pixels_per_step (model default 4096); fewer makes CPU steps cheaper"
+        "--vote-pixels",
+        type=int,
+        default=None,
+        help="vote_pixels_per_step (model default 4096); fewer makes CPU steps cheaper",
     )
-    parser.add_argument("--vote-every", type=int, default=None, help="vote_every_n_steps (model default 4; a retrofit votes every step)")
     parser.add_argument(
-        "--distortion-weight", type=float, default=None,
+        "--vote-every", type=int, default=None, help="vote_every_n_steps (model default 4; a retrofit votes every step)"
+    )
+    parser.add_argument(
+        "--distortion-weight",
+        type=float,
+        default=None,
         help="lambda_d, distortion_loss_weight (model default 0.1; configs/ presets: 360 0.1, forward-facing 1.0)",
     )
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     parser.add_argument(
-        "--levels", "--level", nargs="+", default=["instance", "part"],
+        "--levels",
+        "--level",
+        nargs="+",
+        default=["instance", "part"],
         help="vote levels scored, a row each (metrics.json has every level)",
     )
     parser.add_argument("--min-weight", type=float, default=0.5)
@@ -254,14 +328,24 @@ def parse_args(argv: Optional[List[str]] = None):
     parser.add_argument("--drop-rate", type=float, default=0.05)
     parser.add_argument("--noise-seed", type=int, default=0)
     parser.add_argument("--seeds", nargs="+", type=int, default=[42], help="repeat every run with each training seed")
-    parser.add_argument("--retrofit", action="store_true", help="train the offsets only, on a scene trained once without votes")
+    parser.add_argument(
+        "--retrofit", action="store_true", help="train the offsets only, on a scene trained once without votes"
+    )
     parser.add_argument("--base-steps", type=int, default=1500, help="training steps of that scene (with --retrofit)")
     parser.add_argument(
-        "--summarize", nargs="+", type=Path, default=None, metavar="JSON",
+        "--summarize",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="JSON",
         help="train nothing: print mean ± std over the rows of these quality.json/ablation.json files (runs made in parallel)",
     )
     parser.add_argument(
-        "--merge", nargs="+", type=Path, default=None, metavar="JSON",
+        "--merge",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="JSON",
         help="train nothing: print one table of the rows of these quality.json files (one scene each, say) and the mean over scenes",
     )
     args = parser.parse_args(argv)
@@ -301,10 +385,14 @@ def _read_rows(files: Sequence[Path]):
         try:
             stored = json.loads(Path(path).read_text())
         except (OSError, ValueError) as err:
-            raise SystemExit(f"quality.py: error: cannot read {path} ({err}); pass quality.json/ablation.json files this script wrote")
+            raise SystemExit(
+                f"quality.py: error: cannot read {path} ({err}); pass quality.json/ablation.json files this script wrote"
+            )
         columns = ["scene", "variant"] if stored["settings"].get("ablation") else ["scene", "masks"]
         if first_columns not in (None, columns):
-            raise SystemExit("quality.py: error: --summarize got both ablation and quality files; summarize each kind separately")
+            raise SystemExit(
+                "quality.py: error: --summarize got both ablation and quality files; summarize each kind separately"
+            )
         first_columns = columns
         rows.extend(stored["rows"])
     assert first_columns is not None
@@ -321,8 +409,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     import torch
 
-    from votesplat_ns.eval.mask_noise import write_noisy_masks
-    from votesplat_ns.eval.mask_noise import MaskNoise
+    from votesplat_ns.eval.mask_noise import MaskNoise, write_noisy_masks
 
     if args.device == "auto":
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -344,12 +431,34 @@ def main(argv: Optional[List[str]] = None) -> int:
         if args.retrofit:
             settings = f"retrofit on a scene trained {args.base_steps} steps without votes; " + settings
         if len(args.seeds) > 1:
-            table += "\n\nMean ± standard deviation over seeds " + ", ".join(map(str, args.seeds)) + ":\n\n" + summary_table(rows, first_columns)
+            table += (
+                "\n\nMean ± standard deviation over seeds "
+                + ", ".join(map(str, args.seeds))
+                + ":\n\n"
+                + summary_table(rows, first_columns)
+            )
         atomic_write_text(args.work_dir / f"{suffix}.md", f"{settings}\n\n{table}\n")
-        atomic_write_text(args.work_dir / f"{suffix}.json", json.dumps({"settings": vars(args) | {"scenes": [str(s) for s in args.scenes], "work_dir": str(args.work_dir)}, "rows": rows}, indent=2, default=str) + "\n")
+        atomic_write_text(
+            args.work_dir / f"{suffix}.json",
+            json.dumps(
+                {
+                    "settings": vars(args) | {"scenes": [str(s) for s in args.scenes], "work_dir": str(args.work_dir)},
+                    "rows": rows,
+                },
+                indent=2,
+                default=str,
+            )
+            + "\n",
+        )
         print(table, flush=True)
 
-    noise = MaskNoise(split_rate=args.split_rate, merge_rate=args.merge_rate, jitter_rate=args.jitter_rate, drop_rate=args.drop_rate, seed=args.noise_seed)
+    noise = MaskNoise(
+        split_rate=args.split_rate,
+        merge_rate=args.merge_rate,
+        jitter_rate=args.jitter_rate,
+        drop_rate=args.drop_rate,
+        seed=args.noise_seed,
+    )
     base = {} if args.vote_pixels is None else {"vote_pixels_per_step": args.vote_pixels}
     if args.vote_every is not None:
         base["vote_every_n_steps"] = args.vote_every
@@ -360,7 +469,14 @@ def main(argv: Optional[List[str]] = None) -> int:
         jobs = []
         if args.ablation:
             for variant in args.variants:
-                jobs.append(({"scene": name, "variant": variant}, args.work_dir / name / ("ablation_" + variant.replace(" ", "_").replace("*", "")), None, {**base, **ABLATIONS[variant]}))
+                jobs.append(
+                    (
+                        {"scene": name, "variant": variant},
+                        args.work_dir / name / ("ablation_" + variant.replace(" ", "_").replace("*", "")),
+                        None,
+                        {**base, **ABLATIONS[variant]},
+                    )
+                )
         else:
             for masks in args.masks:
                 folder = None
@@ -369,7 +485,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                 jobs.append(({"scene": name, "masks": masks}, args.work_dir / name / masks, folder, dict(base)))
         if args.retrofit:
             base_config = train_base_scene(scene, args)
-            jobs = [(labels, run_dir, folder, {**overrides, "retrofit_from": base_config}) for labels, run_dir, folder, overrides in jobs]
+            jobs = [
+                (labels, run_dir, folder, {**overrides, "retrofit_from": base_config})
+                for labels, run_dir, folder, overrides in jobs
+            ]
         for seed in args.seeds:
             for labels, run_dir, folder, overrides in jobs:
                 if len(args.seeds) > 1:
@@ -377,7 +496,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                 try:
                     level_rows = run_one(scene, run_dir, args, folder, seed=seed, **overrides)
                 except Exception as err:  # one failed run must not lose the others' rows
-                    level_rows = [{"error": f"{type(err).__name__}: {err}", "seed": seed, "level": level} for level in args.levels]
+                    level_rows = [
+                        {"error": f"{type(err).__name__}: {err}", "seed": seed, "level": level} for level in args.levels
+                    ]
                 for row in level_rows:
                     record({**labels, **row})
     print(f"\nwrote {args.work_dir / (suffix + '.md')}")

@@ -92,9 +92,17 @@ def run_job(job: dict) -> List[dict]:
     device = "cuda" if torch.cuda.is_available() else "cpu"
     start = time.time()
     config = train_in_process(
-        Path(job["scene"]), run_dir, job["steps"], job["vote_start"], device, "run",
-        Path(job["mask_folder"]) if job["mask_folder"] else None, seed=job["seed"],
-        datamanager_overrides=datamanager, num_downscales=0, **model,
+        Path(job["scene"]),
+        run_dir,
+        job["steps"],
+        job["vote_start"],
+        device,
+        "run",
+        Path(job["mask_folder"]) if job["mask_folder"] else None,
+        seed=job["seed"],
+        datamanager_overrides=datamanager,
+        num_downscales=0,
+        **model,
     )
     train_seconds = time.time() - start
     rows = []
@@ -102,11 +110,21 @@ def run_job(job: dict) -> List[dict]:
         options = {k: v for k, v in cluster_settings.items() if not k.startswith("mc.")}
         check = {k[3:]: v for k, v in cluster_settings.items() if k.startswith("mc.")}
         mask_check = check if options.pop("mask_check", True) else False
-        result = evaluate_run(config, run_dir / f"eval_{cluster_name}", mask_check=mask_check, cluster_options=options)  # every level
+        result = evaluate_run(
+            config, run_dir / f"eval_{cluster_name}", mask_check=mask_check, cluster_options=options
+        )  # every level
         for level in LEVELS:
             if level in result.metrics["levels"]:
-                rows.append({**job["labels"], "cluster": cluster_name, "level": level, **score(result.metrics, level),
-                             "train_seconds": train_seconds, "config": str(config)})
+                rows.append(
+                    {
+                        **job["labels"],
+                        "cluster": cluster_name,
+                        "level": level,
+                        **score(result.metrics, level),
+                        "train_seconds": train_seconds,
+                        "config": str(config),
+                    }
+                )
     return rows
 
 
@@ -116,7 +134,19 @@ def table(rows: Sequence[dict]) -> str:
     for row in rows:
         if "error" not in row:
             groups.setdefault((row["masks"], row["train"], row["cluster"], row["level"]), []).append(row)
-    header = ["masks", "train", "cluster", "level", "runs", "mIoU", "worst scene", "precision", "recall", "completeness", "#pred"]
+    header = [
+        "masks",
+        "train",
+        "cluster",
+        "level",
+        "runs",
+        "mIoU",
+        "worst scene",
+        "precision",
+        "recall",
+        "completeness",
+        "#pred",
+    ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for key in sorted(groups):
         group = groups[key]
@@ -138,9 +168,14 @@ def table(rows: Sequence[dict]) -> str:
 def per_scene_table(rows: Sequence[dict]) -> str:
     header = ["scene", "masks", "train", "cluster", "level", "seed", "mIoU", "mIoU all views", "precision", "#pred"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for r in sorted((r for r in rows if "error" not in r), key=lambda r: (r["scene"], r["masks"], r["train"], r["cluster"], r["level"], r["seed"])):
-        lines.append(f"| {r['scene']} | {r['masks']} | {r['train']} | {r['cluster']} | {r['level']} | {r['seed']} | {r['miou']:.3f} | "
-                     f"{r['miou_all_views']:.3f} | {r['precision']:.3f} | {r['num_pred']} |")
+    for r in sorted(
+        (r for r in rows if "error" not in r),
+        key=lambda r: (r["scene"], r["masks"], r["train"], r["cluster"], r["level"], r["seed"]),
+    ):
+        lines.append(
+            f"| {r['scene']} | {r['masks']} | {r['train']} | {r['cluster']} | {r['level']} | {r['seed']} | {r['miou']:.3f} | "
+            f"{r['miou_all_views']:.3f} | {r['precision']:.3f} | {r['num_pred']} |"
+        )
     return "\n".join(lines)
 
 
@@ -153,8 +188,12 @@ def write_text(path: Path, text: str) -> None:
 def parse_args(argv: Optional[List[str]] = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="votesplat-synth scene folders")
-    parser.add_argument("--family", choices=["tuning", "test"], default=None, help="every scene of this family set instead")
-    parser.add_argument("--family-dir", type=Path, default=None, help="where the set was written (default build/family_<set>)")
+    parser.add_argument(
+        "--family", choices=["tuning", "test"], default=None, help="every scene of this family set instead"
+    )
+    parser.add_argument(
+        "--family-dir", type=Path, default=None, help="where the set was written (default build/family_<set>)"
+    )
     parser.add_argument("--masks", nargs="+", choices=["gt", "noisy"], default=["gt"])
     parser.add_argument("--train", nargs="+", type=parse_variant, default=[("default", {})])
     parser.add_argument("--cluster", nargs="+", type=parse_variant, default=[("default", {})])
@@ -164,7 +203,9 @@ def parse_args(argv: Optional[List[str]] = None):
     parser.add_argument("--jobs", type=int, default=4, help="trainings at a time (each in its own process)")
     parser.add_argument("--work-dir", type=Path, default=Path("build/sweep"))
     parser.add_argument("--job", type=Path, default=None, help=argparse.SUPPRESS)  # worker mode: one job file
-    parser.add_argument("--summarize", nargs="+", type=Path, default=None, metavar="JSON", help="print the tables of sweep.json files")
+    parser.add_argument(
+        "--summarize", nargs="+", type=Path, default=None, metavar="JSON", help="print the tables of sweep.json files"
+    )
     args = parser.parse_args(argv)
     if args.job is not None or args.summarize:
         return args
@@ -215,13 +256,22 @@ def main(argv: Optional[List[str]] = None) -> int:
             for train_name, train_settings in args.train:
                 for seed in args.seeds:
                     run_dir = work / name / f"{masks}_{train_name}_seed{seed}"
-                    jobs.append({
-                        "labels": {"scene": name, "masks": masks, "train": train_name, "seed": seed},
-                        "scene": str(scene.resolve()), "run_dir": str(run_dir), "mask_folder": str(folder) if folder else None,
-                        "seed": seed, "steps": args.steps, "vote_start": args.vote_start,
-                        "train_settings": train_settings, "cluster_variants": args.cluster,
-                    })
-    print(f"sweep: {len(jobs)} trainings, {len(args.cluster)} clustering variants each, {args.jobs} at a time", flush=True)
+                    jobs.append(
+                        {
+                            "labels": {"scene": name, "masks": masks, "train": train_name, "seed": seed},
+                            "scene": str(scene.resolve()),
+                            "run_dir": str(run_dir),
+                            "mask_folder": str(folder) if folder else None,
+                            "seed": seed,
+                            "steps": args.steps,
+                            "vote_start": args.vote_start,
+                            "train_settings": train_settings,
+                            "cluster_variants": args.cluster,
+                        }
+                    )
+    print(
+        f"sweep: {len(jobs)} trainings, {len(args.cluster)} clustering variants each, {args.jobs} at a time", flush=True
+    )
 
     def launch(job: dict) -> List[dict]:
         run_dir = Path(job["run_dir"])
@@ -229,7 +279,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         job_file = run_dir / "job.json"
         job_file.write_text(json.dumps(job))
         with open(run_dir / "worker.log", "w") as log:
-            subprocess.run([sys.executable, __file__, "--job", str(job_file)], stdout=log, stderr=subprocess.STDOUT, check=False)
+            subprocess.run(
+                [sys.executable, __file__, "--job", str(job_file)], stdout=log, stderr=subprocess.STDOUT, check=False
+            )
         rows_file = job_file.with_suffix(".rows.json")
         if not rows_file.is_file():
             return [{**job["labels"], "error": f"worker died; see {run_dir / 'worker.log'}"}]
@@ -237,7 +289,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"done: {job['labels']}", flush=True)
         return rows
 
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k not in ("job", "summarize")}
+    settings = {
+        k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k not in ("job", "summarize")
+    }
     settings["scenes"] = [str(s) for s in args.scenes]
     rows: List[dict] = []
     lock = threading.Lock()
@@ -249,7 +303,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         # written after every run, so a call cut short by its time limit still reports what finished
         with lock:
             rows.extend(job_rows)
-            write_text(work / "sweep.json", json.dumps({"settings": settings, "rows": rows}, indent=1, default=str) + "\n")
+            write_text(
+                work / "sweep.json", json.dumps({"settings": settings, "rows": rows}, indent=1, default=str) + "\n"
+            )
             text = f"{header}\n\n{table(rows)}\n\nPer scene:\n\n{per_scene_table(rows)}\n"
             write_text(work / "sweep.md", text)
 

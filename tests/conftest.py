@@ -28,7 +28,9 @@ def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, *
     # CPU budget: render at 64 px (splatfacto's resolution schedule stays at 1/2 for the whole
     # run) and sample 1024 vote pixels per step; the vote loss is a mean over masked pixels,
     # so fewer samples keep its expected gradient. A few hundred steps: vote on every one.
-    cpu_budget = dict(num_downscales=1, resolution_schedule=100 * steps, vote_pixels_per_step=1024, vote_every_n_steps=1)
+    cpu_budget = dict(
+        num_downscales=1, resolution_schedule=100 * steps, vote_pixels_per_step=1024, vote_every_n_steps=1
+    )
     return train_in_process(data, output_dir, steps, vote_start, "cpu", "test", **{**cpu_budget, **model_overrides})
 
 

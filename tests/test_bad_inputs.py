@@ -46,7 +46,9 @@ from PIL import Image
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
 BIN = Path(sys.executable).parent
 # root ignores file permissions through these capabilities; without them a read-only folder is read-only
-DROP_ROOT_OVERRIDES = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner", "--"] if os.geteuid() == 0 else []
+DROP_ROOT_OVERRIDES = (
+    ["setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner", "--"] if os.geteuid() == 0 else []
+)
 TEMP_MARKERS = (".tmp-", ".partial.", ".old.")
 
 
@@ -147,15 +149,36 @@ NS_TRAIN_RUN_FILES = ("runs", "runs/*", "runs/*/votesplat", "runs/*/votesplat/*"
 def ns_train(ws: Workspace, data: Path, *extra: str, cache: Optional[Path] = None) -> List[str]:
     runs = ws.root / "runs"
     return [
-        str(BIN / "ns-train"), "votesplat", "--data", str(data), "--vis", "tensorboard", "--max-num-iterations", "1",
-        "--output-dir", str(runs), "--machine.device-type", "cpu",
-        "--pipeline.datamanager.cache-dir", str(cache or ws.root / "cache"), *extra,
+        str(BIN / "ns-train"),
+        "votesplat",
+        "--data",
+        str(data),
+        "--vis",
+        "tensorboard",
+        "--max-num-iterations",
+        "1",
+        "--output-dir",
+        str(runs),
+        "--machine.device-type",
+        "cpu",
+        "--pipeline.datamanager.cache-dir",
+        str(cache or ws.root / "cache"),
+        *extra,
     ]
 
 
 def ns_export(config: Path, output_dir: Path, *extra: str) -> List[str]:
-    return [str(BIN / "ns-export"), "votesplat-instances", "--load-config", str(config), "--output-dir", str(output_dir),
-            "--num-views", "0", *extra]
+    return [
+        str(BIN / "ns-export"),
+        "votesplat-instances",
+        "--load-config",
+        str(config),
+        "--output-dir",
+        str(output_dir),
+        "--num-views",
+        "0",
+        *extra,
+    ]
 
 
 def masks(data: Path, *extra: str) -> List[str]:
@@ -174,8 +197,11 @@ def case(function: Callable[..., Expect]) -> Callable[..., Expect]:
 @case
 def missing_data_folder(ws, fixtures):
     missing = ws.root / "nonexistent"
-    return Expect(ns_train(ws, missing), needles=[f"--data {missing}: folder not found", "ns-process-data"],
-                  new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, missing),
+        needles=[f"--data {missing}: folder not found", "ns-process-data"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
@@ -183,17 +209,25 @@ def folder_without_transforms_json(ws, fixtures):
     photos = ws.root / "photos"
     photos.mkdir()
     (photos / "IMG_0001.jpg").write_bytes(b"not really a photo")
-    return Expect(ns_train(ws, photos), needles=["this folder holds no transforms.json", "ns-process-data"],
-                  new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, photos),
+        needles=["this folder holds no transforms.json", "ns-process-data"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
 def images_missing(ws, fixtures):
     scene = ws.scene()
     shutil.rmtree(scene / "images")
-    return Expect(ns_train(ws, scene), needles=["34 of 34 images listed in transforms.json are missing",
-                                                f"(first: {scene / 'images' / 'frame_00001.png'})"],
-                  new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[
+            "34 of 34 images listed in transforms.json are missing",
+            f"(first: {scene / 'images' / 'frame_00001.png'})",
+        ],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
@@ -201,7 +235,11 @@ def cuda_requested_without_cuda(ws, fixtures):
     if torch.cuda.is_available():
         pytest.skip("CUDA is available here, so --machine.device-type cuda is valid input")
     argv = ns_train(ws, DEMO_SCENE, "--machine.device-type", "cuda")
-    return Expect(argv, needles=["CUDA is not available on this machine", "--machine.device-type cpu"], new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        argv,
+        needles=["CUDA is not available on this machine", "--machine.device-type cpu"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
@@ -209,41 +247,61 @@ def truncated_training_image(ws, fixtures):
     scene = ws.scene()
     truncate(scene / "images" / "frame_00003.png")
     # found while the masks are made: the views before it are complete cache entries, kept for the next run
-    return Expect(ns_train(ws, scene), needles=[f"image {scene / 'images' / 'frame_00003.png'} cannot be read", "truncated",
-                                                "replace it"],
-                  new_paths=NS_TRAIN_RUN_FILES + ("cache", "cache/*", "cache/*/*"))
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"image {scene / 'images' / 'frame_00003.png'} cannot be read", "truncated", "replace it"],
+        new_paths=NS_TRAIN_RUN_FILES + ("cache", "cache/*", "cache/*/*"),
+    )
 
 
 @case
 def nan_in_a_pose(ws, fixtures):
     scene = ws.scene()
     edit_transforms(scene, lambda meta: meta["frames"][7]["transform_matrix"][0].__setitem__(3, float("nan")))
-    return Expect(ns_train(ws, scene), needles=[str(scene / "transforms.json"), "frame 7 (images/frame_00008.png)",
-                                                "finite numbers", "fix or remove that frame"],
-                  forbidden=["Input X contains NaN"], new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[
+            str(scene / "transforms.json"),
+            "frame 7 (images/frame_00008.png)",
+            "finite numbers",
+            "fix or remove that frame",
+        ],
+        forbidden=["Input X contains NaN"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
 def pose_that_is_not_a_matrix(ws, fixtures):
     scene = ws.scene()
-    edit_transforms(scene, lambda meta: meta["frames"][2].__setitem__("transform_matrix", [[1, 0, 0], [0, 1, 0], [0, 0, 1]]))
-    return Expect(ns_train(ws, scene), needles=["frame 2 (images/frame_00003.png)", "4x4 (or 3x4)"], new_paths=NS_TRAIN_RUN_FILES)
+    edit_transforms(
+        scene, lambda meta: meta["frames"][2].__setitem__("transform_matrix", [[1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    )
+    return Expect(
+        ns_train(ws, scene), needles=["frame 2 (images/frame_00003.png)", "4x4 (or 3x4)"], new_paths=NS_TRAIN_RUN_FILES
+    )
 
 
 @case
 def nan_focal_length(ws, fixtures):
     scene = ws.scene()
     edit_transforms(scene, lambda meta: meta.__setitem__("fl_x", float("nan")))
-    return Expect(ns_train(ws, scene), needles=["transforms.json: the file has camera value fl_x=nan", "finite number > 0"],
-                  new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, scene),
+        needles=["transforms.json: the file has camera value fl_x=nan", "finite number > 0"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
 def duplicate_frames(ws, fixtures):
     scene = ws.scene()
     edit_transforms(scene, lambda meta: meta["frames"].append(dict(meta["frames"][2])))
-    return Expect(ns_train(ws, scene), needles=["frames 2 and 34 both list images/frame_00003.png", "remove the duplicate"],
-                  new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, scene),
+        needles=["frames 2 and 34 both list images/frame_00003.png", "remove the duplicate"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
@@ -255,10 +313,16 @@ def some_frames_without_instance_masks(ws, fixtures):
             del meta["frames"][number]["instance_mask_path"]
 
     edit_transforms(scene, drop)
-    return Expect(ns_train(ws, scene), needles=["2 of 34 frames list no instance_mask_path",
-                                                "(first: frame 3 (images/frame_00004.png))",
-                                                "--pipeline.datamanager.mask-source sam"],
-                  forbidden=["SAM checkpoint"], new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[
+            "2 of 34 frames list no instance_mask_path",
+            "(first: frame 3 (images/frame_00004.png))",
+            "--pipeline.datamanager.mask-source sam",
+        ],
+        forbidden=["SAM checkpoint"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
@@ -266,17 +330,23 @@ def image_of_the_wrong_size(ws, fixtures):
     scene = ws.scene()
     image = scene / "images" / "frame_00005.png"
     Image.open(image).convert("RGB").resize((100, 80)).save(image)
-    return Expect(ns_train(ws, scene), needles=[f"image {image} is 100x80", "camera (frame 4 (images/frame_00005.png)) as 128x128"],
-                  forbidden=["label image"], new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"image {image} is 100x80", "camera (frame 4 (images/frame_00005.png)) as 128x128"],
+        forbidden=["label image"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
 def truncated_label_image(ws, fixtures):
     scene = ws.scene()
     truncate(scene / "instances" / "frame_00002.png")
-    return Expect(masks(scene, "--cache-dir", str(ws.root / "cache")),
-                  needles=[f"label image {scene / 'instances' / 'frame_00002.png'} cannot be read", "truncated"],
-                  new_paths=("cache", "cache/*", "cache/*/*"))
+    return Expect(
+        masks(scene, "--cache-dir", str(ws.root / "cache")),
+        needles=[f"label image {scene / 'instances' / 'frame_00002.png'} cannot be read", "truncated"],
+        new_paths=("cache", "cache/*", "cache/*/*"),
+    )
 
 
 # ---- training that would run to the end for nothing
@@ -285,9 +355,15 @@ def vote_start_after_the_last_step(ws, fixtures):
     scene = ws.scene()
     argv = ns_train(ws, scene, "--pipeline.model.vote-start-step", "5", "--max-num-iterations", "3")
     # fails once the step range is known (after the masks are made; they stay cached for the next run)
-    return Expect(argv, needles=["--pipeline.model.vote-start-step 5 is past the last training step 2",
-                                 "--max-num-iterations 3", "never run"],
-                  new_paths=NS_TRAIN_RUN_FILES + ("runs/*/votesplat/*/*", "cache", "cache/*", "cache/*/*"))
+    return Expect(
+        argv,
+        needles=[
+            "--pipeline.model.vote-start-step 5 is past the last training step 2",
+            "--max-num-iterations 3",
+            "never run",
+        ],
+        new_paths=NS_TRAIN_RUN_FILES + ("runs/*/votesplat/*/*", "cache", "cache/*", "cache/*/*"),
+    )
 
 
 @case
@@ -297,8 +373,12 @@ def masks_without_any_vote(ws, fixtures):
         for path in (scene / folder).glob("*.png"):
             Image.fromarray(np.zeros((128, 128), np.uint16)).save(path)
     argv = ns_train(ws, scene, *ONE_VOTE_STEP)
-    return Expect(argv, exit_code=0, needles=["no mask of the 30 training views gives a vote", "votesplat masks --data"],
-                  new_paths=("runs", "runs/**", "cache", "cache/**"))
+    return Expect(
+        argv,
+        exit_code=0,
+        needles=["no mask of the 30 training views gives a vote", "votesplat masks --data"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),
+    )
 
 
 # ---- the vote cache
@@ -306,16 +386,25 @@ def masks_without_any_vote(ws, fixtures):
 def read_only_cache_folder(ws, fixtures):
     scene = ws.scene()
     cache = ws.read_only(ws.root / "cache")
-    return Expect(ns_train(ws, scene, cache=cache), needles=[f"--pipeline.datamanager.cache-dir {cache}: cannot write",
-                                                           "make it writable or choose another --pipeline.datamanager.cache-dir"],
-                  forbidden=["PermissionError"], new_paths=NS_TRAIN_RUN_FILES)
+    return Expect(
+        ns_train(ws, scene, cache=cache),
+        needles=[
+            f"--pipeline.datamanager.cache-dir {cache}: cannot write",
+            "make it writable or choose another --pipeline.datamanager.cache-dir",
+        ],
+        forbidden=["PermissionError"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
 
 
 @case
 def read_only_cache_folder_of_votesplat_masks(ws, fixtures):
     scene = ws.scene()
     cache = ws.read_only(ws.root / "cache")
-    return Expect(masks(scene, "--cache-dir", str(cache)), needles=[f"--cache-dir {cache}: cannot write", "choose another --cache-dir"])
+    return Expect(
+        masks(scene, "--cache-dir", str(cache)),
+        needles=[f"--cache-dir {cache}: cannot write", "choose another --cache-dir"],
+    )
 
 
 @case
@@ -338,8 +427,15 @@ def damaged_cache_entry(ws, fixtures):
         assert labels_path.read_bytes() == original
 
     argv = ns_train(ws, scene, *ONE_VOTE_STEP, cache=cache)
-    return Expect(argv, exit_code=0, needles=[f"vote cache entry {key}.votes.npz", "is damaged", "rebuilding it"],
-                  forbidden=["IndexError"], new_paths=("runs", "runs/**"), changed_paths=("cache/*/*",), after=rebuilt_identical)
+    return Expect(
+        argv,
+        exit_code=0,
+        needles=[f"vote cache entry {key}.votes.npz", "is damaged", "rebuilding it"],
+        forbidden=["IndexError"],
+        new_paths=("runs", "runs/**"),
+        changed_paths=("cache/*/*",),
+        after=rebuilt_identical,
+    )
 
 
 # ---- masks
@@ -359,10 +455,24 @@ def garbage_sam_checkpoint(ws, fixtures):
     scene = ws.scene()
     checkpoint = ws.root / "sam_vit_b_01ec64.pth"
     checkpoint.write_bytes(b"<html>404 Not Found</html>" * 40)
-    argv = masks(scene, "--source", "sam", "--sam-checkpoint", str(checkpoint), "--sam-model-type", "vit_b",
-                 "--sam-device", "cpu", "--cache-dir", str(ws.root / "cache"))
-    return Expect(argv, needles=[f"could not load SAM checkpoint {checkpoint}", "not a PyTorch weights file"],
-                  forbidden=["weights_only"])
+    argv = masks(
+        scene,
+        "--source",
+        "sam",
+        "--sam-checkpoint",
+        str(checkpoint),
+        "--sam-model-type",
+        "vit_b",
+        "--sam-device",
+        "cpu",
+        "--cache-dir",
+        str(ws.root / "cache"),
+    )
+    return Expect(
+        argv,
+        needles=[f"could not load SAM checkpoint {checkpoint}", "not a PyTorch weights file"],
+        forbidden=["weights_only"],
+    )
 
 
 # ---- export
@@ -386,7 +496,10 @@ def read_only_export_target(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")
     shared = ws.read_only(ws.root / "shared")
     target = shared / "export"
-    return Expect(ns_export(config, target), needles=[f"--output-dir {target}: cannot write in {shared}", "choose another --output-dir"])
+    return Expect(
+        ns_export(config, target),
+        needles=[f"--output-dir {target}: cannot write in {shared}", "choose another --output-dir"],
+    )
 
 
 @case
@@ -403,8 +516,10 @@ def export_over_a_user_file(ws, fixtures):
     target = ws.root / "export"
     shutil.copytree(fixtures.previous_export, target)
     (target / "NOTES.txt").write_text("which object is which")
-    return Expect(ns_export(config, target), needles=[f"--output-dir {target} holds NOTES.txt", "would delete it",
-                                                      "move it out of that folder"])
+    return Expect(
+        ns_export(config, target),
+        needles=[f"--output-dir {target} holds NOTES.txt", "would delete it", "move it out of that folder"],
+    )
 
 
 @case
@@ -413,7 +528,9 @@ def previous_export_that_cannot_be_deleted(ws, fixtures):
     target = ws.root / "exports" / "export"
     shutil.copytree(fixtures.previous_export, target)
     ws.read_only(target / "instances")
-    return Expect(ns_export(config, target), needles=[f"the previous export's folder {target / 'instances'} is not writable"])
+    return Expect(
+        ns_export(config, target), needles=[f"the previous export's folder {target / 'instances'} is not writable"]
+    )
 
 
 @case
@@ -426,10 +543,15 @@ def non_finite_vote_offsets(ws, fixtures):
     pipeline["_model.gauss_params.vote_offsets"][supported, 0] = float("nan")
     torch.save(state, checkpoint)
     target = ws.root / "export"
-    return Expect(ns_export(config, target), exit_code=0,
-                  needles=["Warning: 7 Gaussians with vote support at level 'instance' have a NaN/Inf mean or vote offset",
-                           "exported as background"],
-                  new_paths=("export", "export/**"))
+    return Expect(
+        ns_export(config, target),
+        exit_code=0,
+        needles=[
+            "Warning: 7 Gaussians with vote support at level 'instance' have a NaN/Inf mean or vote offset",
+            "exported as background",
+        ],
+        new_paths=("export", "export/**"),
+    )
 
 
 # ---- query and click
@@ -449,8 +571,11 @@ def garbage_clip_checkpoint(ws, fixtures):
     weights = ws.root / "open_clip_pytorch_model.bin"
     weights.write_bytes(b"Entry not found" * 100)
     argv = votesplat("query", fixtures.trained_demo, "red mug", "--clip-checkpoint", str(weights))
-    return Expect(argv, needles=[f"{weights} does not hold open_clip weights for 'ViT-B-16'", "not a PyTorch weights file"],
-                  forbidden=["weights_only"])
+    return Expect(
+        argv,
+        needles=[f"{weights} does not hold open_clip weights for 'ViT-B-16'", "not a PyTorch weights file"],
+        forbidden=["weights_only"],
+    )
 
 
 @case
@@ -463,7 +588,9 @@ def query_longer_than_clip_reads(ws, fixtures):
 @case
 def click_into_a_read_only_folder(ws, fixtures):
     shared = ws.read_only(ws.root / "shared")
-    argv = votesplat("click", fixtures.trained_demo, "--view", "0", "--x", "64", "--y", "64", "--output-dir", str(shared / "sel"))
+    argv = votesplat(
+        "click", fixtures.trained_demo, "--view", "0", "--x", "64", "--y", "64", "--output-dir", str(shared / "sel")
+    )
     return Expect(argv, needles=[f"--output-dir {shared / 'sel'}: cannot write in {shared}"])
 
 
@@ -477,10 +604,17 @@ def program_of(argv: Sequence[str]) -> str:
 
 
 def run_command(ws: Workspace, argv: Sequence[str]) -> subprocess.CompletedProcess:
-    env = dict(os.environ, COLUMNS="200", HOME=str(ws.home), XDG_CACHE_HOME=str(ws.home / ".cache"),
-               MPLCONFIGDIR=str(ws.home / ".matplotlib"))
+    env = dict(
+        os.environ,
+        COLUMNS="200",
+        HOME=str(ws.home),
+        XDG_CACHE_HOME=str(ws.home / ".cache"),
+        MPLCONFIGDIR=str(ws.home / ".matplotlib"),
+    )
     prefix = DROP_ROOT_OVERRIDES if ws.drop_root_overrides else []
-    return subprocess.run(prefix + list(argv), capture_output=True, check=False, text=True, cwd=ws.home, timeout=900, env=env)
+    return subprocess.run(
+        prefix + list(argv), capture_output=True, check=False, text=True, cwd=ws.home, timeout=900, env=env
+    )
 
 
 def matches(path: str, patterns: Sequence[str]) -> bool:
@@ -509,8 +643,14 @@ def fixtures(trained_demo, tmp_path_factory) -> Fixtures:
     base = tmp_path_factory.mktemp("bad_inputs")
     config = copy_run(trained_demo, base / "run")
     export = base / "export"
-    result = subprocess.run(ns_export(config, export), capture_output=True, check=False, text=True, timeout=900,
-                            env=dict(os.environ, COLUMNS="200"))
+    result = subprocess.run(
+        ns_export(config, export),
+        capture_output=True,
+        check=False,
+        text=True,
+        timeout=900,
+        env=dict(os.environ, COLUMNS="200"),
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     return Fixtures(trained_demo=config, previous_export=export)
 
@@ -546,7 +686,11 @@ def test_bad_input(name, workspace, fixtures):
 
     workspace.unlock()
     after = snapshot(workspace.root)
-    changed = [path for path in before if path in after and after[path] != before[path] and not matches(path, expect.changed_paths)]
+    changed = [
+        path
+        for path in before
+        if path in after and after[path] != before[path] and not matches(path, expect.changed_paths)
+    ]
     assert not changed, f"{name} changed {changed}"
     assert not [path for path in before if path not in after], f"{name} removed files"
     unexpected = [path for path in after if path not in before and not matches(path, expect.new_paths)]
@@ -555,4 +699,3 @@ def test_bad_input(name, workspace, fixtures):
     assert not leftovers, f"{name} left temporary files {leftovers}"
     if expect.after is not None:
         expect.after()
-

@@ -5,8 +5,8 @@ from __future__ import annotations
 import errno
 import shutil
 import sys
-from types import SimpleNamespace
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -45,7 +45,9 @@ def test_excepthook_shortens_only_input_errors(restore_excepthook, capsys, monke
     sys.excepthook = lambda *args: seen.append(args)
     install_excepthook()
     install_excepthook()  # idempotent: one wrapper
-    assert sys.excepthook.previous is not None and not getattr(sys.excepthook.previous, "_votesplat_input_errors", False)
+    assert sys.excepthook.previous is not None and not getattr(
+        sys.excepthook.previous, "_votesplat_input_errors", False
+    )
     monkeypatch.setattr(sys, "argv", ["/venv/bin/ns-train", "votesplat", "--data", "x"])
 
     error = VoteSplatInputError("first line\n  second line")
@@ -53,7 +55,12 @@ def test_excepthook_shortens_only_input_errors(restore_excepthook, capsys, monke
     assert capsys.readouterr().err == "ns-train votesplat: error: first line; second line\n"
     assert seen == []
 
-    for other in (ValueError("plain"), FileNotFoundError(2, "No such file", "x"), RuntimeError("bug"), KeyboardInterrupt()):
+    for other in (
+        ValueError("plain"),
+        FileNotFoundError(2, "No such file", "x"),
+        RuntimeError("bug"),
+        KeyboardInterrupt(),
+    ):
         sys.excepthook(type(other), other, None)
         assert seen[-1][1] is other
     assert len(seen) == 4
@@ -63,7 +70,10 @@ def test_excepthook_shortens_only_input_errors(restore_excepthook, capsys, monke
 def test_program_name():
     assert cli_errors.program_name(["/v/bin/ns-train", "votesplat", "--data", "x"]) == "ns-train votesplat"
     assert cli_errors.program_name(["/v/bin/ns-viewer", "--load-config", "c.yml"]) == "ns-viewer"
-    assert cli_errors.program_name(["/v/bin/ns-export", "votesplat-instances", "--load-config", "c"]) == "ns-export votesplat-instances"
+    assert (
+        cli_errors.program_name(["/v/bin/ns-export", "votesplat-instances", "--load-config", "c"])
+        == "ns-export votesplat-instances"
+    )
     assert cli_errors.program_name(["/v/bin/ns-export", "gaussian-splat"]) == "ns-export"
     assert cli_errors.program_name(["/v/bin/votesplat", "click", "--view", "1"]) == "votesplat click"
     assert cli_errors.program_name(["/v/bin/votesplat-masks", "--data", "x"]) == "votesplat-masks"
@@ -94,7 +104,9 @@ def test_writable_folder_check(tmp_path, monkeypatch):
         check_writable_folder(tmp_path / "file" / "sub", "--output-dir")
     # os.access answers for this process: refuse where it says no (root may write anywhere, so simulate it)
     monkeypatch.setattr(cli_errors.os, "access", lambda path, mode: Path(path) != tmp_path)
-    with pytest.raises(VoteSplatInputError, match=rf"^--cache-dir {tmp_path}/c: cannot write in {tmp_path} \(permission denied"):
+    with pytest.raises(
+        VoteSplatInputError, match=rf"^--cache-dir {tmp_path}/c: cannot write in {tmp_path} \(permission denied"
+    ):
         check_writable_folder(tmp_path / "c", "--cache-dir")
     with pytest.raises(VoteSplatInputError, match=r"^--output-dir out/x: cannot write in"):
         check_writable_folder(tmp_path / "x", "--output-dir", given="out/x")
@@ -107,10 +119,21 @@ def test_write_errors_become_input_errors_only_for_the_folder(tmp_path):
         f"--cache-dir {tmp_path / 'cache'}: cannot write {tmp_path / 'cache' / 'entry' / 'config.json'} (Permission denied); "
         "make it writable or choose another --cache-dir"
     )
-    assert input_error_for_write(PermissionError(errno.EACCES, "x", str(tmp_path / "elsewhere")), tmp_path / "cache", "f") is None
-    assert input_error_for_write(FileNotFoundError(errno.ENOENT, "x", str(tmp_path / "cache" / "a")), tmp_path / "cache", "f") is None
+    assert (
+        input_error_for_write(PermissionError(errno.EACCES, "x", str(tmp_path / "elsewhere")), tmp_path / "cache", "f")
+        is None
+    )
+    assert (
+        input_error_for_write(
+            FileNotFoundError(errno.ENOENT, "x", str(tmp_path / "cache" / "a")), tmp_path / "cache", "f"
+        )
+        is None
+    )
     assert input_error_for_write(PermissionError(errno.EACCES, "no file name"), tmp_path / "cache", "f") is None
-    assert input_error_for_write(OSError(errno.EROFS, "Read-only file system", str(tmp_path)), tmp_path / "cache", "f") is not None
+    assert (
+        input_error_for_write(OSError(errno.EROFS, "Read-only file system", str(tmp_path)), tmp_path / "cache", "f")
+        is not None
+    )
     with pytest.raises(VoteSplatInputError, match="No space left"):
         with writing_into(tmp_path / "cache", "--cache-dir"):
             raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "cache" / "x.npy"))
@@ -151,14 +174,20 @@ def test_load_failure_reasons_never_relay_torch_advice(tmp_path):
     ],
 )
 def test_vote_schedule(start, every, start_step, steps, ok):
-    config = SimpleNamespace(vote_start_step=start, vote_every_n_steps=every, vote_loss_weight=1.0, distortion_loss_weight=0.1)
+    config = SimpleNamespace(
+        vote_start_step=start, vote_every_n_steps=every, vote_loss_weight=1.0, distortion_loss_weight=0.1
+    )
     model = SimpleNamespace(vote_only=False, config=config)
     if ok:
         check_vote_schedule(model, start_step, steps)
     else:
-        with pytest.raises(VoteSplatInputError, match=rf"^--pipeline.model.vote-start-step {start} is past the last training step"):
+        with pytest.raises(
+            VoteSplatInputError, match=rf"^--pipeline.model.vote-start-step {start} is past the last training step"
+        ):
             check_vote_schedule(model, start_step, steps)
-    check_vote_schedule(SimpleNamespace(vote_only=True, config=model.config), start_step, steps)  # a retrofit votes every step
+    check_vote_schedule(
+        SimpleNamespace(vote_only=True, config=model.config), start_step, steps
+    )  # a retrofit votes every step
     votes_off = SimpleNamespace(**{**vars(config), "vote_loss_weight": 0.0, "distortion_loss_weight": 0.0})
     check_vote_schedule(SimpleNamespace(vote_only=False, config=votes_off), start_step, steps)  # no votes, on purpose
 
@@ -226,7 +255,9 @@ def test_file_missing_while_nerfstudio_parses_becomes_one_line(monkeypatch):
         raise FileNotFoundError(2, "No such file or directory", "scene/sparse/0/cameras.bin")
 
     monkeypatch.setattr(FullImageDatamanager, "__init__", parse)
-    with pytest.raises(VoteSplatInputError, match=r"^--data .*demo: scene/sparse/0/cameras.bin not found; check that the dataset"):
+    with pytest.raises(
+        VoteSplatInputError, match=r"^--data .*demo: scene/sparse/0/cameras.bin not found; check that the dataset"
+    ):
         config_for(DEMO_SCENE).setup(device="cpu", test_mode="val")
 
     def bug(self, *args, **kwargs):

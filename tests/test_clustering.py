@@ -246,7 +246,9 @@ def test_fill_dissolves_fragments_into_their_object():
     labels[inside_left] = 3  # a 5-Gaussian fragment cluster inside the left box
     filled = fill_from_neighbours(points, labels, min_instance_fraction=0.01)
     assert len(np.unique(filled)) == 3
-    assert (filled[inside_left] == filled[np.flatnonzero(truth == 0)[~np.isin(np.flatnonzero(truth == 0), inside_left)][0]]).all()
+    assert (
+        filled[inside_left] == filled[np.flatnonzero(truth == 0)[~np.isin(np.flatnonzero(truth == 0), inside_left)][0]]
+    ).all()
     # without dissolution the fragment stays a fifth... fourth instance
     kept = fill_from_neighbours(points, labels, min_instance_fraction=0.0)
     assert len(np.unique(kept)) == 4
@@ -266,7 +268,10 @@ def test_merge_joins_a_spread_object_and_keeps_converged_neighbours_apart():
     # a flat object's votes smeared along a 1.0-long bar, cut in three pieces; two converged
     # objects 0.2 apart (closer than the bar's pieces) with tight votes
     bar = np.concatenate(
-        [np.column_stack([rng.uniform(lo, lo + 1 / 3, 300), rng.normal(0.0, 0.02, (300, 2))]) for lo in (-0.5, -1 / 6, 1 / 6)]
+        [
+            np.column_stack([rng.uniform(lo, lo + 1 / 3, 300), rng.normal(0.0, 0.02, (300, 2))])
+            for lo in (-0.5, -1 / 6, 1 / 6)
+        ]
     )
     tight = np.concatenate([rng.normal(c, 0.01, size=(300, 3)) for c in ([3.0, 0.0, 0.0], [3.2, 0.0, 0.0])])
     votes = np.concatenate([bar, tight])

@@ -6,13 +6,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from PIL import Image
 
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-
-from votesplat_ns.ns.datamanager import VoteDataManagerConfig, default_cache_dir
 from votesplat_ns.cli.masks_cli import MasksConfig, main as masks_main
 from votesplat_ns.core.vote_maps import round_half_away_from_zero
+from votesplat_ns.ns.datamanager import VoteDataManagerConfig, default_cache_dir
 
 WIDTH, HEIGHT, FRAMES = 32, 24, 3
 BORDER_ID = 3  # the instance id that touches the image border in every frame
@@ -69,8 +68,16 @@ def make_dataset(root: Path, k1: float = 0.0) -> Path:
         )
     meta = {
         "camera_model": "OPENCV",
-        "fl_x": 30.0, "fl_y": 30.0, "cx": WIDTH / 2, "cy": HEIGHT / 2, "w": WIDTH, "h": HEIGHT,
-        "k1": k1, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "fl_x": 30.0,
+        "fl_y": 30.0,
+        "cx": WIDTH / 2,
+        "cy": HEIGHT / 2,
+        "w": WIDTH,
+        "h": HEIGHT,
+        "k1": k1,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
         "frames": frames,
     }
     (root / "transforms.json").write_text(json.dumps(meta))

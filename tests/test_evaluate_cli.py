@@ -12,12 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import DEMO_SCENE  # noqa: E402  (tests/ is on sys.path under pytest)
 from PIL import Image
 
-from votesplat_ns.core.cameras import PinholeView
-from votesplat_ns.eval.evaluation import match_instances
-import votesplat_ns.cli.evaluate_cli as evaluate_cli
 import votesplat_ns.ns.evaluate as evaluate_module
+from votesplat_ns.cli import evaluate_cli
+from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.core.mask_sources import FolderMaskSource
+from votesplat_ns.eval.evaluation import match_instances
 from votesplat_ns.eval.ground_truth import (
     GroundTruthDataset,
     LabelledView,
@@ -28,11 +30,8 @@ from votesplat_ns.eval.ground_truth import (
     surface_labels,
 )
 from votesplat_ns.eval.mask_noise import MaskNoise, write_noisy_masks
-from votesplat_ns.ns.evaluate import evaluate_run, select_views
-from votesplat_ns.core.mask_sources import FolderMaskSource
 from votesplat_ns.eval.synthetic.render import read_views
-
-from conftest import DEMO_SCENE  # noqa: E402  (tests/ is on sys.path under pytest)
+from votesplat_ns.ns.evaluate import evaluate_run, select_views
 
 DEMO_INSTANCES = {1, 2, 3, 4, 5}
 DEMO_PARTS = set(range(1, 12))
@@ -125,7 +124,9 @@ def test_score_level_repeats_the_2d_scores_over_the_valid_views():
     assert valid["num_valid_views"] == 2
     assert valid["miou_valid_views"] == expected.miou
     assert valid["precision_valid_views"] == expected.precision and valid["recall_valid_views"] == expected.recall
-    assert {k: valid[k] for k in ("miou", "precision", "recall")} == {k: everything[k] for k in ("miou", "precision", "recall")}
+    assert {k: valid[k] for k in ("miou", "precision", "recall")} == {
+        k: everything[k] for k in ("miou", "precision", "recall")
+    }
     # no valid view (or none showing a GT instance): nothing to score, not a crash
     gt_in_view_2_only = [np.zeros_like(gt[0]), np.zeros_like(gt[1]), gt[2]]
     for view_ok, count in (([False, False, False], 0), ([True, True, False], 2)):
@@ -177,7 +178,9 @@ def test_eval_command_writes_consistent_metrics(demo_eval):
             assert picture.size == (2 * (128 * 2 + 4), 2 * (4 * 128 + 3 * 4))
     # a clean run: every held-out view is a real reconstruction, so the valid-view scores are the scores
     assert [view["name"] for view in metrics["per_view"]] == EVAL_VIEWS
-    assert all(view["reconstruction_ok"] and view["psnr"] > view["flat_psnr"] for view in metrics["per_view"]), metrics["per_view"]
+    assert all(view["reconstruction_ok"] and view["psnr"] > view["flat_psnr"] for view in metrics["per_view"]), metrics[
+        "per_view"
+    ]
     assert metrics["reconstruction"]["num_valid_views"] == 4
     for level in metrics["levels"].values():
         assert level["num_valid_views"] == 4 and level["miou_valid_views"] == level["miou"]
@@ -209,7 +212,9 @@ def _grey_wall_of_floaters(model, camera, count: int = 24) -> None:
     new["quats"][:, 0] = 1.0
     new["opacities"][:] = 5.0  # sigmoid: 0.993
     for name, value in new.items():
-        params[name] = torch.nn.Parameter(torch.cat([params[name].detach(), value.to(params[name].device)]), requires_grad=False)
+        params[name] = torch.nn.Parameter(
+            torch.cat([params[name].detach(), value.to(params[name].device)]), requires_grad=False
+        )
 
 
 def test_views_with_a_failed_reconstruction_are_flagged_and_scored_apart(trained_demo, tmp_path, monkeypatch, capsys):
@@ -241,7 +246,9 @@ def test_views_with_a_failed_reconstruction_are_flagged_and_scored_apart(trained
         return results[-1]
 
     monkeypatch.setattr(evaluate_cli, "evaluate_run", keep_result)
-    code, out, err = run_cli(monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", trained_demo, "--output-dir", output_dir)
+    code, out, err = run_cli(
+        monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", trained_demo, "--output-dir", output_dir
+    )
     assert code == 0, err
     metrics = json.loads((output_dir / "metrics.json").read_text())
     maps = results[0].maps
@@ -353,7 +360,17 @@ def test_eval_rejects_bad_options(trained_demo, tmp_path, monkeypatch, capsys):
     with pytest.raises(ValueError, match="min_weight"):
         evaluate_run(trained_demo, tmp_path / "b", min_weight=0.0)
     for flag, value in (("--max-psnr-drop-db", "0"), ("--max-psnr-drop-db", "nan"), ("--min-gain-db", "inf")):
-        code, _, err = run_cli(monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", trained_demo, "--output-dir", tmp_path / "c", flag, value)
+        code, _, err = run_cli(
+            monkeypatch,
+            capsys,
+            evaluate_cli.entrypoint,
+            "--load-config",
+            trained_demo,
+            "--output-dir",
+            tmp_path / "c",
+            flag,
+            value,
+        )
         assert code == 1 and flag in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "c").exists()
     with pytest.raises(ValueError, match="--gt-level needs --level"):
@@ -362,7 +379,9 @@ def test_eval_rejects_bad_options(trained_demo, tmp_path, monkeypatch, capsys):
         evaluate_module._levels_to_score(("instance", "part"), ("instance", "part"), "l", None)
     with pytest.raises(ValueError, match="--gt-level instance"):
         evaluate_module._levels_to_score(("default", "s"), ("instance", "part"), None, None)
-    assert evaluate_module._levels_to_score(("default", "s"), ("instance", "part"), "s", "instance") == [("s", "instance")]
+    assert evaluate_module._levels_to_score(("default", "s"), ("instance", "part"), "s", "instance") == [
+        ("s", "instance")
+    ]
 
 
 # ----------------------------------------------------------------------------- noisy masks
@@ -371,7 +390,15 @@ def test_eval_rejects_bad_options(trained_demo, tmp_path, monkeypatch, capsys):
 def test_noisy_masks_are_a_folder_mask_source_with_the_datasets_views(tmp_path, monkeypatch, capsys):
     out = tmp_path / "noisy"
     code, stdout, err = run_cli(
-        monkeypatch, capsys, evaluate_cli.noisy_masks_entrypoint, "--data", DEMO_SCENE, "--output", out, "--split-rate", "0.3"
+        monkeypatch,
+        capsys,
+        evaluate_cli.noisy_masks_entrypoint,
+        "--data",
+        DEMO_SCENE,
+        "--output",
+        out,
+        "--split-rate",
+        "0.3",
     )
     assert code == 0, err
     assert "--pipeline.datamanager.mask-folder" in stdout
@@ -434,7 +461,15 @@ def test_noisy_masks_bad_inputs(tmp_path, monkeypatch, capsys):
         write_noisy_masks(DEMO_SCENE, DEMO_SCENE / "noisy", MaskNoise())
     assert not (DEMO_SCENE / "noisy").exists()
     code, _, err = run_cli(
-        monkeypatch, capsys, evaluate_cli.noisy_masks_entrypoint, "--data", DEMO_SCENE, "--output", tmp_path / "x", "--split-rate", "1.5"
+        monkeypatch,
+        capsys,
+        evaluate_cli.noisy_masks_entrypoint,
+        "--data",
+        DEMO_SCENE,
+        "--output",
+        tmp_path / "x",
+        "--split-rate",
+        "1.5",
     )
     assert code == 1 and "split_rate must be a probability" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x").exists()

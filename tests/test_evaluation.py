@@ -117,7 +117,9 @@ def test_hungarian_beats_greedy():
     gt = [np.array([[1, 1, 1, 1, 2, 2]])]
     pred = [np.array([[5, 5, 5, 6, 5, 5]])]
     scores = match_instances(gt, pred)
-    iou = {(int(g), int(p)): scores.iou[i, j] for i, g in enumerate(scores.gt_ids) for j, p in enumerate(scores.pred_ids)}
+    iou = {
+        (int(g), int(p)): scores.iou[i, j] for i, g in enumerate(scores.gt_ids) for j, p in enumerate(scores.pred_ids)
+    }
     assert iou[(1, 5)] == pytest.approx(3 / 6) and iou[(2, 5)] == pytest.approx(2 / 5)
     assert iou[(1, 6)] == pytest.approx(1 / 4) and iou[(2, 6)] == 0.0
     assert scores.matches == {1: 6, 2: 5}

@@ -14,21 +14,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from test_instances import brute_force_rasterize  # noqa: E402  (tests/ is on sys.path under pytest)
 
 import votesplat_ns.ns.export as export_module
-from votesplat_ns.ns.export import (
-    SUBCOMMAND_NAME,
-    ExportVoteSplatInstances,
-    export_instances,
-    install_ns_export_hook,
-)
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.instances import InstanceSet
 from votesplat_ns.core.ply_io import read_gaussian_ply, read_ply_header
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.ns.export import SUBCOMMAND_NAME, ExportVoteSplatInstances, export_instances, install_ns_export_hook
 from votesplat_ns.ns.run import LoadedRun
-
-from test_instances import brute_force_rasterize  # noqa: E402  (tests/ is on sys.path under pytest)
 
 LEVELS = ("instance", "part")
 
@@ -82,7 +76,14 @@ def test_export_writes_a_consistent_folder(tmp_path):
     manifest = export(params, out, remove=[1])
     files = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
     assert files == sorted(
-        ["instances.json", "instance_ids.npz", "scene.ply", "scene_instance_ids.npy", "background.ply", "scene_without_1.ply"]
+        [
+            "instances.json",
+            "instance_ids.npz",
+            "scene.ply",
+            "scene_instance_ids.npy",
+            "background.ply",
+            "scene_without_1.ply",
+        ]
         + [f"instances/instance_{i:04d}.ply" for i in range(4)]
     )
     assert json.loads((out / "instances.json").read_text()) == manifest
@@ -114,14 +115,20 @@ def test_export_writes_a_consistent_folder(tmp_path):
     removed = manifest["export"]["removed"]
     assert removed["ids"] == [1] and removed["file"] == "scene_without_1.ply"
     without = read_gaussian_ply(out / "scene_without_1.ply")["means"].shape[0]
-    assert without == removed["ply_count"] == manifest["export"]["ply_counts"]["scene"] - level["instances"][1]["ply_count"]
+    assert (
+        without
+        == removed["ply_count"]
+        == manifest["export"]["ply_counts"]["scene"] - level["instances"][1]["ply_count"]
+    )
     assert manifest["export"]["picture"] is None
 
 
 def test_export_picture_with_a_renderer(tmp_path):
     params, _ = vote_scene(num_background=0)
     K = torch.tensor([[24.0, 0, 20.0], [0, 24.0, 15.0], [0, 0, 1]])
-    view = PinholeView(viewmat=torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 8], [0, 0, 0, 1]]), K=K, width=40, height=30)
+    view = PinholeView(
+        viewmat=torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 8], [0, 0, 0, 1]]), K=K, width=40, height=30
+    )
     manifest = export(params, tmp_path / "out", views=[view, view], rasterize_fn=brute_force_rasterize)
     from PIL import Image
 
@@ -138,7 +145,9 @@ def fake_splatfacto(params, sh_degree):
     model = SplatfactoModel.__new__(SplatfactoModel)
     torch.nn.Module.__init__(model)
     model.config = SplatfactoModelConfig(sh_degree=sh_degree)
-    model.gauss_params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.clone(), requires_grad=False) for k, v in params.items()})
+    model.gauss_params = torch.nn.ParameterDict(
+        {k: torch.nn.Parameter(v.clone(), requires_grad=False) for k, v in params.items()}
+    )
     return model
 
 
@@ -158,8 +167,8 @@ def test_scene_ply_is_identical_to_ns_export_gaussian_splat(tmp_path, monkeypatc
     our_header = read_ply_header(tmp_path / "ours" / "scene.ply")
     assert ns_header[0:3] == our_header[0:3]  # format, vertex count, (name, type) of every property
     assert ns_header[1] == params["means"].shape[0] - 2
-    ns_body = (tmp_path / "ns" / "splat.ply").read_bytes()[ns_header[4]:]
-    assert ns_body == (tmp_path / "ours" / "scene.ply").read_bytes()[our_header[4]:]
+    ns_body = (tmp_path / "ns" / "splat.ply").read_bytes()[ns_header[4] :]
+    assert ns_body == (tmp_path / "ours" / "scene.ply").read_bytes()[our_header[4] :]
 
 
 def test_reexport_replaces_a_previous_export(tmp_path):
@@ -229,7 +238,11 @@ def splatfacto_params():
     "make, kwargs, message",
     [
         (splatfacto_params, {}, "not trained with the votesplat method"),
-        (lambda: dict(vote_scene()[0], vote_support=torch.zeros(1260, 2)), {}, "no foreground Gaussians at vote level 'instance'"),
+        (
+            lambda: dict(vote_scene()[0], vote_support=torch.zeros(1260, 2)),
+            {},
+            "no foreground Gaussians at vote level 'instance'",
+        ),
         (lambda: vote_scene()[0], {"min_cluster_size": 5000}, "was labelled noise"),
         (lambda: vote_scene()[0], {"remove": [9]}, r"cannot remove instances \[9\]"),
         (lambda: vote_scene()[0], {"level": "object"}, "unknown vote level 'object'"),
@@ -264,19 +277,25 @@ def test_a_previous_export_is_replaced_only_without_user_files(tmp_path, monkeyp
     export(params, out, remove=[1])
     before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
     (out / "NOTES.txt").write_text("the mug is instance 2")
-    with pytest.raises(ValueError, match=rf"^output_dir {out} holds NOTES.txt, which an instance export does not write"):
+    with pytest.raises(
+        ValueError, match=rf"^output_dir {out} holds NOTES.txt, which an instance export does not write"
+    ):
         export(params, out)
     (out / "instances" / "mine").mkdir()
     with pytest.raises(ValueError, match=r"holds NOTES.txt \(and 1 more\)"):
         export(params, out)
     assert (out / "NOTES.txt").read_text() == "the mug is instance 2"
-    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != "NOTES.txt"} == before
+    assert {
+        p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != "NOTES.txt"
+    } == before
     (out / "NOTES.txt").unlink()
     (out / "instances" / "mine").rmdir()
 
     # a previous export whose folders this process may not write could not be deleted once replaced
     real_access = os.access
-    monkeypatch.setattr(export_module.os, "access", lambda path, mode: Path(path) != out / "instances" and real_access(path, mode))
+    monkeypatch.setattr(
+        export_module.os, "access", lambda path, mode: Path(path) != out / "instances" and real_access(path, mode)
+    )
     with pytest.raises(ValueError, match=rf"the previous export's folder {out / 'instances'} is not writable"):
         export(params, out)
     monkeypatch.setattr(export_module.os, "access", real_access)
@@ -293,7 +312,9 @@ def test_an_old_export_that_cannot_be_deleted_is_reported(tmp_path, monkeypatch)
         raise PermissionError(13, "Permission denied", str(path))
 
     monkeypatch.setattr(export_module.shutil, "rmtree", refuse)
-    with pytest.warns(UserWarning, match=r"could not be deleted .*Permission denied.*; delete .*\.out\.old\..* yourself"):
+    with pytest.warns(
+        UserWarning, match=r"could not be deleted .*Permission denied.*; delete .*\.out\.old\..* yourself"
+    ):
         export(params, tmp_path / "out")
 
 
@@ -326,8 +347,19 @@ def stub_pipeline(model, width=40, height=30, views=3):
 
     c2w = torch.zeros(views, 3, 4)
     c2w[:, :3, :3] = torch.eye(3)
-    c2w[:, :, 3] = torch.tensor([[x, 0.0, 8.0] for x in np.linspace(-0.5, 0.5, views)])  # looking down -z at the objects
-    cameras = Cameras(camera_to_worlds=c2w, fx=24.0, fy=24.0, cx=width / 2, cy=height / 2, width=width, height=height, camera_type=CameraType.PERSPECTIVE)
+    c2w[:, :, 3] = torch.tensor(
+        [[x, 0.0, 8.0] for x in np.linspace(-0.5, 0.5, views)]
+    )  # looking down -z at the objects
+    cameras = Cameras(
+        camera_to_worlds=c2w,
+        fx=24.0,
+        fy=24.0,
+        cx=width / 2,
+        cy=height / 2,
+        width=width,
+        height=height,
+        camera_type=CameraType.PERSPECTIVE,
+    )
 
     class Dataset:
         def __init__(self):
@@ -342,8 +374,17 @@ def stub_pipeline(model, width=40, height=30, views=3):
 def test_cli_main_with_a_loaded_pipeline(tmp_path, monkeypatch):
     params, _ = vote_scene(num_background=0)
     model = SimpleNamespace(gauss_params=params, config=SimpleNamespace(vote_levels=LEVELS, sh_degree=3))
-    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: LoadedRun(stub_pipeline(model), TrainedScene.from_model(model), 0))
-    command = ExportVoteSplatInstances(load_config=tmp_path / "config.yml", output_dir=tmp_path / "out", level="part", remove=(2,), num_views=2, picture_width=20)
+    monkeypatch.setattr(
+        export_module, "load_run", lambda *a, **k: LoadedRun(stub_pipeline(model), TrainedScene.from_model(model), 0)
+    )
+    command = ExportVoteSplatInstances(
+        load_config=tmp_path / "config.yml",
+        output_dir=tmp_path / "out",
+        level="part",
+        remove=(2,),
+        num_views=2,
+        picture_width=20,
+    )
     command.main()
     manifest = json.loads((tmp_path / "out" / "instances.json").read_text())
     assert manifest["export"]["level"] == "part" and manifest["export"]["removed"]["ids"] == [2]
@@ -360,18 +401,23 @@ def test_cli_main_with_a_loaded_pipeline(tmp_path, monkeypatch):
 
 def test_cli_main_reports_bad_input_in_one_line(tmp_path, monkeypatch, capsys):
     model = SimpleNamespace(gauss_params=splatfacto_params(), config=SimpleNamespace(sh_degree=3))
-    monkeypatch.setattr(export_module, "load_run", lambda *a, **k: LoadedRun(stub_pipeline(model), TrainedScene.from_model(model), 0))
+    monkeypatch.setattr(
+        export_module, "load_run", lambda *a, **k: LoadedRun(stub_pipeline(model), TrainedScene.from_model(model), 0)
+    )
     monkeypatch.setattr(sys, "argv", ["/venv/bin/ns-export", SUBCOMMAND_NAME, "--load-config", "c.yml"])
     with pytest.raises(SystemExit) as exit_info:
         ExportVoteSplatInstances(load_config=tmp_path / "c.yml", output_dir=tmp_path / "out", num_views=0).main()
     assert exit_info.value.code == 1
     error = capsys.readouterr().err
-    assert error.startswith("ns-export votesplat-instances: error: the checkpoint has no vote_offsets") and error.count("\n") == 1
+    assert (
+        error.startswith("ns-export votesplat-instances: error: the checkpoint has no vote_offsets")
+        and error.count("\n") == 1
+    )
     assert "not trained with the votesplat method" in error
     assert not (tmp_path / "out").exists()
 
 
-FAKE_EXPORTER = '''
+FAKE_EXPORTER = """
 from dataclasses import dataclass
 from typing import Union
 
@@ -395,7 +441,7 @@ Commands = tyro.conf.FlagConversionOff[
 
 def entrypoint(args):
     return tyro.cli(Commands, args=args)
-'''
+"""
 
 
 def subcommands(commands):
@@ -406,7 +452,11 @@ def subcommands(commands):
 @pytest.mark.parametrize("case", ["during_import", "before_import", "after_import"])
 def test_hook_extends_the_exporter_commands(tmp_path, monkeypatch, case):
     name = f"fake_exporter_{case}"
-    hook = f"import votesplat_ns.ns.export\nvotesplat_ns.ns.export.install_ns_export_hook({name!r})" if case == "during_import" else ""
+    hook = (
+        f"import votesplat_ns.ns.export\nvotesplat_ns.ns.export.install_ns_export_hook({name!r})"
+        if case == "during_import"
+        else ""
+    )
     (tmp_path / f"{name}.py").write_text(textwrap.dedent(FAKE_EXPORTER.format(hook=hook)))
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(sys, "meta_path", list(sys.meta_path))
@@ -421,7 +471,9 @@ def test_hook_extends_the_exporter_commands(tmp_path, monkeypatch, case):
         assert type(module) is type(sys)
         assert [cls.__name__ for cls in subcommands(module.Commands)] == ["Other", "Other", "ExportVoteSplatInstances"]
         parsed = entrypoint([SUBCOMMAND_NAME, "--load-config", "c.yml", "--output-dir", "o", "--remove", "1", "2"])
-        assert isinstance(parsed, ExportVoteSplatInstances) and parsed.remove == (1, 2) and parsed.output_dir == Path("o")
+        assert (
+            isinstance(parsed, ExportVoteSplatInstances) and parsed.remove == (1, 2) and parsed.output_dir == Path("o")
+        )
         assert entrypoint(["other", "--x", "3"]).main() == 3
     finally:
         sys.modules.pop(name, None)
@@ -436,15 +488,34 @@ def test_ns_export_lists_the_votesplat_subcommand():
     ns_export = console_script("ns-export")
     assert ns_export, "ns-export is not installed next to this Python"
     env = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
-    result = subprocess.run([ns_export, SUBCOMMAND_NAME, "--help"], capture_output=True, check=False, text=True, env=env, timeout=600)
+    result = subprocess.run(
+        [ns_export, SUBCOMMAND_NAME, "--help"], capture_output=True, check=False, text=True, env=env, timeout=600
+    )
     assert result.returncode == 0, result.stderr[-2000:]
-    for option in ("--load-config", "--output-dir", "--level", "--remove", "--min-cluster-size", "--min-samples", "--max-points", "--noise", "--num-views"):
+    for option in (
+        "--load-config",
+        "--output-dir",
+        "--level",
+        "--remove",
+        "--min-cluster-size",
+        "--min-samples",
+        "--max-points",
+        "--noise",
+        "--num-views",
+    ):
         assert option in result.stdout, option
 
 
 def test_votesplat_export_console_script():
     script = console_script("votesplat-export")
     assert script, "votesplat-export is not installed (pip install -e .)"
-    result = subprocess.run([script, "--help"], capture_output=True, check=False, text=True, env=dict(os.environ, COLUMNS="200"), timeout=600)
+    result = subprocess.run(
+        [script, "--help"],
+        capture_output=True,
+        check=False,
+        text=True,
+        env=dict(os.environ, COLUMNS="200"),
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     assert "--load-config" in result.stdout and "--remove" in result.stdout

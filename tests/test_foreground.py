@@ -34,7 +34,9 @@ def per_gaussian_weights(scene, viewmat, K):
     """[H, W, N] alpha*T of every Gaussian at every pixel: one one-hot colour channel per Gaussian."""
     means, quats, scales, opacities = scene
     n = means.shape[0]
-    render, _, _ = rasterize_torch(means, quats, scales, opacities, torch.eye(n, dtype=means.dtype), viewmat[None], K[None], WIDTH, HEIGHT)
+    render, _, _ = rasterize_torch(
+        means, quats, scales, opacities, torch.eye(n, dtype=means.dtype), viewmat[None], K[None], WIDTH, HEIGHT
+    )
     return render[0]
 
 
@@ -94,7 +96,9 @@ def test_object_cut_by_the_frame_in_all_views_but_one_stays_foreground():
     generator = torch.Generator().manual_seed(5)
     # a 2 x 1.6 slab of small opaque Gaussians in front of the camera, at depth 4 +- 0.3
     n = 400
-    means = torch.rand(n, 3, generator=generator, dtype=torch.float64) * torch.tensor([2.0, 1.6, 0.6], dtype=torch.float64)
+    means = torch.rand(n, 3, generator=generator, dtype=torch.float64) * torch.tensor(
+        [2.0, 1.6, 0.6], dtype=torch.float64
+    )
     means -= torch.tensor([1.0, 0.8, -3.7], dtype=torch.float64)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64).repeat(n, 1)
     scales = torch.full((n, 3), 0.08, dtype=torch.float64)
@@ -106,10 +110,14 @@ def test_object_cut_by_the_frame_in_all_views_but_one_stays_foreground():
         K = K.clone()
         # the first view sees the whole slab; the others are zoomed in so that it overflows the frame
         K[0, 0] = K[1, 1] = 12.0 if yaw == 0.0 else 40.0
-        alpha = rasterize_torch(*scene, torch.ones(n, 1, dtype=torch.float64), viewmat[None], K[None], WIDTH, HEIGHT)[1][0, ..., 0]
+        alpha = rasterize_torch(*scene, torch.ones(n, 1, dtype=torch.float64), viewmat[None], K[None], WIDTH, HEIGHT)[
+            1
+        ][0, ..., 0]
         object_mask = (alpha > 0.5).numpy().astype(np.int32)
         views.append((viewmat, K, object_mask))
-        touching.append(bool(object_mask[0].any() or object_mask[-1].any() or object_mask[:, 0].any() or object_mask[:, -1].any()))
+        touching.append(
+            bool(object_mask[0].any() or object_mask[-1].any() or object_mask[:, 0].any() or object_mask[:, -1].any())
+        )
     assert touching == [False, True, True, True, True]
 
     def foreground_share(rule: str) -> float:

@@ -27,9 +27,15 @@ def brute_force_rasterize(means, quats, scales, opacities, colors, viewmats, Ks,
     w, x, y, z = q.unbind(-1)
     rot = torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(-1, 3, 3)
@@ -45,7 +51,9 @@ def brute_force_rasterize(means, quats, scales, opacities, colors, viewmats, Ks,
     cov2d = jac @ cov_cam @ jac.transpose(1, 2) + 0.3 * torch.eye(2, dtype=torch.float64)
     conic = torch.linalg.inv(cov2d)
     mean2d = torch.stack([fx * tx / tz + cx, fy * ty / tz + cy], dim=-1)
-    py, px = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
+    py, px = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
     pixels = torch.stack([px + 0.5, py + 0.5], dim=-1).reshape(-1, 2)
     out = torch.zeros(pixels.shape[0], colors.shape[-1], dtype=torch.float64)
     transmittance = torch.ones(pixels.shape[0], dtype=torch.float64)
@@ -54,7 +62,9 @@ def brute_force_rasterize(means, quats, scales, opacities, colors, viewmats, Ks,
         if tz[i] <= 0.01:
             continue
         d = mean2d[i] - pixels
-        sigma = 0.5 * (conic[i, 0, 0] * d[:, 0] ** 2 + conic[i, 1, 1] * d[:, 1] ** 2) + conic[i, 0, 1] * d[:, 0] * d[:, 1]
+        sigma = (
+            0.5 * (conic[i, 0, 0] * d[:, 0] ** 2 + conic[i, 1, 1] * d[:, 1] ** 2) + conic[i, 0, 1] * d[:, 0] * d[:, 1]
+        )
         alpha = torch.clamp(opacities[i].double() * torch.exp(-sigma), max=0.99)
         use = active & (sigma >= 0) & (alpha >= 1.0 / 255.0)
         next_t = transmittance * (1 - alpha)
@@ -101,37 +111,79 @@ def test_render_instance_ids_occlusion_and_threshold():
     assert 2 not in id_map.unique().tolist()
 
     # the rule: argmax of the accumulated weights where it reaches min_weight
-    weights, _, _ = brute_force_rasterize(means, quats, scales, opacities, torch.nn.functional.one_hot(ids.clamp(min=0), 3).float() * (ids >= 0)[:, None], VIEWMAT[None], K[None], WIDTH, HEIGHT)
+    weights, _, _ = brute_force_rasterize(
+        means,
+        quats,
+        scales,
+        opacities,
+        torch.nn.functional.one_hot(ids.clamp(min=0), 3).float() * (ids >= 0)[:, None],
+        VIEWMAT[None],
+        K[None],
+        WIDTH,
+        HEIGHT,
+    )
     best, arg = weights[0].max(-1)
     for min_weight in (0.5, 0.2, 0.9):
         expected = torch.where(best >= min_weight, arg, torch.full_like(arg, -1))
-        got = render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, ids.numpy(), VIEWMAT, K, WIDTH, HEIGHT, min_weight=min_weight)
+        got = render_instance_ids(
+            brute_force_rasterize,
+            means,
+            quats,
+            scales,
+            opacities,
+            ids.numpy(),
+            VIEWMAT,
+            K,
+            WIDTH,
+            HEIGHT,
+            min_weight=min_weight,
+        )
         assert torch.equal(got, expected)
-    assert (render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT, min_weight=0.2) >= 0).sum() > (id_map >= 0).sum()
+    assert (
+        render_instance_ids(
+            brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT, min_weight=0.2
+        )
+        >= 0
+    ).sum() > (id_map >= 0).sum()
 
 
 def test_render_instance_ids_is_independent_of_chunking_and_id_values():
     rng = np.random.default_rng(0)
-    rows = [(rng.uniform(-1, 1), rng.uniform(-0.7, 0.7), rng.uniform(2.5, 4), 0.12, 0.9, int(rng.integers(-1, 6))) for _ in range(40)]
+    rows = [
+        (rng.uniform(-1, 1), rng.uniform(-0.7, 0.7), rng.uniform(2.5, 4), 0.12, 0.9, int(rng.integers(-1, 6)))
+        for _ in range(40)
+    ]
     means, quats, scales, opacities, ids = gaussians(rows)
-    one_pass = render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT)
-    per_instance = render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT, channels_per_pass=1)
+    one_pass = render_instance_ids(
+        brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT
+    )
+    per_instance = render_instance_ids(
+        brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT, channels_per_pass=1
+    )
     assert torch.equal(one_pass, per_instance)
     assert len(one_pass.unique()) > 3
     # sparse, large ids work the same as compact ones
     sparse = torch.where(ids >= 0, ids * 1000 + 7, ids)
-    sparse_map = render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, sparse, VIEWMAT, K, WIDTH, HEIGHT, channels_per_pass=2)
+    sparse_map = render_instance_ids(
+        brute_force_rasterize, means, quats, scales, opacities, sparse, VIEWMAT, K, WIDTH, HEIGHT, channels_per_pass=2
+    )
     assert torch.equal(sparse_map, torch.where(one_pass >= 0, one_pass * 1000 + 7, one_pass))
-    nothing = render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, torch.full_like(ids, -1), VIEWMAT, K, WIDTH, HEIGHT)
+    nothing = render_instance_ids(
+        brute_force_rasterize, means, quats, scales, opacities, torch.full_like(ids, -1), VIEWMAT, K, WIDTH, HEIGHT
+    )
     assert (nothing == -1).all()
 
 
 def test_render_instance_ids_bad_input():
     means, quats, scales, opacities, ids = gaussians([(0, 0, 3, 0.2, 0.9, 0)])
     with pytest.raises(ValueError, match="min_weight"):
-        render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT, min_weight=0)
+        render_instance_ids(
+            brute_force_rasterize, means, quats, scales, opacities, ids, VIEWMAT, K, WIDTH, HEIGHT, min_weight=0
+        )
     with pytest.raises(ValueError, match="entries for 1 Gaussians"):
-        render_instance_ids(brute_force_rasterize, means, quats, scales, opacities, torch.tensor([0, 1]), VIEWMAT, K, WIDTH, HEIGHT)
+        render_instance_ids(
+            brute_force_rasterize, means, quats, scales, opacities, torch.tensor([0, 1]), VIEWMAT, K, WIDTH, HEIGHT
+        )
 
 
 def make_level(name="instance", seed=0):
@@ -188,7 +240,9 @@ def test_validate_catches_broken_invariants():
 def test_parent_links_and_level_lookup():
     n = 8
     means = np.zeros((n, 3))
-    coarse = LevelInstances.from_ids("instance", np.array([0, 0, 0, 0, 1, 1, 1, -1]), np.array([1, 1, 1, 1, 1, 1, 1, 0], bool), means, means)
+    coarse = LevelInstances.from_ids(
+        "instance", np.array([0, 0, 0, 0, 1, 1, 1, -1]), np.array([1, 1, 1, 1, 1, 1, 1, 0], bool), means, means
+    )
     fine = LevelInstances.from_ids("part", np.array([0, 0, 1, 1, 2, 2, 3, 3]), np.ones(n, bool), means, means)
     fine.link_parents(coarse)
     # part 3 has one Gaussian in instance 1 and one in none: Gaussians without a parent cannot vote
@@ -199,7 +253,12 @@ def test_parent_links_and_level_lookup():
     np.testing.assert_array_equal(orphan.parents, [-1])
     instances = InstanceSet([coarse, fine], n)
     instances.validate()
-    assert instances.level("part") is fine and instances.level(1) is fine and instances.level("1") is fine and instances.level(None) is coarse
+    assert (
+        instances.level("part") is fine
+        and instances.level(1) is fine
+        and instances.level("1") is fine
+        and instances.level(None) is coarse
+    )
     with pytest.raises(ValueError, match="unknown vote level 'object'"):
         instances.level("object")
     assert instances.level("-1") is fine and instances.level_index(-1) == 1  # negative indices count from the end
@@ -212,14 +271,19 @@ def test_save_and_load_round_trip(tmp_path):
     part, _, _ = make_level("part", seed=2)
     instances = InstanceSet([level, part], 60, parent_levels=[None, "instance"])
     part.link_parents(level)
-    manifest = instances.save(tmp_path, instance_extra={"instance": {0: {"file": "instances/instance_0000.ply"}}}, extra={"note": np.int64(3)})
+    manifest = instances.save(
+        tmp_path, instance_extra={"instance": {0: {"file": "instances/instance_0000.ply"}}}, extra={"note": np.int64(3)}
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([MANIFEST_NAME, IDS_NAME])
     on_disk = json.loads((tmp_path / MANIFEST_NAME).read_text())
     assert on_disk == manifest and on_disk["note"] == 3
     assert on_disk["levels"][0]["instances"][0]["file"] == "instances/instance_0000.ply"
     assert on_disk["levels"][1]["parent_level"] == "instance"
     assert on_disk["levels"][0]["num_noise"] == 3
-    assert sum(i["count"] for i in on_disk["levels"][0]["instances"]) + on_disk["levels"][0]["num_noise"] == on_disk["levels"][0]["num_foreground"]
+    assert (
+        sum(i["count"] for i in on_disk["levels"][0]["instances"]) + on_disk["levels"][0]["num_noise"]
+        == on_disk["levels"][0]["num_foreground"]
+    )
     loaded = InstanceSet.load(tmp_path)
     loaded.validate()
     assert loaded.level_names == ("instance", "part")

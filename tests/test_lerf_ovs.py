@@ -9,6 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from votesplat_ns.core.semantics import instance_features, query_text, select_instances
 from votesplat_ns.eval.lerf_ovs import (
     LabelFrame,
     LabelWarning,
@@ -28,7 +29,6 @@ from votesplat_ns.eval.lerf_ovs import (
     summarise_scenes,
     write_label_frame,
 )
-from votesplat_ns.core.semantics import instance_features, query_text, select_instances
 
 LOCAL_LABELS = Path(__file__).resolve().parent / "data" / "lerf_ovs"
 SHARED_LABELS = Path(__file__).resolve().parents[2] / "shared" / "data" / "lerf_ovs_labels"
@@ -50,7 +50,13 @@ def _assert_masks_match_area_fields(frame: LabelFrame):
         assert obj.area == pytest.approx(polygon_area(obj.polygon), abs=0.5)
         count = int(rasterise_polygon(obj.polygon, frame.width, frame.height).sum())
         perimeter = polygon_perimeter(obj.polygon)
-        assert obj.area + perimeter / 4 <= count <= obj.area + perimeter, (frame.name, obj.category, count, obj.area, perimeter)
+        assert obj.area + perimeter / 4 <= count <= obj.area + perimeter, (
+            frame.name,
+            obj.category,
+            count,
+            obj.area,
+            perimeter,
+        )
 
 
 def _langsplat_masks(label_path: Path):
@@ -105,14 +111,17 @@ def test_rasterisation_convention_on_hand_polygons():
     # A slanted edge: cv2 draws the hypotenuse (7, 1) -> (1, 4) as an 8-connected line, one pixel per
     # column at y = 1 + (7 - x) / 2 rounded half up (x=6 -> row 2, x=4 -> row 3, x=2 -> row 4), and
     # fills each row out to that line, so rows 2..4 end at x = 6, 4, 2 and the outline is included.
-    triangle_mask = np.array([
-        [0, 0, 0, 0, 0, 0, 0, 0, 0],
-        [0, 1, 1, 1, 1, 1, 1, 1, 0],
-        [0, 1, 1, 1, 1, 1, 1, 0, 0],
-        [0, 1, 1, 1, 1, 0, 0, 0, 0],
-        [0, 1, 1, 0, 0, 0, 0, 0, 0],
-        [0, 0, 0, 0, 0, 0, 0, 0, 0],
-    ], dtype=bool)
+    triangle_mask = np.array(
+        [
+            [0, 0, 0, 0, 0, 0, 0, 0, 0],
+            [0, 1, 1, 1, 1, 1, 1, 1, 0],
+            [0, 1, 1, 1, 1, 1, 1, 0, 0],
+            [0, 1, 1, 1, 1, 0, 0, 0, 0],
+            [0, 1, 1, 0, 0, 0, 0, 0, 0],
+            [0, 0, 0, 0, 0, 0, 0, 0, 0],
+        ],
+        dtype=bool,
+    )
     assert np.array_equal(rasterise_polygon(((1, 1), (7, 1), (1, 4)), 9, 6), triangle_mask)
     # The same triangle with fractional vertices: truncated (rounding would move (7.5, 1) to column 8
     # and (1, 4.99) to row 5).
@@ -145,7 +154,9 @@ def test_real_label_files_parse_and_masks_match_their_area_fields():
 
 
 def test_rasterisation_matches_langsplats_masks_pixel_for_pixel_on_the_local_labels():
-    objects, pixels = _assert_pixel_exact_against_langsplat(sorted((LOCAL_LABELS / "waldo_kitchen").glob("frame_*.json")))
+    objects, pixels = _assert_pixel_exact_against_langsplat(
+        sorted((LOCAL_LABELS / "waldo_kitchen").glob("frame_*.json"))
+    )
     assert objects > 10 and pixels > 10_000
 
 
@@ -208,11 +219,13 @@ def _raw_object(category, points):
 
 
 def test_polygons_with_fewer_than_three_vertices_are_skipped_with_a_warning():
-    raw = _raw_frame([
-        _raw_object("cup", [(1, 1), (4, 1), (4, 4)]),
-        _raw_object("cup", [(6, 6), (7, 7)]),
-        _raw_object("spoon", []),
-    ])
+    raw = _raw_frame(
+        [
+            _raw_object("cup", [(1, 1), (4, 1), (4, 4)]),
+            _raw_object("cup", [(6, 6), (7, 7)]),
+            _raw_object("spoon", []),
+        ]
+    )
     with pytest.warns(LabelWarning) as caught:
         frame = parse_label_frame(raw, source="hand.json")
     assert len(caught) == 2 and "hand.json" in str(caught[0].message)
@@ -225,15 +238,18 @@ def test_polygons_with_fewer_than_three_vertices_are_skipped_with_a_warning():
         assert category_masks(outside) == {}
 
 
-@pytest.mark.parametrize("raw, message", [
-    ({"objects": []}, "needs top-level 'info'"),
-    ({"info": {"name": "f.jpg", "width": 0, "height": 3}, "objects": []}, "positive integer"),
-    ({"info": {"name": "f.jpg", "width": 4}, "objects": []}, "no 'height'"),
-    (_raw_frame([_raw_object("", [(0, 0), (1, 0), (1, 1)])]), "no category"),
-    (_raw_frame([{"category": "cup", "segmentation": [[0, 0], [1], [1, 1]]}]), "not an \\[x, y\\] pair"),
-    (_raw_frame([{"category": "cup", "segmentation": [[0, 0], [1, float("nan")], [1, 1]]}]), "finite"),
-    (_raw_frame([{"category": "cup", "segmentation": [[0, 0], [1, 0], [1, 1]], "bbox": [0, 1]}]), "bbox"),
-])
+@pytest.mark.parametrize(
+    "raw, message",
+    [
+        ({"objects": []}, "needs top-level 'info'"),
+        ({"info": {"name": "f.jpg", "width": 0, "height": 3}, "objects": []}, "positive integer"),
+        ({"info": {"name": "f.jpg", "width": 4}, "objects": []}, "no 'height'"),
+        (_raw_frame([_raw_object("", [(0, 0), (1, 0), (1, 1)])]), "no category"),
+        (_raw_frame([{"category": "cup", "segmentation": [[0, 0], [1], [1, 1]]}]), "not an \\[x, y\\] pair"),
+        (_raw_frame([{"category": "cup", "segmentation": [[0, 0], [1, float("nan")], [1, 1]]}]), "finite"),
+        (_raw_frame([{"category": "cup", "segmentation": [[0, 0], [1, 0], [1, 1]], "bbox": [0, 1]}]), "bbox"),
+    ],
+)
 def test_malformed_labels_are_clear_errors(raw, message):
     with pytest.raises(ValueError, match=message):
         parse_label_frame(raw)
@@ -264,14 +280,17 @@ def test_mask_iou_and_silhouette_threshold_on_hand_cases():
 
     accumulation = np.array([[0.7, 0.71], [0.0, 1.0]])
     assert silhouette_mask(accumulation).tolist() == [[False, True], [False, True]]
-    assert silhouette_mask(torch.tensor(accumulation)[..., None], threshold=0.5).tolist() == [[True, True], [False, True]]
+    assert silhouette_mask(torch.tensor(accumulation)[..., None], threshold=0.5).tolist() == [
+        [True, True],
+        [False, True],
+    ]
     with pytest.raises(ValueError, match="non-finite"):
         silhouette_mask(np.array([[np.nan]]))
 
 
 def _square(shape, top, left, size):
     mask = np.zeros(shape, dtype=bool)
-    mask[top:top + size, left:left + size] = True
+    mask[top : top + size, left : left + size] = True
     return mask
 
 
@@ -279,7 +298,9 @@ def test_scene_metrics_on_a_hand_scene():
     shape = (20, 30)
     frame_a = frame_from_masks("frame_00001.jpg", {"cup": _square(shape, 2, 2, 4), "plate": _square(shape, 10, 10, 4)})
     frame_b = frame_from_masks("frame_00002.jpg", {"cup": _square(shape, 0, 20, 6)})
-    truth = {(frame.stem, category): mask for frame in (frame_a, frame_b) for category, mask in category_masks(frame).items()}
+    truth = {
+        (frame.stem, category): mask for frame in (frame_a, frame_b) for category, mask in category_masks(frame).items()
+    }
 
     def predict(frame, text):
         gt = truth[(frame.stem, text)]
@@ -291,7 +312,10 @@ def test_scene_metrics_on_a_hand_scene():
 
     score = evaluate_scene([frame_a, frame_b], predict, scene="hand")
     assert [(q.frame, q.category) for q in score.queries] == [
-        ("frame_00001", "cup"), ("frame_00001", "plate"), ("frame_00002", "cup")]
+        ("frame_00001", "cup"),
+        ("frame_00001", "plate"),
+        ("frame_00002", "cup"),
+    ]
     assert [q.iou for q in score.queries] == [1.0, 0.25, 0.0]
     assert score.miou == pytest.approx((1.0 + 0.25 + 0.0) / 3)
     assert score.accuracy(0.25) == pytest.approx(1 / 3)
@@ -344,13 +368,18 @@ def test_writer_round_trips_real_label_files(tmp_path):
 def test_masks_written_as_labels_come_back_unchanged(tmp_path):
     rng = np.random.default_rng(3)
     shape = (24, 32)
-    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
     disc = (rows - 8) ** 2 + (cols - 9) ** 2 <= 30
     ring_with_hole = ((rows - 15) ** 2 + (cols - 24) ** 2 <= 40) & ((rows - 15) ** 2 + (cols - 24) ** 2 > 6)
     speckles = rng.random(shape) < 0.04  # many one- and two-pixel components
     two_pieces = _square(shape, 18, 2, 3) | _square(shape, 18, 8, 2)
-    masks = {"disc": disc, "ring": ring_with_hole, "speckles": speckles & ~disc & ~ring_with_hole,
-             "pieces": [two_pieces, _square(shape, 0, 28, 3)], "hidden": np.zeros(shape, bool)}
+    masks = {
+        "disc": disc,
+        "ring": ring_with_hole,
+        "speckles": speckles & ~disc & ~ring_with_hole,
+        "pieces": [two_pieces, _square(shape, 0, 28, 3)],
+        "hidden": np.zeros(shape, bool),
+    }
 
     frame = frame_from_masks("frame_00012.jpg", masks)
     write_label_frame(tmp_path / "frame_00012.json", frame)
@@ -361,7 +390,7 @@ def test_masks_written_as_labels_come_back_unchanged(tmp_path):
     assert np.array_equal(got["disc"], disc)
     assert np.array_equal(got["speckles"], masks["speckles"])
     assert np.array_equal(got["pieces"], two_pieces | _square(shape, 0, 28, 3))
-    hole = ((rows - 15) ** 2 + (cols - 24) ** 2 <= 6)
+    hole = (rows - 15) ** 2 + (cols - 24) ** 2 <= 6
     assert np.array_equal(got["ring"], ring_with_hole | hole)  # the format has no holes: they are filled
     assert sum(obj.category == "pieces" for obj in loaded.objects) == 3  # one object per component
 
@@ -408,16 +437,18 @@ def test_synthetic_scene_scored_end_to_end_with_text_selection(tmp_path):
     instance_maps, images = [], []
     for view, shift in enumerate((0, 3)):
         instance_map = np.full(shape, -1, dtype=np.int64)
-        instance_map[2 + shift:12 + shift, 3:15] = 0
-        instance_map[15:27, 5 + shift:20 + shift] = 1
-        instance_map[4:24, 25:36 - shift] = 2
+        instance_map[2 + shift : 12 + shift, 3:15] = 0
+        instance_map[15:27, 5 + shift : 20 + shift] = 1
+        instance_map[4:24, 25 : 36 - shift] = 2
         image = np.full(shape + (3,), 100, dtype=np.uint8)
         for instance, colour in colours.items():
             image[instance_map == instance] = colour
         instance_maps.append(instance_map)
         images.append(image)
         masks = {names[i]: instance_map == i for i in names}
-        write_label_frame(tmp_path / "synthetic" / f"frame_{view + 1:05d}.json", frame_from_masks(f"frame_{view + 1:05d}.jpg", masks))
+        write_label_frame(
+            tmp_path / "synthetic" / f"frame_{view + 1:05d}.json", frame_from_masks(f"frame_{view + 1:05d}.jpg", masks)
+        )
 
     encoder = _ColourEncoder()
     features = instance_features(images, instance_maps, encoder, min_pixels=16)

@@ -11,7 +11,6 @@ from votesplat_ns.core.mask_consensus import (
     drop_unmasked,
     merge_agreeing,
     regroup_with_masks,
-    seen_mask_table,
     seen_pixels,
     sitting_masks,
     split_deviants,

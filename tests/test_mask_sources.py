@@ -117,7 +117,11 @@ def test_dataset_source_reads_frame_label_paths_and_matches_downscaled_images(tm
     part[4:8, 6:14] = 2
     write_png(tmp_path / "instances" / "f1.png", instance)
     write_png(tmp_path / "parts" / "f1.png", part)
-    meta = {"frames": [{"file_path": "images/f1.png", "instance_mask_path": "instances/f1.png", "part_mask_path": "parts/f1.png"}]}
+    meta = {
+        "frames": [
+            {"file_path": "images/f1.png", "instance_mask_path": "instances/f1.png", "part_mask_path": "parts/f1.png"}
+        ]
+    }
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     assert DatasetMaskSource.has_masks(tmp_path)
 
@@ -152,8 +156,17 @@ def tiny_sam(seed: int = 0):
     grid = image_size // patch
     return Sam(
         image_encoder=ImageEncoderViT(
-            img_size=image_size, patch_size=patch, embed_dim=32, depth=1, num_heads=2, mlp_ratio=2, out_chans=dim,
-            qkv_bias=True, norm_layer=partial(torch.nn.LayerNorm, eps=1e-6), use_rel_pos=True, window_size=0,
+            img_size=image_size,
+            patch_size=patch,
+            embed_dim=32,
+            depth=1,
+            num_heads=2,
+            mlp_ratio=2,
+            out_chans=dim,
+            qkv_bias=True,
+            norm_layer=partial(torch.nn.LayerNorm, eps=1e-6),
+            use_rel_pos=True,
+            window_size=0,
             global_attn_indexes=(0,),
         ),
         prompt_encoder=PromptEncoder(
@@ -162,7 +175,9 @@ def tiny_sam(seed: int = 0):
         mask_decoder=MaskDecoder(
             num_multimask_outputs=3,
             transformer=TwoWayTransformer(depth=1, embedding_dim=dim, mlp_dim=64, num_heads=2),
-            transformer_dim=dim, iou_head_depth=2, iou_head_hidden_dim=32,
+            transformer_dim=dim,
+            iou_head_depth=2,
+            iou_head_hidden_dim=32,
         ),
     ).eval()
 
@@ -185,7 +200,9 @@ def one_torch_thread():
 
 def test_sam_source_end_to_end_with_tiny_random_sam(one_torch_thread):
     sam = tiny_sam()
-    options = dict(points_per_side=3, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=0, min_mask_region_area=0)
+    options = dict(
+        points_per_side=3, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=0, min_mask_region_area=0
+    )
     source = SamMaskSource(sam_model=sam, device="cpu", **options)
     assert source.levels == ("default", "s", "m", "l")
     image = blocks_image()
@@ -212,7 +229,9 @@ def test_sam_source_end_to_end_with_tiny_random_sam(one_torch_thread):
 def test_sam_source_view_without_any_mask_gives_empty_labels(one_torch_thread):
     # with crops, segment_anything 1.0 itself crashes in its cross-crop NMS when no crop keeps a mask
     sam = tiny_sam()
-    options = dict(points_per_side=2, pred_iou_thresh=2.0, stability_score_thresh=0.0, crop_n_layers=1, min_mask_region_area=0)
+    options = dict(
+        points_per_side=2, pred_iou_thresh=2.0, stability_score_thresh=0.0, crop_n_layers=1, min_mask_region_area=0
+    )
     source = SamMaskSource(sam_model=sam, device="cpu", levels=("default", "m"), **options)
     labels = source.masks_for_image(blocks_image(), "blocks.png", 0)
     assert [level.shape for level in labels] == [(24, 32), (24, 32)]
@@ -243,6 +262,8 @@ def test_broken_sam_checkpoint_fails_with_one_line(tmp_path):
     broken.write_bytes(b"not a checkpoint")
     source = SamMaskSource(checkpoint=broken, model_type="vit_b", device="cpu")
     assert source.config_key()["checkpoint_name"] == "sam_vit_b_01ec64.pth"
-    with pytest.raises(ValueError, match=r"could not load SAM checkpoint .*sam_vit_b_01ec64\.pth .*not a PyTorch weights file") as error:
+    with pytest.raises(
+        ValueError, match=r"could not load SAM checkpoint .*sam_vit_b_01ec64\.pth .*not a PyTorch weights file"
+    ) as error:
         source.masks_for_image(blocks_image(), "blocks.png", 0)
     assert "weights_only" not in str(error.value)

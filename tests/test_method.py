@@ -39,7 +39,11 @@ def own_fields(cls, base) -> dict:
     docstrings = {}
     for statement, following in zip(body, body[1:] + [None]):
         if isinstance(statement, ast.AnnAssign) and isinstance(statement.target, ast.Name):
-            is_doc = isinstance(following, ast.Expr) and isinstance(following.value, ast.Constant) and isinstance(following.value.value, str)
+            is_doc = (
+                isinstance(following, ast.Expr)
+                and isinstance(following.value, ast.Constant)
+                and isinstance(following.value.value, str)
+            )
             docstrings[statement.target.id] = following.value.value if is_doc else None
     inherited = {f.name for f in dataclasses.fields(base)}
     return {name: doc for name, doc in docstrings.items() if name not in inherited and not name.startswith("_")}
@@ -52,7 +56,10 @@ def test_own_options_have_short_complete_docstrings():
 
     from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 
-    for cls, base in ((VoteDataManagerConfig, FullImageDatamanagerConfig), (VoteSplatModelConfig, SplatfactoModelConfig)):
+    for cls, base in (
+        (VoteDataManagerConfig, FullImageDatamanagerConfig),
+        (VoteSplatModelConfig, SplatfactoModelConfig),
+    ):
         fields = own_fields(cls, base)
         assert len(fields) >= 10
         for name, doc in fields.items():
@@ -61,13 +68,23 @@ def test_own_options_have_short_complete_docstrings():
 
 def test_help_starts_by_naming_the_methods_own_options():
     env = dict(os.environ, COLUMNS="100", PYTHONWARNINGS="ignore")
-    result = subprocess.run([str(Path(sys.executable).parent / "ns-train"), "votesplat", "--help"], capture_output=True, check=False,
-                            text=True, env=env, timeout=600)
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "ns-train"), "votesplat", "--help"],
+        capture_output=True,
+        check=False,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     lines = [line.strip(" │") for line in result.stdout.splitlines()]  # tyro's boxes
     top = " ".join(lines[:20])
-    for words in ("--pipeline.model.vote-start-step", "--pipeline.datamanager.mask-source", "--pipeline.model.retrofit-from",
-                  "'Troubleshooting'"):
+    for words in (
+        "--pipeline.model.vote-start-step",
+        "--pipeline.datamanager.mask-source",
+        "--pipeline.model.retrofit-from",
+        "'Troubleshooting'",
+    ):
         assert words in top, top
     # every option and README section the description names exists
     named_flags = set(re.findall(r"--pipeline\.[a-z.-]+[a-z]", VOTESPLAT_DESCRIPTION))

@@ -32,7 +32,16 @@ def random_params(n=50, k=15, seed=0):
 
 
 def write(path, p, **kwargs):
-    return write_gaussian_ply(path, p["means"], p["features_dc"], p["features_rest"], p["opacity_logits"], p["log_scales"], p["quats"], **kwargs)
+    return write_gaussian_ply(
+        path,
+        p["means"],
+        p["features_dc"],
+        p["features_rest"],
+        p["opacity_logits"],
+        p["log_scales"],
+        p["quats"],
+        **kwargs,
+    )
 
 
 def test_round_trip_every_field_with_plyfile(tmp_path):
@@ -52,15 +61,22 @@ def test_round_trip_every_field_with_plyfile(tmp_path):
     assert all(vertex.data.dtype[name] == np.dtype("<f4") for name in names)
     rest = p["features_rest"][expected_rows].transpose(0, 2, 1).reshape(len(expected_rows), 45)  # channel-major
     expected = {
-        "x": p["means"][expected_rows, 0], "y": p["means"][expected_rows, 1], "z": p["means"][expected_rows, 2],
-        "nx": 0, "ny": 0, "nz": 0, "opacity": p["opacity_logits"][expected_rows],
+        "x": p["means"][expected_rows, 0],
+        "y": p["means"][expected_rows, 1],
+        "z": p["means"][expected_rows, 2],
+        "nx": 0,
+        "ny": 0,
+        "nz": 0,
+        "opacity": p["opacity_logits"][expected_rows],
     }
     expected.update({f"f_dc_{i}": p["features_dc"][expected_rows, i] for i in range(3)})
     expected.update({f"f_rest_{i}": rest[:, i] for i in range(45)})
     expected.update({f"scale_{i}": p["log_scales"][expected_rows, i] for i in range(3)})
     expected.update({f"rot_{i}": p["quats"][expected_rows, i] for i in range(4)})
     for name in names:
-        np.testing.assert_array_equal(vertex[name], np.broadcast_to(expected[name], (len(expected_rows),)), err_msg=name)
+        np.testing.assert_array_equal(
+            vertex[name], np.broadcast_to(expected[name], (len(expected_rows),)), err_msg=name
+        )
 
     back = read_gaussian_ply(tmp_path / "a.ply")
     for key in ("means", "features_dc", "features_rest", "log_scales", "quats", "opacity_logits"):
@@ -115,13 +131,15 @@ def test_header_and_bytes_match_nerfstudio_writer(tmp_path):
     ours = read_ply_header(tmp_path / "ours.ply")
     assert (fmt, count, props) == ours[:3]
     assert "Vertical Axis: z" in ours[3]
-    assert (tmp_path / "ns.ply").read_bytes()[ns_offset:] == (tmp_path / "ours.ply").read_bytes()[ours[4]:]
+    assert (tmp_path / "ns.ply").read_bytes()[ns_offset:] == (tmp_path / "ours.ply").read_bytes()[ours[4] :]
 
 
 def test_vertex_ply_and_instance_ids(tmp_path):
     ids = np.array([3, -1, 0, 7], dtype=np.int64)
     xyz = np.arange(12, dtype=np.float32).reshape(4, 3)
-    write_vertex_ply(tmp_path / "ids.ply", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "instance_id": ids.astype(np.int32)})
+    write_vertex_ply(
+        tmp_path / "ids.ply", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "instance_id": ids.astype(np.int32)}
+    )
     data = PlyData.read(str(tmp_path / "ids.ply"))["vertex"]
     np.testing.assert_array_equal(data["instance_id"], ids)
     assert read_vertex_ply(tmp_path / "ids.ply")["instance_id"].dtype == np.int32

@@ -25,9 +25,20 @@ def quality():
 
 
 def row(variant, seed, miou, num_pred=5):
-    return {"scene": "forward", "variant": variant, "seed": seed, "level": "instance", "miou": miou, "precision": 1.0,
-            "recall": 0.5 + seed / 10, "purity": 0.9, "num_gt": 5, "num_pred": num_pred, "num_gaussians": 100,
-            "train_seconds": 60.0}
+    return {
+        "scene": "forward",
+        "variant": variant,
+        "seed": seed,
+        "level": "instance",
+        "miou": miou,
+        "precision": 1.0,
+        "recall": 0.5 + seed / 10,
+        "purity": 0.9,
+        "num_gt": 5,
+        "num_pred": num_pred,
+        "num_gaussians": 100,
+        "train_seconds": 60.0,
+    }
 
 
 def parse_summary(table: str):
@@ -37,8 +48,13 @@ def parse_summary(table: str):
 
 
 def test_summary_groups_seeds_and_skips_failed_runs(quality):
-    rows = [row("full", 0, 0.8), row("full", 1, 0.9), row("full", 2, 1.0, num_pred=8),
-            row("no distortion", 0, 0.7), {"scene": "forward", "variant": "no distortion", "seed": 1, "error": "RuntimeError: x"}]
+    rows = [
+        row("full", 0, 0.8),
+        row("full", 1, 0.9),
+        row("full", 2, 1.0, num_pred=8),
+        row("no distortion", 0, 0.7),
+        {"scene": "forward", "variant": "no distortion", "seed": 1, "error": "RuntimeError: x"},
+    ]
     summary = {entry["variant"]: entry for entry in parse_summary(quality.summary_table(rows, ["scene", "variant"]))}
     assert summary["full"]["runs"] == "3" and summary["no distortion"]["runs"] == "1"
     assert summary["full"]["mIoU"] == f"{0.9:.3f} ± {statistics.stdev([0.8, 0.9, 1.0]):.3f}"
@@ -72,16 +88,26 @@ def test_summarize_refuses_unreadable_or_mixed_files(quality, tmp_path):
 
 
 def level_scores(miou, valid=None, num_pred=4):
-    scores = {"miou": miou, "precision": 0.8, "recall": 0.7, "purity": 0.9, "completeness": 0.95,
-              "scores_2d": {"num_gt": 5}, "num_predicted_instances": num_pred}
+    scores = {
+        "miou": miou,
+        "precision": 0.8,
+        "recall": 0.7,
+        "purity": 0.9,
+        "completeness": 0.95,
+        "scores_2d": {"num_gt": 5},
+        "num_predicted_instances": num_pred,
+    }
     if valid is not None:
         scores.update(miou_valid_views=valid, precision_valid_views=0.85, recall_valid_views=None, num_valid_views=5)
     return scores
 
 
 def test_level_row_reads_the_valid_view_scores_where_reported(quality):
-    metrics = {"num_gaussians": 1234, "view_names": ["a", "b", "c", "d", "e", "f"],
-               "levels": {"instance": level_scores(0.6, valid=0.9), "part": level_scores(0.5)}}
+    metrics = {
+        "num_gaussians": 1234,
+        "view_names": ["a", "b", "c", "d", "e", "f"],
+        "levels": {"instance": level_scores(0.6, valid=0.9), "part": level_scores(0.5)},
+    }
     instance, part = quality.level_row(metrics, "instance"), quality.level_row(metrics, "part")
     assert (instance["miou"], instance["miou_views"], instance["miou_all_views"]) == (0.9, "valid 5/6", 0.6)
     assert (instance["precision"], instance["recall"]) == (0.85, 0.7)  # no valid-view recall reported: all views
@@ -93,7 +119,13 @@ def test_level_row_reads_the_valid_view_scores_where_reported(quality):
 
 def scene_row(scene, level, miou, masks="gt"):
     metrics = {"num_gaussians": 100, "levels": {level: level_scores(miou / 2, valid=miou)}}
-    return {"scene": scene, "masks": masks, "seed": 42, "train_seconds": 60.0, **quality_module().level_row(metrics, level)}
+    return {
+        "scene": scene,
+        "masks": masks,
+        "seed": 42,
+        "train_seconds": 60.0,
+        **quality_module().level_row(metrics, level),
+    }
 
 
 def quality_module():
@@ -104,8 +136,10 @@ def test_merge_gives_rows_per_scene_and_the_mean_over_scenes(quality, tmp_path):
     files = []
     for scene, mious in (("family_1", (0.9, 0.5)), ("family_2", (0.7, 0.3)), ("family_3", None)):
         if mious is None:
-            rows = [{"scene": scene, "masks": "gt", "seed": 42, "level": level, "error": "RuntimeError: CUDA out of memory"}
-                    for level in ("instance", "part")]
+            rows = [
+                {"scene": scene, "masks": "gt", "seed": 42, "level": level, "error": "RuntimeError: CUDA out of memory"}
+                for level in ("instance", "part")
+            ]
         else:
             rows = [scene_row(scene, "instance", mious[0]), scene_row(scene, "part", mious[1])]
         path = tmp_path / scene / "quality.json"
@@ -116,8 +150,10 @@ def test_merge_gives_rows_per_scene_and_the_mean_over_scenes(quality, tmp_path):
     per_scene, means = text.split("Mean over scenes:")
     per_scene = [r for r in parse_summary(per_scene) if not r["mIoU"].startswith("failed")]
     assert {(r["scene"], r["level"], r["mIoU"]) for r in per_scene} == {
-        ("family_1", "instance", "0.900"), ("family_1", "part", "0.500"),
-        ("family_2", "instance", "0.700"), ("family_2", "part", "0.300"),
+        ("family_1", "instance", "0.900"),
+        ("family_1", "part", "0.500"),
+        ("family_2", "instance", "0.700"),
+        ("family_2", "part", "0.300"),
     }
     assert all(r["views"] == "valid" and float(r["mIoU all views"]) == float(r["mIoU"]) / 2 for r in per_scene)
     assert sum("failed: RuntimeError" in line for line in text.splitlines()) == 2

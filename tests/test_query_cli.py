@@ -15,15 +15,15 @@ import torch.nn.functional as F
 from PIL import Image
 
 import votesplat_ns
-from votesplat_ns.eval.lerf_ovs import category_masks, load_scene_labels, mask_iou
-from votesplat_ns.core.ply_io import read_gaussian_ply
-from votesplat_ns.core.clustering import cluster_levels
+from votesplat_ns.cli.main import main
 from votesplat_ns.cli.query_cli import Query, QueryEval
+from votesplat_ns.core.clustering import cluster_levels
+from votesplat_ns.core.ply_io import read_gaussian_ply
+from votesplat_ns.core.semantics import InstanceFeatures
+from votesplat_ns.eval.lerf_ovs import category_masks, load_scene_labels, mask_iou
 from votesplat_ns.eval.synthetic.labels import write_scene_labels
 from votesplat_ns.ns.query import evaluate_queries, run_click, run_query
 from votesplat_ns.ns.selection import ClusteringOptions, QueryScene, instances_of_level
-from votesplat_ns.core.semantics import InstanceFeatures
-from votesplat_ns.cli.main import main
 
 DEMO_SCENE = Path(votesplat_ns.__file__).resolve().parent / "data" / "demo"
 TRANSFORMS = json.loads((DEMO_SCENE / "transforms.json").read_text())
@@ -104,7 +104,13 @@ def project_pixels(means: np.ndarray, camera) -> np.ndarray:
     u = K[0, 0] * points[:, 0] / z + K[0, 2]
     v = K[1, 1] * points[:, 1] / z + K[1, 2]
     pixels = np.stack([np.floor(u), np.floor(v)], axis=1).astype(np.int64)
-    inside = (z > 0) & (pixels[:, 0] >= 0) & (pixels[:, 1] >= 0) & (pixels[:, 0] < camera.width) & (pixels[:, 1] < camera.height)
+    inside = (
+        (z > 0)
+        & (pixels[:, 0] >= 0)
+        & (pixels[:, 1] >= 0)
+        & (pixels[:, 0] < camera.width)
+        & (pixels[:, 1] < camera.height)
+    )
     pixels[~inside] = -1
     return pixels
 
@@ -141,7 +147,9 @@ def test_click_selects_the_ground_truth_object(demo_scene, trained_demo, tmp_pat
         instance_id = demo_scene.instance_at(view, column + 0.5, row + 0.5)
         members = demo_scene.level.ids == instance_id
         camera = demo_scene.train_camera(view)
-        inside = fraction_projecting_into(demo_scene.params.means[members], camera, ground_truth_labels(camera) == object_id)
+        inside = fraction_projecting_into(
+            demo_scene.params.means[members], camera, ground_truth_labels(camera) == object_id
+        )
         correct += inside > 0.7
     assert correct >= 0.8 * len(clicks), f"{correct} of {len(clicks)} clicks selected the clicked object"
 
@@ -171,9 +179,28 @@ def test_click_selects_the_ground_truth_object(demo_scene, trained_demo, tmp_pat
 def test_query_end_to_end_with_random_clip_weights(trained_demo, demo_scene, tmp_path, capsys):
     cache_dir = tmp_path / "cache"
     out = tmp_path / "query"
-    first = main(["query", "--load-config", str(trained_demo), "purple ball", "--clip-random-init", "--clip-model", SMALL_CLIP,
-                  "--feature-views", "2", "--features-cache", str(cache_dir), "--views", "0", "3", "--output-dir", str(out),
-                  "--top-k", "3"])
+    first = main(
+        [
+            "query",
+            "--load-config",
+            str(trained_demo),
+            "purple ball",
+            "--clip-random-init",
+            "--clip-model",
+            SMALL_CLIP,
+            "--feature-views",
+            "2",
+            "--features-cache",
+            str(cache_dir),
+            "--views",
+            "0",
+            "3",
+            "--output-dir",
+            str(out),
+            "--top-k",
+            "3",
+        ]
+    )
     printed = capsys.readouterr().out
     assert "features computed" in printed
     rows = [line.split() for line in printed.splitlines() if line.split()[:1] in (["1"], ["2"], ["3"])]
@@ -196,8 +223,16 @@ def test_query_end_to_end_with_random_clip_weights(trained_demo, demo_scene, tmp
     cache_file = next(cache_dir.glob("instance_features_*.npz"))
     stamp = cache_file.stat().st_mtime_ns
     # Later calls in-process on the same run (loading it again through the CLI costs seconds).
-    again = Query(load_config=trained_demo, text="purple ball", clip_random_init=True, clip_model=SMALL_CLIP,
-                  feature_views=2, features_cache=cache_dir, views=(), output_dir=tmp_path / "again")
+    again = Query(
+        load_config=trained_demo,
+        text="purple ball",
+        clip_random_init=True,
+        clip_model=SMALL_CLIP,
+        feature_views=2,
+        features_cache=cache_dir,
+        views=(),
+        output_dir=tmp_path / "again",
+    )
     second = again.run(scene=demo_scene)
     assert "features from cache" in capsys.readouterr().out
     assert second["features_from_cache"] and second["ranking"] == first["ranking"]
@@ -245,8 +280,13 @@ def test_labels_from_ground_truth_masks(tmp_path, capsys):
 def test_query_eval_selects_the_named_objects(demo_scene, trained_demo, tmp_path, capsys):
     labels = tmp_path / "labels"
     write_scene_labels(DEMO_SCENE, labels)
-    command = QueryEval(load_config=trained_demo, labels=labels, feature_views=5, features_cache=tmp_path,
-                        output=tmp_path / "scores.json")
+    command = QueryEval(
+        load_config=trained_demo,
+        labels=labels,
+        feature_views=5,
+        features_cache=tmp_path,
+        output=tmp_path / "scores.json",
+    )
     summary = command.run(encoder=ColourNameEncoder(), scene=demo_scene)
     printed = capsys.readouterr().out
     assert f"mIoU {summary['mIoU']:.4f}" in printed
@@ -263,8 +303,10 @@ def test_query_eval_selects_the_named_objects(demo_scene, trained_demo, tmp_path
         masks = category_masks(frame)
         for category in masks:
             members = demo_scene.selection_mask(summary["selections"][category])
-            share = {other: fraction_projecting_into(demo_scene.params.means[members], camera, mask)
-                     for other, mask in masks.items()}
+            share = {
+                other: fraction_projecting_into(demo_scene.params.means[members], camera, mask)
+                for other, mask in masks.items()
+            }
             right += max(share, key=share.get) == category
             total += 1
     assert right >= 0.8 * total, f"{right} of {total} queries selected the named object"

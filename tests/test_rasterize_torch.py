@@ -209,7 +209,9 @@ def reference_composite(
                 chosen: List[int] = []
                 for i in visible:
                     mx, my = m2[cam][i]
-                    if not _in_tile_box(mx, my, rad[cam][i], x // tile_size, y // tile_size, tile_size, tile_width, tile_height):
+                    if not _in_tile_box(
+                        mx, my, rad[cam][i], x // tile_size, y // tile_size, tile_size, tile_width, tile_height
+                    ):
                         continue
                     a, b, c = con[cam][i]
                     dx, dy = mx - (x + 0.5), my - (y + 0.5)
@@ -256,8 +258,15 @@ def reference_composite(
 
 
 def reference_rasterize(
-    leaves, width, height, sh_degree, render_mode="RGB", use_background=True, antialiased=False,
-    tile_size=16, stats=None,
+    leaves,
+    width,
+    height,
+    sh_degree,
+    render_mode="RGB",
+    use_background=True,
+    antialiased=False,
+    tile_size=16,
+    stats=None,
 ):
     radii, means2d, depths, conics, compensations = reference_project(leaves, width, height, antialiased=antialiased)
     C, N = radii.shape
@@ -332,8 +341,15 @@ def test_matches_brute_force_reference_values_and_gradients(case):
 
     ref_leaves = _leaves(scene)
     ref_image, ref_alpha, ref_radii = reference_rasterize(
-        ref_leaves, scene["width"], scene["height"], sh_degree, render_mode, use_background, antialiased,
-        tile_size, stats,
+        ref_leaves,
+        scene["width"],
+        scene["height"],
+        sh_degree,
+        render_mode,
+        use_background,
+        antialiased,
+        tile_size,
+        stats,
     )
     fast_leaves = _leaves(scene)
     image, alpha, info = _fast(fast_leaves, scene, render_mode, use_background, antialiased, tile_size)
@@ -350,7 +366,10 @@ def test_matches_brute_force_reference_values_and_gradients(case):
     torch.testing.assert_close(alpha, ref_alpha, rtol=1e-9, atol=1e-10)
 
     gen = torch.Generator().manual_seed(100 + seed)
-    weights = [torch.randn(image.shape, generator=gen, dtype=image.dtype), torch.randn(alpha.shape, generator=gen, dtype=alpha.dtype)]
+    weights = [
+        torch.randn(image.shape, generator=gen, dtype=image.dtype),
+        torch.randn(alpha.shape, generator=gen, dtype=alpha.dtype),
+    ]
     ref_grads = _grads((ref_image, ref_alpha), ref_leaves, weights)
     fast_grads = _grads((image, alpha), fast_leaves, weights)
     for name in ref_grads:
@@ -396,8 +415,16 @@ def test_chunking_knobs_do_not_change_the_result():
 
     def render(**knobs):
         return rasterize_to_pixels_torch(
-            info["means2d"], info["conics"], colors, info["opacities"], scene["width"], scene["height"], 16,
-            info["isect_offsets"], info["flatten_ids"], **knobs,
+            info["means2d"],
+            info["conics"],
+            colors,
+            info["opacities"],
+            scene["width"],
+            scene["height"],
+            16,
+            info["isect_offsets"],
+            info["flatten_ids"],
+            **knobs,
         )
 
     default = render()
@@ -434,8 +461,15 @@ def test_info_means2d_grad_and_absgrad_match_per_pixel_reference():
     means2d = info["means2d"].detach().clone().requires_grad_(True)
     colors = reference_colors({k: v.detach() for k, v in leaves.items()}, 1, info["radii"])
     ref_image, ref_alpha, _ = reference_composite(
-        means2d, info["conics"].detach(), colors, info["opacities"].detach(), info["radii"], info["depths"].detach(),
-        scene["width"], scene["height"], backgrounds=leaves["backgrounds"].detach(),
+        means2d,
+        info["conics"].detach(),
+        colors,
+        info["opacities"].detach(),
+        info["radii"],
+        info["depths"].detach(),
+        scene["width"],
+        scene["height"],
+        backgrounds=leaves["backgrounds"].detach(),
     )
     torch.testing.assert_close(image.detach(), ref_image.detach(), rtol=1e-9, atol=1e-10)
     per_pixel = (ref_image * w_image).sum(-1) + (ref_alpha * w_alpha).sum(-1)  # [C,H,W]
@@ -463,7 +497,12 @@ def test_info_has_what_splatfacto_and_default_strategy_read():
     assert info["depths"].shape == (C, N) and info["conics"].shape == (C, N, 3)
     assert info["opacities"].shape == (C, N)
     assert info["gaussian_ids"] is None and info["camera_ids"] is None
-    assert (info["width"], info["height"], info["n_cameras"], info["tile_size"]) == (scene["width"], scene["height"], C, 16)
+    assert (info["width"], info["height"], info["n_cameras"], info["tile_size"]) == (
+        scene["width"],
+        scene["height"],
+        C,
+        16,
+    )
     assert (info["tile_width"], info["tile_height"]) == (3, 2)
     assert info["isect_offsets"].shape == (C, 2, 3) and info["isect_offsets"].dtype == torch.int32
     assert info["flatten_ids"].dtype == torch.int32 and info["tiles_per_gauss"].dtype == torch.int32
@@ -559,7 +598,13 @@ def _near_camera_floater_scene(dtype):
     opacities[5:] = 0.6 + 0.39 * torch.rand(n_back, generator=gen, dtype=torch.float64)
     colors = torch.rand(n, 3, generator=gen, dtype=torch.float64)
     scene = dict(
-        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmat[None], Ks=Ks,
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        viewmats=viewmat[None],
+        Ks=Ks,
         backgrounds=torch.zeros(1, 3, dtype=torch.float64),
     )
     scene = {k: v.to(dtype) for k, v in scene.items()}
@@ -630,7 +675,9 @@ def test_isect_tiles_matches_simple_reference(tile_size, width, height):
     radii, means2d, depths = _projected(20 + tile_size, 3, width, height)
     C, N = radii.shape
     tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    tiles_per_gauss, offsets, flatten_ids = isect_tiles_torch(means2d, radii, depths, tile_size, tile_width, tile_height)
+    tiles_per_gauss, offsets, flatten_ids = isect_tiles_torch(
+        means2d, radii, depths, tile_size, tile_width, tile_height
+    )
 
     pairs: List[Tuple[int, int, float, int]] = []
     expected_counts = torch.zeros(C, N, dtype=torch.int32)
@@ -695,7 +742,12 @@ def test_bad_input_raises_clear_errors():
     with pytest.raises(ValueError, match="render_mode"):
         _fast(leaves, scene, render_mode="RGBD")
     with pytest.raises(ValueError, match="sh_degree"):
-        rasterize_torch(*(leaves[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")), 37, 29, sh_degree=4)
+        rasterize_torch(
+            *(leaves[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
+            37,
+            29,
+            sh_degree=4,
+        )
     with pytest.raises(ValueError, match="camera_model"):
         _fast(leaves, scene, camera_model="fisheye")
     with pytest.raises(TypeError, match="bogus"):
@@ -731,9 +783,20 @@ def test_cuda_matches_cpu_and_gsplat():
 
     gs_leaves = {k: v.detach().cuda().requires_grad_(v.requires_grad) for k, v in cpu_leaves.items()}
     ref = rasterization(
-        gs_leaves["means"], gs_leaves["quats"], gs_leaves["scales"], gs_leaves["opacities"], gs_leaves["colors"],
-        gs_leaves["viewmats"], gs_leaves["Ks"], scene["width"], scene["height"], sh_degree=3, packed=False,
-        backgrounds=gs_leaves["backgrounds"], render_mode="RGB+ED", absgrad=True,
+        gs_leaves["means"],
+        gs_leaves["quats"],
+        gs_leaves["scales"],
+        gs_leaves["opacities"],
+        gs_leaves["colors"],
+        gs_leaves["viewmats"],
+        gs_leaves["Ks"],
+        scene["width"],
+        scene["height"],
+        sh_degree=3,
+        packed=False,
+        backgrounds=gs_leaves["backgrounds"],
+        render_mode="RGB+ED",
+        absgrad=True,
     )
     torch.testing.assert_close(gpu[0], ref[0], rtol=1e-3, atol=1e-3)
     torch.testing.assert_close(gpu[1], ref[1], rtol=1e-3, atol=1e-3)

@@ -9,9 +9,9 @@ from typing import Optional
 
 import pytest
 import torch
+from conftest import DEMO_SCENE
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
-from conftest import DEMO_SCENE
 from votesplat_ns.ns.method import setup_trainer_in_process
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
@@ -60,14 +60,16 @@ def snapshot_after_step(trainer, step: int) -> dict:
     taken = {}
     trainer.callbacks.append(
         TrainingCallback(
-            [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: taken.update(snapshot(trainer)), iters=(step,)
+            [TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+            lambda step: taken.update(snapshot(trainer)),
+            iters=(step,),
         )
     )
     return taken
 
 
 def optimizers_hold_the_model_parameters(trainer, after_densifying: bool = False) -> str:
-    """"ok" when every optimizer steps the model's own current Parameters, with state of their shape.
+    """ "ok" when every optimizer steps the model's own current Parameters, with state of their shape.
 
     nerfstudio's Optimizers.parameters (read only for gradient clipping) is checked too unless
     ``after_densifying``: gsplat's densification updates the optimizers' param_groups, not that list.
@@ -84,7 +86,9 @@ def optimizers_hold_the_model_parameters(trainer, after_densifying: bool = False
         for param in held:
             for key, value in optimizer.state.get(param, {}).items():
                 if torch.is_tensor(value) and value.dim() > 0 and value.shape != param.shape:
-                    return f"optimizer {name} state {key} has shape {tuple(value.shape)}, the tensor {tuple(param.shape)}"
+                    return (
+                        f"optimizer {name} state {key} has shape {tuple(value.shape)}, the tensor {tuple(param.shape)}"
+                    )
     return "ok"
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from nerfstudio.utils.eval_utils import eval_setup
 
-from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
 

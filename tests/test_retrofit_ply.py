@@ -12,12 +12,11 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci, _spherical_harmonics
 from nerfstudio.utils.eval_utils import eval_setup
 
-from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
-from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 from votesplat_ns.core.ply_io import (
     MIN_OPACITY_LOGIT,
     GaussianPlyError,
@@ -25,6 +24,7 @@ from votesplat_ns.core.ply_io import (
     write_gaussian_ply,
     write_vertex_ply,
 )
+from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 from votesplat_ns.ns.rasterizer import rasterize
 from votesplat_ns.ns.retrofit import (
     RetrofitReference,
@@ -58,8 +58,15 @@ def random_gaussians(n=40, sh_degree=3, seed=0):
 
 def write_ply(path, g, select=None):
     return write_gaussian_ply(
-        path, g["means"], g["features_dc"], g["features_rest"], g["opacities"], g["scales"], g["quats"],
-        select=select, filter_invalid=False,
+        path,
+        g["means"],
+        g["features_dc"],
+        g["features_rest"],
+        g["opacities"],
+        g["scales"],
+        g["quats"],
+        select=select,
+        filter_invalid=False,
     )
 
 
@@ -131,10 +138,16 @@ def _bad_files(tmp_path):
         return cols
 
     files["missing"] = (columns(drop=["rot_3"]), "lacks the properties rot_3")
-    files["extra"] = (columns(add={"filter_3D": np.ones(8, np.float32)}), "properties a standard 3DGS PLY does not have (filter_3D)")
+    files["extra"] = (
+        columns(add={"filter_3D": np.ones(8, np.float32)}),
+        "properties a standard 3DGS PLY does not have (filter_3D)",
+    )
     rgb = columns(drop=["f_dc_0", "f_dc_1", "f_dc_2"], add={c: np.zeros(8, np.uint8) for c in ("red", "green", "blue")})
     files["rgb"] = (rgb, "--ply-color-mode sh_coeffs")
-    files["rest_count"] = (columns(drop=[f"f_rest_{i}" for i in range(10, 45)]), "10 f_rest_* properties, which fits no SH degree")
+    files["rest_count"] = (
+        columns(drop=[f"f_rest_{i}" for i in range(10, 45)]),
+        "10 f_rest_* properties, which fits no SH degree",
+    )
     nan = columns()
     nan["scale_1"] = nan["scale_1"].copy()
     nan["scale_1"][[2, 5]] = np.nan
@@ -185,15 +198,21 @@ def test_a_rigid_frame_change_keeps_what_every_camera_sees():
 
     torch.testing.assert_close(moved["means"], scale * g["means"] @ R.T + shift.float())
     # covariance: s^2 R S R^T
-    cov = _quat_scale_to_covar_preci(g["quats"] / g["quats"].norm(dim=-1, keepdim=True), torch.exp(g["scales"]), compute_preci=False)[0]
-    cov_moved = _quat_scale_to_covar_preci(moved["quats"] / moved["quats"].norm(dim=-1, keepdim=True), torch.exp(moved["scales"]), compute_preci=False)[0]
+    cov = _quat_scale_to_covar_preci(
+        g["quats"] / g["quats"].norm(dim=-1, keepdim=True), torch.exp(g["scales"]), compute_preci=False
+    )[0]
+    cov_moved = _quat_scale_to_covar_preci(
+        moved["quats"] / moved["quats"].norm(dim=-1, keepdim=True), torch.exp(moved["scales"]), compute_preci=False
+    )[0]
     torch.testing.assert_close(cov_moved, scale**2 * R @ cov @ R.T, rtol=1e-4, atol=1e-6)
     torch.testing.assert_close(moved["quats"].norm(dim=-1), g["quats"].norm(dim=-1))
     # view-dependent colour: the moved scene seen along R d looks as the original along d
     dirs = torch.randn(30, 3)
     coeffs = torch.cat([g["features_dc"][:, None], g["features_rest"]], 1)
     coeffs_moved = torch.cat([moved["features_dc"][:, None], moved["features_rest"]], 1)
-    torch.testing.assert_close(_spherical_harmonics(3, dirs @ R.T, coeffs_moved), _spherical_harmonics(3, dirs, coeffs), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(
+        _spherical_harmonics(3, dirs @ R.T, coeffs_moved), _spherical_harmonics(3, dirs, coeffs), rtol=1e-4, atol=1e-5
+    )
     assert not torch.allclose(moved["features_rest"], g["features_rest"], atol=1e-2)
 
     back = transform_gaussians(moved, torch.linalg.inv(matrix))
@@ -243,7 +262,9 @@ def test_frames_follow_nerfstudios_dataparser(tmp_path, applied_scale):
     s = 0.4
     frames = frames_from_dataparser((T @ homogeneous(applied))[:3], s * applied_scale, applied, applied_scale)
     point_colmap = torch.tensor([1.0, 2.0, 3.0, 1.0], dtype=torch.float64)
-    point_dataset = torch.cat([applied_scale * (homogeneous(applied) @ point_colmap)[:3], torch.ones(1, dtype=torch.float64)])
+    point_dataset = torch.cat(
+        [applied_scale * (homogeneous(applied) @ point_colmap)[:3], torch.ones(1, dtype=torch.float64)]
+    )
     expected = s * (T @ point_dataset)[:3]
     torch.testing.assert_close((frames["dataset"] @ point_dataset)[:3], expected)
     torch.testing.assert_close((frames["colmap"] @ point_colmap)[:3], expected)
@@ -284,7 +305,9 @@ def ns_exported_ply(trained_demo, tmp_path_factory):
 def dataset_frame_ply(trained_demo, tmp_path_factory):
     """The trained demo's Gaussians in the frame of transforms.json, from the run's dataparser_transforms.json."""
     saved = json.loads((Path(trained_demo).parent / "dataparser_transforms.json").read_text())
-    to_training = torch.diag(torch.tensor([saved["scale"]] * 3 + [1.0], dtype=torch.float64)) @ homogeneous(torch.tensor(saved["transform"]))
+    to_training = torch.diag(torch.tensor([saved["scale"]] * 3 + [1.0], dtype=torch.float64)) @ homogeneous(
+        torch.tensor(saved["transform"])
+    )
     g = trained_gaussians(Path(trained_demo))
     path = tmp_path_factory.mktemp("dataset_frame") / "scene.ply"
     write_ply(path, transform_gaussians(g, torch.linalg.inv(to_training)), select=exported_rows(g))
@@ -313,20 +336,29 @@ def test_frame_checks_on_the_demo_scene(demo_reference, trained_demo, ns_exporte
     assert frame == "dataset"
     torch.testing.assert_close(moved["means"], g["means"][keep], rtol=1e-5, atol=2e-6)
 
-    with pytest.raises(VoteSplatInputError, match=r"is not in frame 'dataset'.*pass --pipeline.model.retrofit-frame dataparser$"):
+    with pytest.raises(
+        VoteSplatInputError, match=r"is not in frame 'dataset'.*pass --pipeline.model.retrofit-frame dataparser$"
+    ):
         resolve_frame(load(ns_ply), demo_reference, "dataset", ns_ply, rasterize, 3)
-    with pytest.raises(VoteSplatInputError, match=r"only \d+\.\d% of the Gaussians of .* in frame 'dataparser'.*retrofit-frame dataset$"):
+    with pytest.raises(
+        VoteSplatInputError,
+        match=r"only \d+\.\d% of the Gaussians of .* in frame 'dataparser'.*retrofit-frame dataset$",
+    ):
         resolve_frame(load(ds_ply), demo_reference, "dataparser", ds_ply, rasterize, 3)
 
     far = load(ns_ply)
     far["means"] = far["means"] + 100.0  # a scene of somewhere else: nothing in view in any frame
-    with pytest.raises(VoteSplatInputError, match=r"only 0\.0% of the Gaussians of .* project into the training views in any frame"):
+    with pytest.raises(
+        VoteSplatInputError, match=r"only 0\.0% of the Gaussians of .* project into the training views in any frame"
+    ):
         resolve_frame(far, demo_reference, "auto", ns_ply, rasterize, 3)
 
     # two different frames that render the views equally well: auto refuses to guess
     nudged = torch.eye(4, dtype=torch.float64)
     nudged[2, 3] = 0.01
-    twins = RetrofitReference({"dataparser": torch.eye(4, dtype=torch.float64), "dataset": nudged}, demo_reference.views)
+    twins = RetrofitReference(
+        {"dataparser": torch.eye(4, dtype=torch.float64), "dataset": nudged}, demo_reference.views
+    )
     with pytest.raises(VoteSplatInputError, match=r"cannot tell the frame of .*: frames '\w+' and '\w+' both fit"):
         resolve_frame(load(ns_ply), twins, "auto", ns_ply, rasterize, 3)
 
@@ -349,7 +381,9 @@ def test_auto_finds_the_colmap_frame_of_a_capture_with_an_applied_transform(trai
     reference = retrofit_reference(config.pipeline.datamanager.setup(device="cpu", test_mode="test"))
 
     saved = json.loads((Path(trained_demo).parent / "dataparser_transforms.json").read_text())
-    dataset_to_training = torch.diag(torch.tensor([saved["scale"]] * 3 + [1.0], dtype=torch.float64)) @ homogeneous(torch.tensor(saved["transform"]))
+    dataset_to_training = torch.diag(torch.tensor([saved["scale"]] * 3 + [1.0], dtype=torch.float64)) @ homogeneous(
+        torch.tensor(saved["transform"])
+    )
     g = trained_gaussians(Path(trained_demo))
     in_colmap = transform_gaussians(g, torch.linalg.inv(dataset_to_training @ homogeneous(applied)))
     frame, moved, fits = resolve_frame(in_colmap, reference, "auto", Path("colmap_world.ply"), rasterize, 3)
@@ -385,8 +419,12 @@ def test_retrofit_from_a_ply_in_the_datasets_frame(trained_demo, dataset_frame_p
 
 
 def test_wrong_frame_stops_ns_train_before_training(ns_exported_ply, tmp_path):
-    with pytest.raises(VoteSplatInputError, match=r"is not in frame 'dataset'.*pass --pipeline.model.retrofit-frame dataparser$"):
-        train_votesplat(DEMO_SCENE, tmp_path, steps=5, vote_start=0, retrofit_from=ns_exported_ply, retrofit_frame="dataset")
+    with pytest.raises(
+        VoteSplatInputError, match=r"is not in frame 'dataset'.*pass --pipeline.model.retrofit-frame dataparser$"
+    ):
+        train_votesplat(
+            DEMO_SCENE, tmp_path, steps=5, vote_start=0, retrofit_from=ns_exported_ply, retrofit_frame="dataset"
+        )
     assert not list(tmp_path.rglob("*.ckpt"))
 
 
@@ -395,11 +433,30 @@ def test_ns_train_with_a_ply_of_another_sh_degree_is_one_line(trained_demo, tmp_
     g["features_rest"] = g["features_rest"][:, :3]  # degree 1
     write_ply(tmp_path / "degree1.ply", g, select=exported_rows(g))
     command = [
-        str(NS_TRAIN), "votesplat", "--data", str(DEMO_SCENE), "--vis", "tensorboard", "--max-num-iterations", "1",
-        "--output-dir", str(tmp_path / "runs"), "--machine.device-type", "cpu",
-        "--pipeline.model.retrofit-from", str(tmp_path / "degree1.ply"),
+        str(NS_TRAIN),
+        "votesplat",
+        "--data",
+        str(DEMO_SCENE),
+        "--vis",
+        "tensorboard",
+        "--max-num-iterations",
+        "1",
+        "--output-dir",
+        str(tmp_path / "runs"),
+        "--machine.device-type",
+        "cpu",
+        "--pipeline.model.retrofit-from",
+        str(tmp_path / "degree1.ply"),
     ]
-    result = subprocess.run(command, capture_output=True, check=False, text=True, cwd=tmp_path, timeout=600, env=dict(os.environ, COLUMNS="200"))
+    result = subprocess.run(
+        command,
+        capture_output=True,
+        check=False,
+        text=True,
+        cwd=tmp_path,
+        timeout=600,
+        env=dict(os.environ, COLUMNS="200"),
+    )
     assert result.returncode != 0 and "Traceback" not in result.stderr, result.stderr[-4000:]
     last = [line for line in result.stderr.splitlines() if line.strip()][-1]
     assert last.startswith("ns-train votesplat: error: --pipeline.model.retrofit-from "), last

@@ -327,7 +327,9 @@ def test_clip_checkpoint_loads_from_a_local_file_only(tmp_path, random_clip):
     assert "\n" not in str(error.value)
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"these are not weights")
-    with pytest.raises(ValueError, match=r"does not hold open_clip weights .*\(it is not a PyTorch weights file\)") as error:
+    with pytest.raises(
+        ValueError, match=r"does not hold open_clip weights .*\(it is not a PyTorch weights file\)"
+    ) as error:
         ClipEncoder.from_checkpoint(SMALLEST_OPEN_CLIP_MODEL, garbage)
     assert "weights_only" not in str(error.value)  # torch's advice to unpickle an unknown file is not relayed
     other = tmp_path / "other_weights.pt"
@@ -346,16 +348,21 @@ def test_text_longer_than_clip_reads_is_refused(random_clip):
     fits = " ".join(["mug"] * 75)  # one token each: exactly the 75 the context holds besides start and end
     random_clip.check_text_length([fits])
     assert random_clip.encode_text([fits]).shape[0] == 1
-    with pytest.raises(ValueError, match=r"^the text 'mug mug .*\.\.\.' \(303 characters\) is 76 tokens long, but CLIP reads at most 75"):
+    with pytest.raises(
+        ValueError,
+        match=r"^the text 'mug mug .*\.\.\.' \(303 characters\) is 76 tokens long, but CLIP reads at most 75",
+    ):
         random_clip.encode_text([fits + " mug"])
 
 
 def test_click_select_maps_continuous_pixel_coordinates_to_ids():
-    instance_map = np.array([
-        [-1, -1, 3, 3],
-        [-1, 5, 5, 3],
-        [7, 7, -1, -1],
-    ])
+    instance_map = np.array(
+        [
+            [-1, -1, 3, 3],
+            [-1, 5, 5, 3],
+            [7, 7, -1, -1],
+        ]
+    )
     height, width = instance_map.shape
     for row in range(height):
         for col in range(width):

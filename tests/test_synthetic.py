@@ -14,6 +14,7 @@ import pytest
 from PIL import Image
 
 import votesplat_ns
+from votesplat_ns.eval.synthetic.family import TEST_SEEDS, TUNING_SEEDS, covering_block, covers, family_set
 from votesplat_ns.eval.synthetic.render import (
     MITSUBA_MISSING,
     mitsuba_available,
@@ -22,7 +23,6 @@ from votesplat_ns.eval.synthetic.render import (
     read_views,
     scene_from_dataset,
 )
-from votesplat_ns.eval.synthetic.family import TEST_SEEDS, TUNING_SEEDS, covering_block, covers, family_set
 from votesplat_ns.eval.synthetic.scenes import (
     FAMILY_PROPERTY_KINDS,
     FRUITS,
@@ -258,8 +258,11 @@ def test_family_scenes_hold_their_properties(seed):
         # a box resting on the top of another box or carton
         lows = {o.id: scene.object_bounds(o)[0][2] for o in scene.objects}
         stacked = [
-            (a, b) for a, b in scene.touching
-            if by_id[a].kind in ("box", "carton") and by_id[b].kind == "box" and lows[b] > 0.02
+            (a, b)
+            for a, b in scene.touching
+            if by_id[a].kind in ("box", "carton")
+            and by_id[b].kind == "box"
+            and lows[b] > 0.02
             and abs(lows[b] - scene.object_bounds(by_id[a])[1][2]) < 1e-9
         ]
         assert stacked
@@ -335,7 +338,25 @@ def test_missing_mitsuba_message(monkeypatch):
 # --------------------------------------------------------------------------------------------
 # rendering (mitsuba)
 
-TINY = ["--seed", "1", "--views", "3", "--eval-views", "1", "--width", "40", "--height", "32", "--objects", "4", "--spp", "4", "--points", "300", "--quiet"]
+TINY = [
+    "--seed",
+    "1",
+    "--views",
+    "3",
+    "--eval-views",
+    "1",
+    "--width",
+    "40",
+    "--height",
+    "32",
+    "--objects",
+    "4",
+    "--spp",
+    "4",
+    "--points",
+    "300",
+    "--quiet",
+]
 
 
 @pytest.fixture(scope="module")
@@ -365,7 +386,9 @@ def test_generator_is_deterministic(tiny_dataset, tmp_path):
         b = np.asarray(Image.open(again / "images" / name), dtype=int)
         assert a.shape == (32, 40, 3) and np.abs(a - b).max() <= 2
     assert (tiny_dataset / "sparse_pc.ply").read_bytes() == (again / "sparse_pc.ply").read_bytes()
-    assert json.loads((tiny_dataset / "transforms.json").read_text()) == json.loads((again / "transforms.json").read_text())
+    assert json.loads((tiny_dataset / "transforms.json").read_text()) == json.loads(
+        (again / "transforms.json").read_text()
+    )
 
 
 @needs_mitsuba
@@ -466,8 +489,11 @@ def test_family_renders_consistent_labels(tiny_family, tmp_path):
     assert hits >= 4
     # the same seed renders the same labels again
     again = tmp_path / "again"
-    write_dataset(make_scene("family", seed=scene.seed, num_views=6, num_eval_views=2, width=64, height=48), again,
-                  RenderSettings(spp=1, num_points=300, image_format="jpg", jpeg_quality=90))
+    write_dataset(
+        make_scene("family", seed=scene.seed, num_views=6, num_eval_views=2, width=64, height=48),
+        again,
+        RenderSettings(spp=1, num_points=300, image_format="jpg", jpeg_quality=90),
+    )
     for frame in meta["frames"]:
         for key in ("instance_mask_path", "part_mask_path", "depth_file_path"):
             assert (out / frame[key]).read_bytes() == (again / frame[key]).read_bytes()
@@ -575,8 +601,8 @@ def _open3d_or_stand_in(monkeypatch):
 
 
 def test_demo_scene_loads_with_nerfstudio(monkeypatch):
-    from plyfile import PlyData
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+    from plyfile import PlyData
 
     _open3d_or_stand_in(monkeypatch)
     parser = NerfstudioDataParserConfig(data=DEMO, load_3D_points=True).setup()
@@ -601,7 +627,9 @@ def test_demo_scene_loads_with_nerfstudio(monkeypatch):
     _, views = read_views(DEMO)
     view = next(v for v in views if v.name == Path(train.image_filenames[0]).name)
     raw = PlyData.read(str(DEMO / "sparse_pc.ply"))["vertex"]
-    raw_cam = np.stack([raw["x"], raw["y"], raw["z"]], -1).astype(np.float64) @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
+    raw_cam = (
+        np.stack([raw["x"], raw["y"], raw["z"]], -1).astype(np.float64) @ view.viewmat[:3, :3].T + view.viewmat[:3, 3]
+    )
     in_front = raw_cam[:, 2] > 0
     assert np.array_equal(cam[:, 2] < 0, in_front)
     raw_xy = raw_cam[in_front, :2] / raw_cam[in_front, 2:]

@@ -105,9 +105,20 @@ def test_checkpoint_round_trip_keeps_offsets_and_support(trained_demo, tmp_path)
 def test_ns_export_gaussian_splat_loads_the_checkpoint(trained_demo, tmp_path):
     # nerfstudio's own exporter: loading needs our torch>=2.6 fix, rendering nothing.
     result = subprocess.run(
-        [sys.executable, "-m", "nerfstudio.scripts.exporter", "gaussian-splat",
-         "--load-config", str(trained_demo), "--output-dir", str(tmp_path)],
-        capture_output=True, check=False, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "nerfstudio.scripts.exporter",
+            "gaussian-splat",
+            "--load-config",
+            str(trained_demo),
+            "--output-dir",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        check=False,
+        text=True,
+        timeout=600,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert (tmp_path / "splat.ply").stat().st_size > 1000

@@ -14,10 +14,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.instances import InstanceSet, LevelInstances, instance_colors, render_instance_ids
 from votesplat_ns.core.ply_io import read_gaussian_ply
 from votesplat_ns.ns.rasterizer import rasterize
-from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.ns.viewer import (
     DISPLAY_ALL,
     DISPLAY_HIDE,
@@ -81,7 +81,9 @@ def make_scene(seed: int = 0):
         instance_votes = centre - points + 1e-3 * torch.randn(GROUP_SIZE, 3, generator=generator)
         if k == 0:
             left = points[:, 0] < centre[0]
-            part_centre = torch.where(left[:, None], centre + torch.tensor([-0.2, 0, 0]), centre + torch.tensor([0.2, 0, 0]))
+            part_centre = torch.where(
+                left[:, None], centre + torch.tensor([-0.2, 0, 0]), centre + torch.tensor([0.2, 0, 0])
+            )
             part_ids.append(torch.where(left, 0, 1))
         else:
             part_centre = centre.expand(GROUP_SIZE, 3)
@@ -89,8 +91,13 @@ def make_scene(seed: int = 0):
         part_votes = part_centre - points + 1e-3 * torch.randn(GROUP_SIZE, 3, generator=generator)
         offsets.append(torch.stack([instance_votes, part_votes], dim=1))
     wall = torch.stack(
-        [torch.rand(NUM_BACKGROUND, generator=generator) * 8 - 4, torch.rand(NUM_BACKGROUND, generator=generator) * 7 - 3.5,
-         torch.full((NUM_BACKGROUND,), 7.0)], dim=1)
+        [
+            torch.rand(NUM_BACKGROUND, generator=generator) * 8 - 4,
+            torch.rand(NUM_BACKGROUND, generator=generator) * 7 - 3.5,
+            torch.full((NUM_BACKGROUND,), 7.0),
+        ],
+        dim=1,
+    )
     means.append(wall)
     colours.append(torch.full((NUM_BACKGROUND, 3), 0.5))
     ids.append(torch.full((NUM_BACKGROUND,), -1))
@@ -147,8 +154,18 @@ def palette(instance_map: torch.Tensor) -> torch.Tensor:
 
 
 def direct_id_map(scene: SplatScene, view: PinholeView, ids: torch.Tensor) -> torch.Tensor:
-    return render_instance_ids(rasterize, scene.means, scene.quats, scene.scales, scene.opacities, ids,
-                               view.viewmat, view.K, view.width, view.height)
+    return render_instance_ids(
+        rasterize,
+        scene.means,
+        scene.quats,
+        scene.scales,
+        scene.opacities,
+        ids,
+        view.viewmat,
+        view.K,
+        view.width,
+        view.height,
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -182,7 +199,9 @@ def test_overlay_highlights_the_selected_instance(scene_and_ids, front, state):
     colours = palette(id_map)
     for k, weight in ((1, SELECTED_OPACITY), (0, UNSELECTED_OPACITY), (2, UNSELECTED_OPACITY)):
         pixels = id_map == k
-        torch.testing.assert_close(overlay[pixels], (1 - weight) * base["rgb"][pixels] + weight * colours[pixels], rtol=0, atol=1e-6)
+        torch.testing.assert_close(
+            overlay[pixels], (1 - weight) * base["rgb"][pixels] + weight * colours[pixels], rtol=0, atol=1e-6
+        )
 
 
 def test_colours_are_the_same_from_another_view(scene_and_ids, front, state):
@@ -236,7 +255,9 @@ def test_isolate_and_hide_change_which_gaussians_are_rendered(scene_and_ids, fro
     state.set_display(DISPLAY_ISOLATE)
     isolated = state.render_outputs(scene, view, base, wanted={OUTPUT_INSTANCES})
     only_one = render_rgb(scene.subset(ids == 1), view)
-    assert torch.equal(isolated["rgb"], only_one["rgb"]) and torch.equal(isolated["accumulation"], only_one["accumulation"])
+    assert torch.equal(isolated["rgb"], only_one["rgb"]) and torch.equal(
+        isolated["accumulation"], only_one["accumulation"]
+    )
     assert set(torch.unique(direct_id_map(scene.subset(ids == 1), view, ids[ids == 1])).tolist()) == {-1, 1}
     # Pixels that showed instance 0 or 2 (or the wall) and no part of instance 1 now show the background.
     empty = only_one["accumulation"][..., 0] == 0
@@ -278,7 +299,9 @@ def test_vote_colours_picture_where_gaussians_vote():
     assert (colours[0] - colours[5]).abs().min() > 0.9  # opposite corners of the colour cube
     assert torch.equal(colours[10:], torch.full((2, 3), VOTE_BACKGROUND_GREY))
     assert torch.isfinite(colours).all() and colours.min() >= 0 and colours.max() <= 1
-    assert torch.equal(vote_colours(votes[:2], torch.zeros(2, dtype=torch.bool)), torch.full((2, 3), VOTE_BACKGROUND_GREY))
+    assert torch.equal(
+        vote_colours(votes[:2], torch.zeros(2, dtype=torch.bool)), torch.full((2, 3), VOTE_BACKGROUND_GREY)
+    )
     with pytest.raises(ValueError, match="votes"):
         vote_colours(votes[:, :2])
 
@@ -292,7 +315,17 @@ def test_votes_output_shows_each_instance_in_its_vote_colour(scene_and_ids, fron
     colours = vote_colours(scene.means + scene.vote_offsets[:, 0], scene.vote_support[:, 0] > 0)
     # Where one instance covers a pixel almost alone, the picture shows that instance's vote colour.
     one_hot = F.one_hot(ids.clamp(min=0), 3).float() * (ids >= 0)[:, None]
-    weights, _, _ = rasterize(scene.means, scene.quats, scene.scales, scene.opacities, one_hot, view.viewmat[None], view.K[None], WIDTH, HEIGHT)
+    weights, _, _ = rasterize(
+        scene.means,
+        scene.quats,
+        scene.scales,
+        scene.opacities,
+        one_hot,
+        view.viewmat[None],
+        view.K[None],
+        WIDTH,
+        HEIGHT,
+    )
     # picture = w_k * colour_k + (other colours and background, total weight 1 - w_k), all in [0, 1]
     for k in range(3):
         weight = weights[0, ..., k]
@@ -301,7 +334,9 @@ def test_votes_output_shows_each_instance_in_its_vote_colour(scene_and_ids, fron
         colour_k = colours[ids == k].mean(dim=0)
         assert ((picture[mostly_k] - colour_k).abs() <= (1 - weight[mostly_k, None]) + 0.01).all()
     state.set_level("part")
-    assert not torch.equal(state.render_outputs(scene, view, {"rgb": picture}, wanted={OUTPUT_VOTES})[OUTPUT_VOTES], picture)
+    assert not torch.equal(
+        state.render_outputs(scene, view, {"rgb": picture}, wanted={OUTPUT_VOTES})[OUTPUT_VOTES], picture
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -384,7 +419,9 @@ class MeanColourEncoder:
         return F.normalize(torch.stack(rows), dim=-1)
 
     def encode_text(self, texts):
-        rows = [F.one_hot(torch.tensor(COLOUR_WORDS[t]), 3).float() if t in COLOUR_WORDS else torch.ones(3) for t in texts]
+        rows = [
+            F.one_hot(torch.tensor(COLOUR_WORDS[t]), 3).float() if t in COLOUR_WORDS else torch.ones(3) for t in texts
+        ]
         return F.normalize(torch.stack(rows), dim=-1)
 
 
@@ -456,7 +493,9 @@ def test_overlay_rejects_mismatched_inputs():
 
 
 def state_cpu_instances(scene, view, base, ids, part_ids):
-    state = InstanceViewerState(("instance", "part"), cluster_fn=lambda s, levels: known_instances(scene, ids, part_ids))
+    state = InstanceViewerState(
+        ("instance", "part"), cluster_fn=lambda s, levels: known_instances(scene, ids, part_ids)
+    )
     return state.render_outputs(scene, view, base, wanted={OUTPUT_INSTANCES})[OUTPUT_INSTANCES]
 
 
@@ -466,7 +505,9 @@ def test_viewer_outputs_on_cuda_agree_with_the_cpu_renderer(scene_and_ids, front
     view, base, id_map = front
     cuda_view = PinholeView(view.viewmat.cuda(), view.K.cuda(), view.width, view.height)
     cuda_scene = scene.to("cuda")
-    state = InstanceViewerState(("instance", "part"), cluster_fn=lambda s, levels: known_instances(scene, ids, part_ids))
+    state = InstanceViewerState(
+        ("instance", "part"), cluster_fn=lambda s, levels: known_instances(scene, ids, part_ids)
+    )
     cuda_base = render_rgb(cuda_scene, cuda_view)  # gsplat's CUDA rasteriser
     torch.testing.assert_close(cuda_base["rgb"].cpu(), base["rgb"], rtol=0, atol=2e-3)
     outputs = state.render_outputs(cuda_scene, cuda_view, cuda_base, wanted=set(VIEWER_OUTPUTS))
@@ -491,9 +532,9 @@ def test_viewer_outputs_on_cuda_agree_with_the_cpu_renderer(scene_and_ids, front
 
 
 def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
-    import nerfstudio.models.splatfacto as splatfacto
     from nerfstudio.cameras.cameras import Cameras
     from nerfstudio.data.scene_box import SceneBox
+    from nerfstudio.models import splatfacto
     from nerfstudio.viewer.utils import parse_object
     from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerElement
 
@@ -502,7 +543,9 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
     from votesplat_ns.ns.viewer import VoteSplatViewerState, scene_from_model
 
     # splatfacto's get_viewmat is torch.compile'd; compiling it costs ~10 s on CPU and tests nothing here.
-    monkeypatch.setattr(splatfacto, "get_viewmat", getattr(splatfacto.get_viewmat, "_torchdynamo_orig_callable", splatfacto.get_viewmat))
+    monkeypatch.setattr(
+        splatfacto, "get_viewmat", getattr(splatfacto.get_viewmat, "_torchdynamo_orig_callable", splatfacto.get_viewmat)
+    )
     scene, ids, part_ids = scene_and_ids
     torch.manual_seed(0)
     points = scene.means.clone()
@@ -527,7 +570,9 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
 
     c2w = torch.linalg.inv(look_at((0.0, 0.0, 0.0)))[:3]
     c2w = c2w * torch.tensor([1.0, -1.0, -1.0, 1.0])  # OpenCV -> nerfstudio (OpenGL) camera axes
-    camera = Cameras(camera_to_worlds=c2w[None], fx=40.0, fy=40.0, cx=WIDTH / 2, cy=HEIGHT / 2, width=WIDTH, height=HEIGHT)
+    camera = Cameras(
+        camera_to_worlds=c2w[None], fx=40.0, fy=40.0, cx=WIDTH / 2, cy=HEIGHT / 2, width=WIDTH, height=HEIGHT
+    )
     with torch.no_grad():
         outputs = model.get_outputs(camera)
     assert viewer_state.extra_outputs(camera, outputs) == {}  # not a viewer render thread: nothing added
@@ -559,7 +604,9 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
 
     # Instance features are built from training views, at most MAX_FEATURE_VIEW_SIDE pixels wide.
     class TrainDataset:
-        cameras = Cameras(camera_to_worlds=c2w[None].expand(3, 3, 4), fx=800.0, fy=800.0, cx=512.0, cy=400.0, width=1024, height=800)
+        cameras = Cameras(
+            camera_to_worlds=c2w[None].expand(3, 3, 4), fx=800.0, fy=800.0, cx=512.0, cy=400.0, width=1024, height=800
+        )
 
         def __len__(self):
             return 3
@@ -567,7 +614,9 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
         def get_numpy_image(self, index):
             return np.full((800, 1024, 3), index, dtype=np.uint8)
 
-    model.instance_gui_viewer_control.viewer = SimpleNamespace(pipeline=SimpleNamespace(datamanager=SimpleNamespace(train_dataset=TrainDataset())))
+    model.instance_gui_viewer_control.viewer = SimpleNamespace(
+        pipeline=SimpleNamespace(datamanager=SimpleNamespace(train_dataset=TrainDataset()))
+    )
     views = viewer_state._feature_views()
     assert [int(image[0, 0, 0]) for _, image in views] == [0, 1, 2]
     assert all((view.width, view.height) == (512, 400) and image.shape == (400, 512, 3) for view, image in views)

@@ -53,7 +53,9 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def wait_for(condition, timeout_s: float, what: str, process: subprocess.Popen = None, log: Path = None, poll_s: float = 0.5):
+def wait_for(
+    condition, timeout_s: float, what: str, process: subprocess.Popen = None, log: Path = None, poll_s: float = 0.5
+):
     """Poll ``condition()`` until it returns a truthy value; fail with the server log if it never does."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -152,7 +154,11 @@ def open_dropdown(page: DevToolsPage, label: str) -> list:
     dropdown = gui_input(page, label)
     page.click(dropdown["x"], dropdown["y"])
     # The input names its option list (aria-controls) once it is open.
-    return wait_for(lambda: page.js(f"{_OPTIONS_OF_LISTBOX}({json.dumps(gui_input(page, label)['listbox'])})"), 30, f"the options of {label!r}")
+    return wait_for(
+        lambda: page.js(f"{_OPTIONS_OF_LISTBOX}({json.dumps(gui_input(page, label)['listbox'])})"),
+        30,
+        f"the options of {label!r}",
+    )
 
 
 def rendered_resolution(page: DevToolsPage):
@@ -196,18 +202,24 @@ def test_ns_viewer_shows_the_instance_outputs_in_a_browser(trained_demo, tmp_pat
         with open(browser_log, "w") as log_handle:
             browser = subprocess.Popen(
                 [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
-                stdout=subprocess.DEVNULL, stderr=log_handle,
+                stdout=subprocess.DEVNULL,
+                stderr=log_handle,
             )
         # Chromium announces its DevTools endpoint on stderr.
         devtools = wait_for(
             lambda: re.search(r"DevTools listening on (ws://\S+)", browser_log.read_text(errors="replace")),
-            60, "headless chromium's DevTools endpoint", browser, browser_log,
+            60,
+            "headless chromium's DevTools endpoint",
+            browser,
+            browser_log,
         )
         page = DevToolsPage(devtools.group(1))
         page.call("Page.enable")
         page.call("Page.navigate", url=url)
 
-        resolution = wait_for(lambda: rendered_resolution(page), FIRST_RENDER_TIMEOUT_S, "the first render", server, viewer_log)
+        resolution = wait_for(
+            lambda: rendered_resolution(page), FIRST_RENDER_TIMEOUT_S, "the first render", server, viewer_log
+        )
         assert int(resolution[0]) > 0 and int(resolution[1]) > 0
         settle_full_resolution(page)
         page.screenshot(ARTIFACTS / "viewer_first_render.png")
@@ -224,7 +236,10 @@ def test_ns_viewer_shows_the_instance_outputs_in_a_browser(trained_demo, tmp_pat
         wait_for(lambda: gui_input(page, "Output type")["value"] == OUTPUT_OVERLAY, 30, "the overlay to be chosen")
         status = wait_for(
             lambda: re.search(r"(\d+) instances at level", gui_input(page, "Status")["value"] or ""),
-            FIRST_RENDER_TIMEOUT_S, "the viewer to compute the instances for the overlay", server, viewer_log,
+            FIRST_RENDER_TIMEOUT_S,
+            "the viewer to compute the instances for the overlay",
+            server,
+            viewer_log,
         )
         settle_full_resolution(page)
         page.screenshot(ARTIFACTS / "viewer_instance_overlay.png")
@@ -236,8 +251,10 @@ def test_ns_viewer_shows_the_instance_outputs_in_a_browser(trained_demo, tmp_pat
         click_mode = gui_input(page, "Click to select")
         page.click(click_mode["x"], click_mode["y"])
         wait_for(lambda: gui_input(page, "Click to select")["checked"], 30, "click mode to turn on")
-        canvas = page.js("(() => { const r = document.querySelector('canvas').getBoundingClientRect(); "
-                         "return {x: r.x, y: r.y, width: r.width, height: r.height}; })()")
+        canvas = page.js(
+            "(() => { const r = document.querySelector('canvas').getBoundingClientRect(); "
+            "return {x: r.x, y: r.y, width: r.width, height: r.height}; })()"
+        )
         points = [(0.5, 0.5)] + [(fx, fy) for fy in (0.3, 0.5, 0.7, 0.85) for fx in (0.1, 0.25, 0.4, 0.55, 0.7)]
         status = ""
         for fx, fy in points:
@@ -256,19 +273,29 @@ def test_ns_viewer_shows_the_instance_outputs_in_a_browser(trained_demo, tmp_pat
                     last_click[0] = time.monotonic()
                 return None
 
-            status = wait_for(click_resolved, FIRST_RENDER_TIMEOUT_S, f"the click at {fx:.2f}, {fy:.2f} to be resolved", server, viewer_log)
+            status = wait_for(
+                click_resolved,
+                FIRST_RENDER_TIMEOUT_S,
+                f"the click at {fx:.2f}, {fy:.2f} to be resolved",
+                server,
+                viewer_log,
+            )
             if status.startswith("selected instance"):
                 break
         picked = re.match(r"selected instance (\d+)", status)
         assert picked, f"no click on the demo scene's render landed on an instance: {status}"
         settle_full_resolution(page)
         page.screenshot(ARTIFACTS / "viewer_after_click.png")
-        wait_for(lambda: gui_input(page, "Selected instance")["value"] == picked.group(1), 30, "the selected id in the GUI")
+        wait_for(
+            lambda: gui_input(page, "Selected instance")["value"] == picked.group(1), 30, "the selected id in the GUI"
+        )
 
         modes = open_dropdown(page, "Selected instance display")
         isolate = next(option for option in modes if option["text"] == DISPLAY_ISOLATE)
         page.click(isolate["x"], isolate["y"])
-        wait_for(lambda: gui_input(page, "Selected instance display")["value"] == DISPLAY_ISOLATE, 30, "isolate to be chosen")
+        wait_for(
+            lambda: gui_input(page, "Selected instance display")["value"] == DISPLAY_ISOLATE, 30, "isolate to be chosen"
+        )
         settle_full_resolution(page)
         page.screenshot(ARTIFACTS / "viewer_isolated.png")
 
@@ -280,7 +307,11 @@ def test_ns_viewer_shows_the_instance_outputs_in_a_browser(trained_demo, tmp_pat
           return {x: r.x + r.width / 2, y: r.y + r.height / 2};
         })()""")
         page.click(export["x"], export["y"])
-        wrote = wait_for(lambda: re.match(r"wrote (.+\.ply) \((\d+) Gaussians\)", gui_input(page, "Status")["value"]), 60, "the export")
+        wrote = wait_for(
+            lambda: re.match(r"wrote (.+\.ply) \((\d+) Gaussians\)", gui_input(page, "Status")["value"]),
+            60,
+            "the export",
+        )
         exported = read_gaussian_ply(wrote.group(1))
         assert Path(wrote.group(1)).parent.parent == Path(trained_demo).resolve().parent
         assert exported["means"].shape[0] == int(wrote.group(2)) > 0

@@ -61,7 +61,9 @@ def test_cache_hit_reuses_entries_and_memory_maps_labels(tmp_path):
     assert isinstance(vote_maps.labels, np.memmap) and vote_maps.labels.dtype == np.uint16
     assert vote_maps.labels.shape == (2, 24, 32) and vote_maps.level_names == ("red", "green")
     red_rows, red_cols = np.nonzero(vote_maps.labels[0] == 1)
-    np.testing.assert_array_equal(vote_maps.centroids[0][1], [np.floor(red_cols.mean() + 0.5), np.floor(red_rows.mean() + 0.5)])
+    np.testing.assert_array_equal(
+        vote_maps.centroids[0][1], [np.floor(red_cols.mean() + 0.5), np.floor(red_rows.mean() + 0.5)]
+    )
 
     # a new process (new VoteCache object) reuses everything
     fresh_source = ThresholdMaskSource()

@@ -17,7 +17,6 @@ import itertools
 
 import pytest
 import torch
-
 from test_vote_render import (
     call,
     intrinsics,
@@ -29,7 +28,8 @@ from test_vote_render import (
     tile_lists_everything,
     tile_lists_gsplat,
 )
-from votesplat_ns.core import vote_kernel, vote_render
+
+from votesplat_ns.core import vote_kernel
 from votesplat_ns.core.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
 
 
@@ -59,8 +59,12 @@ def set_block(monkeypatch, width):
 
 # the interpreter runs one program at a time in Python: one narrow width there
 DEVICE_BLOCKS = [
-    pytest.param(device, width, id=f"{device}-block{width or 'default'}",
-                 marks=pytest.mark.skipif(_skip_reason(device) is not None, reason=f"{device}: {_skip_reason(device)}"))
+    pytest.param(
+        device,
+        width,
+        id=f"{device}-block{width or 'default'}",
+        marks=pytest.mark.skipif(_skip_reason(device) is not None, reason=f"{device}: {_skip_reason(device)}"),
+    )
     for device, width in (("cpu", 16), ("cuda", 8), ("cuda", None))
 ]
 
@@ -72,8 +76,15 @@ def with_backend(options, backend):
 def render_and_grads(scene, pixel_xy, options, names, lists, tile_size, seed=0):
     offsets, flatten_ids = lists
     leaves = {k: v.clone().requires_grad_(k in names) for k, v in scene.items()}
-    out = call(render_votes_tiled, leaves, pixel_xy, options, isect_offsets=offsets, flatten_ids=flatten_ids,
-               tile_size=tile_size)
+    out = call(
+        render_votes_tiled,
+        leaves,
+        pixel_xy,
+        options,
+        isect_offsets=offsets,
+        flatten_ids=flatten_ids,
+        tile_size=tile_size,
+    )
     g = torch.Generator().manual_seed(seed)
     outputs = (out.mean_vote, out.projected_vote, out.distortion)
     # random cotangents so that every output entry matters
@@ -98,7 +109,9 @@ def assert_same(actual, expected, rtol, atol):
 
 def compare_backends(scene, pixel_xy, options, lists, tile_size, rtol=1e-9, atol=1e-9):
     names = ["votes"] if options.detach_geometry else ["votes", "means2d", "conics", "opacities", "viewmat", "K"]
-    expected, expected_grads = render_and_grads(scene, pixel_xy, with_backend(options, "torch"), names, lists, tile_size)
+    expected, expected_grads = render_and_grads(
+        scene, pixel_xy, with_backend(options, "torch"), names, lists, tile_size
+    )
     actual, actual_grads = render_and_grads(scene, pixel_xy, with_backend(options, "triton"), names, lists, tile_size)
     assert_same(actual, expected, rtol, atol)
     for name, a, e in zip(names, actual_grads, expected_grads):
@@ -144,8 +157,9 @@ SWITCHES = [
     VoteRenderOptions(vote_transmittance=0.0),
     VoteRenderOptions(weighting="alpha_t", distortion="squared", vote_transmittance=0.0),
     VoteRenderOptions(weighting="alpha_t", distortion="l1_pixels", detach_geometry=False),
-    VoteRenderOptions(weighting="alpha_t", blend_space="2d", distortion="l1", detach_geometry=False,
-                      vote_transmittance=0.0),
+    VoteRenderOptions(
+        weighting="alpha_t", blend_space="2d", distortion="l1", detach_geometry=False, vote_transmittance=0.0
+    ),
     VoteRenderOptions(distortion="squared", detach_geometry=False),
 ]
 
@@ -180,8 +194,15 @@ def test_kernel_float32(kernel_scene, device):
     pixel_xy = (pixel_xy[::17] if device == "cpu" else pixel_xy).to(device=device, dtype=torch.float32)
     lists = tuple(t.to(device) for t in lists["gsplat"])
     compare_backends(scene, pixel_xy, VoteRenderOptions(distortion="l1_pixels"), lists, TILE, rtol=1e-4, atol=1e-4)
-    compare_backends(scene, pixel_xy, VoteRenderOptions(weighting="alpha_t", detach_geometry=False), lists, TILE,
-                     rtol=1e-4, atol=1e-4)
+    compare_backends(
+        scene,
+        pixel_xy,
+        VoteRenderOptions(weighting="alpha_t", detach_geometry=False),
+        lists,
+        TILE,
+        rtol=1e-4,
+        atol=1e-4,
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -200,14 +221,26 @@ def test_kernel_empty_tiles_and_pixels_without_members(device):
     ends = torch.cat([offsets.reshape(-1)[1:].long(), torch.tensor([len(lists[1])])])
     assert (ends == offsets.reshape(-1).long()).any()  # some tile has an empty run
     pixel_xy = torch.tensor(
-        [[1.5, 1.5], [3.5, 7.5], [5.5, 12.5], [12.5, 3.5], [20.5, 10.5], [23.5, 15.5], [-2.0, 3.0], [30.0, 3.0],
-         [7.9, 8.1], [9.5, 4.5]],
+        [
+            [1.5, 1.5],
+            [3.5, 7.5],
+            [5.5, 12.5],
+            [12.5, 3.5],
+            [20.5, 10.5],
+            [23.5, 15.5],
+            [-2.0, 3.0],
+            [30.0, 3.0],
+            [7.9, 8.1],
+            [9.5, 4.5],
+        ],
         dtype=torch.float64,
     )
     scene, pixel_xy = to_device(scene, device), pixel_xy.to(device)
     lists = tuple(t.to(device) for t in lists)
-    for options in (VoteRenderOptions(), VoteRenderOptions(weighting="alpha_t", blend_space="2d",
-                                                           distortion="squared", detach_geometry=False)):
+    for options in (
+        VoteRenderOptions(),
+        VoteRenderOptions(weighting="alpha_t", blend_space="2d", distortion="squared", detach_geometry=False),
+    ):
         expected, _ = compare_backends(scene, pixel_xy, options, lists, TILE)
         assert (expected.count == 0).sum() >= 4 and expected.count.max() >= 2
 
@@ -222,12 +255,23 @@ def test_kernel_nothing_votes(device):
     votes = scene["votes"][:, None, :].repeat(1, 4, 1).clone().requires_grad_()
     pixel_xy = sample_pixels(WIDTH, HEIGHT, seed=33, extra=0)[::37].to(device)
     options = VoteRenderOptions(backend="triton", distortion="l1_pixels")
-    out = call(render_votes_tiled, {**scene, "votes": votes}, pixel_xy, options, isect_offsets=lists[0],
-               flatten_ids=lists[1], tile_size=TILE)
+    out = call(
+        render_votes_tiled,
+        {**scene, "votes": votes},
+        pixel_xy,
+        options,
+        isect_offsets=lists[0],
+        flatten_ids=lists[1],
+        tile_size=TILE,
+    )
     assert not out.count.any() and not out.projected_vote.any() and not out.distortion.any()
     assert out.mean_vote.shape == (len(pixel_xy), 4, 3)
-    losses = vote_losses(out, torch.zeros(len(pixel_xy), 4, 2, dtype=torch.float64, device=device),
-                         torch.ones(len(pixel_xy), 4, dtype=torch.bool, device=device), options)
+    losses = vote_losses(
+        out,
+        torch.zeros(len(pixel_xy), 4, 2, dtype=torch.float64, device=device),
+        torch.ones(len(pixel_xy), 4, dtype=torch.bool, device=device),
+        options,
+    )
     (losses["vote"].sum() + losses["distortion"].sum()).backward()
     assert votes.grad is not None and not votes.grad.any()
 
@@ -276,8 +320,11 @@ def test_kernel_membership_rule(opacities, threshold, expected_members, dtype, d
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize(
     "options",
-    [VoteRenderOptions(distortion="l1_pixels"), VoteRenderOptions(vote_transmittance=0.0, distortion="l1"),
-     VoteRenderOptions(weighting="alpha_t", blend_space="2d", distortion="squared", detach_geometry=False)],
+    [
+        VoteRenderOptions(distortion="l1_pixels"),
+        VoteRenderOptions(vote_transmittance=0.0, distortion="l1"),
+        VoteRenderOptions(weighting="alpha_t", blend_space="2d", distortion="squared", detach_geometry=False),
+    ],
     ids=option_id,
 )
 def test_kernel_training_sized(options, device):
@@ -297,18 +344,36 @@ def test_kernel_training_sized(options, device):
     flat = torch.randint(0, width * height, (pixels,), generator=g)
     pixel_xy = (torch.stack([flat % width, flat // width], dim=1).float() + 0.5).to(device)
     K, viewmat = intrinsics(focal, width, height, torch.float32).to(device), torch.eye(4, device=device)
-    info = project_for_votes(means.to(device), quats.to(device), scales.to(device), opacities.to(device), viewmat,
-                             K, width, height)
-    scene = dict(means2d=info["means2d"][0], conics=info["conics"][0], opacities=info["opacities"][0],
-                 depths=info["depths"][0], votes=votes.to(device), viewmat=viewmat, K=K)
+    info = project_for_votes(
+        means.to(device), quats.to(device), scales.to(device), opacities.to(device), viewmat, K, width, height
+    )
+    scene = dict(
+        means2d=info["means2d"][0],
+        conics=info["conics"][0],
+        opacities=info["opacities"][0],
+        depths=info["depths"][0],
+        votes=votes.to(device),
+        viewmat=viewmat,
+        K=K,
+    )
     names = ["votes"] if options.detach_geometry else ["votes", "means2d", "conics", "opacities", "viewmat", "K"]
     renders = {}
     # float32 through both backends, and the torch path in float64 as the reference for the gradients
-    for key, backend, dtype in (("torch", "torch", torch.float32), ("triton", "triton", torch.float32),
-                                ("float64", "torch", torch.float64)):
+    for key, backend, dtype in (
+        ("torch", "torch", torch.float32),
+        ("triton", "triton", torch.float32),
+        ("float64", "torch", torch.float64),
+    ):
         leaves = {k: v.detach().to(dtype).clone().requires_grad_(k in names) for k, v in scene.items()}
-        out = call(render_votes_tiled, leaves, pixel_xy.to(dtype), with_backend(options, backend),
-                   isect_offsets=info["isect_offsets"][0], flatten_ids=info["flatten_ids"], tile_size=info["tile_size"])
+        out = call(
+            render_votes_tiled,
+            leaves,
+            pixel_xy.to(dtype),
+            with_backend(options, backend),
+            isect_offsets=info["isect_offsets"][0],
+            flatten_ids=info["flatten_ids"],
+            tile_size=info["tile_size"],
+        )
         renders[key] = (out, leaves)
     # float32: torch's expf and Triton's exp may round an alpha or a transmittance that sits within an ulp of
     # a cut-off to opposite sides; such pixels (expected: none, or a handful of 4096) are left out
@@ -322,15 +387,18 @@ def test_kernel_training_sized(options, device):
         outputs = (out.mean_vote, out.projected_vote, out.distortion)
         g = torch.Generator().manual_seed(1)
         # the same cotangents for the float64 run
-        loss = sum((t[agree] * torch.randn(t[agree].shape, generator=g).to(device=device, dtype=t.dtype)).sum()
-                   for t in outputs)
+        loss = sum(
+            (t[agree] * torch.randn(t[agree].shape, generator=g).to(device=device, dtype=t.dtype)).sum()
+            for t in outputs
+        )
         found = torch.autograd.grad(loss, [leaves[k] for k in names], allow_unused=True)
         grads[key] = [torch.zeros_like(leaves[k]) if gr is None else gr for k, gr in zip(names, found)]
         if key == "triton":
             for name in ("mean_vote", "projected_vote", "distortion"):
                 expected = getattr(renders["torch"][0], name)[agree].detach()
-                torch.testing.assert_close(getattr(out, name)[agree].detach(), expected, rtol=2e-4, atol=2e-4,
-                                           msg=named(name))
+                torch.testing.assert_close(
+                    getattr(out, name)[agree].detach(), expected, rtol=2e-4, atol=2e-4, msg=named(name)
+                )
     # A gradient entry sums thousands of per-pixel terms that partly cancel (up to ~4e3 here, "squared"
     # with 2D blending), accumulated in a different order by each backend, so two float32 results differ
     # by more than any fixed rtol/atol that a wrong gradient would exceed. Each is held to the float64
@@ -432,6 +500,8 @@ def test_model_flag_selects_the_backend():
 
     from votesplat_ns.ns.method import votesplat_trainer_config
 
-    config = tyro.cli(TrainerConfig, default=votesplat_trainer_config(), args=["--pipeline.model.vote-backend", "torch"])
+    config = tyro.cli(
+        TrainerConfig, default=votesplat_trainer_config(), args=["--pipeline.model.vote-backend", "torch"]
+    )
     assert config.pipeline.model.vote_render_options().backend == "torch"
     assert votesplat_trainer_config().pipeline.model.vote_render_options().backend == "auto"

@@ -63,7 +63,9 @@ def test_border_mask_rules():
     maps = vote_maps_from_labels([labels], border_masks="mask_only")
     votes, valid = maps.targets(0)
     assert np.array_equal(valid, labels == 2)
-    targets, valid_t = gather_vote_targets(torch.from_numpy(maps.labels.astype(np.int32)), torch.from_numpy(maps.padded_centroids()))
+    targets, valid_t = gather_vote_targets(
+        torch.from_numpy(maps.labels.astype(np.int32)), torch.from_numpy(maps.padded_centroids())
+    )
     assert torch.equal(valid_t[0], torch.from_numpy(labels == 2))
 
     with pytest.raises(ValueError, match="border_masks must be one of"):
@@ -124,7 +126,9 @@ def test_targets_in_index_and_continuous_frames():
     np.testing.assert_array_equal(continuous[valid_c], np.tile([2.5, 2.5], (6, 1)))
     assert np.array_equal(to_continuous(np.array([0.0])), [0.5])
 
-    targets, valid_t = gather_vote_targets(torch.from_numpy(maps.labels.astype(np.int32)), torch.from_numpy(maps.padded_centroids()))
+    targets, valid_t = gather_vote_targets(
+        torch.from_numpy(maps.labels.astype(np.int32)), torch.from_numpy(maps.padded_centroids())
+    )
     assert targets.shape == (1, 5, 5, 2)
     np.testing.assert_array_equal(targets[valid_t].numpy(), votes[valid])
     targets_c, _ = gather_vote_targets(torch.from_numpy(labels), torch.from_numpy(maps.centroids[0]), continuous=True)

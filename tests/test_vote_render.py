@@ -13,7 +13,6 @@ from gsplat.cuda._torch_impl import (
     _isect_tiles,
     _quat_scale_to_covar_preci,
 )
-
 from torch.overrides import TorchFunctionMode
 
 from votesplat_ns.core import vote_render
@@ -39,9 +38,7 @@ def single_thread():
     torch.set_num_threads(previous)
 
 
-CUDA_PARAM = pytest.param(
-    "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-)
+CUDA_PARAM = pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"))
 
 
 # ---------------------------------------------------------------------------
@@ -88,9 +85,7 @@ def random_scene(n, width, height, seed, dtype=torch.float64):
     opacities[: n // 5] = 0.995  # clamped to alpha_max at their centres
     means2d, conics, depths, _ = project_gaussians(means, quats, scales, viewmat, K, width, height)
     votes = means + 0.4 * torch.randn(n, 3, generator=g, dtype=dtype)
-    return dict(
-        means2d=means2d, conics=conics, opacities=opacities, depths=depths, votes=votes, viewmat=viewmat, K=K
-    )
+    return dict(means2d=means2d, conics=conics, opacities=opacities, depths=depths, votes=votes, viewmat=viewmat, K=K)
 
 
 def pixel_centres(width, height, dtype=torch.float64):
@@ -258,7 +253,9 @@ def assert_render_close(actual, expected, rtol=1e-9, atol=1e-9):
 
 ALL_OPTIONS = [
     VoteRenderOptions(weighting=w, blend_space=b, distortion=d, vote_transmittance=t)
-    for w, b, d, t in itertools.product(("uniform", "alpha_t"), ("3d", "2d"), ("l1", "l1_pixels", "squared", "none"), (0.01, 0.0))
+    for w, b, d, t in itertools.product(
+        ("uniform", "alpha_t"), ("3d", "2d"), ("l1", "l1_pixels", "squared", "none"), (0.01, 0.0)
+    )
 ]
 
 
@@ -506,7 +503,13 @@ def test_tiled_default_chunk_matches_reference(tiled_scene):
     names = ["votes", "means2d", "conics", "opacities"]
     expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, names)
     actual, actual_grads = grads_of(
-        render_votes_tiled, scene, pixel_xy, options, names, isect_offsets=offsets, flatten_ids=flatten_ids,
+        render_votes_tiled,
+        scene,
+        pixel_xy,
+        options,
+        names,
+        isect_offsets=offsets,
+        flatten_ids=flatten_ids,
         tile_size=tile_size,
     )
     assert_render_close(actual, expected)
@@ -629,8 +632,15 @@ def test_levels_tiled_match_reference(tiled_scene):
     names = ["votes", "means2d", "opacities"]
     expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, names)
     actual, actual_grads = grads_of(
-        render_votes_tiled, scene, pixel_xy, options, names, isect_offsets=offsets, flatten_ids=flatten_ids,
-        tile_size=tile_size, chunk=5,
+        render_votes_tiled,
+        scene,
+        pixel_xy,
+        options,
+        names,
+        isect_offsets=offsets,
+        flatten_ids=flatten_ids,
+        tile_size=tile_size,
+        chunk=5,
     )
     assert_render_close(actual, expected)
     for name, a, e in zip(names, actual_grads, expected_grads):
@@ -652,8 +662,13 @@ def test_levels_with_nothing_to_vote(small_scene, render_fn):
             out = call(render_votes_reference, {**scene, "votes": votes}, pixel_xy, None)
         else:
             out = call(
-                render_votes_tiled, {**scene, "votes": votes}, pixel_xy, None, isect_offsets=offsets,
-                flatten_ids=ids, tile_size=8,
+                render_votes_tiled,
+                {**scene, "votes": votes},
+                pixel_xy,
+                None,
+                isect_offsets=offsets,
+                flatten_ids=ids,
+                tile_size=8,
             )
         p = len(pixel_xy)
         assert out.mean_vote.shape == (p, 2, 3) and out.projected_vote.shape == (p, 2, 2)
@@ -716,8 +731,14 @@ def test_host_syncs_per_training_step(tiled_scene):
             target, valid = target[:, 0], valid[:, 0]
         with HostSyncCounter() as syncs:
             out = call(
-                render_votes_tiled, {**leveled, "votes": votes}, pixel_xy, VoteRenderOptions(),
-                isect_offsets=offsets, flatten_ids=flatten_ids, tile_size=tile_size, chunk=10_000,
+                render_votes_tiled,
+                {**leveled, "votes": votes},
+                pixel_xy,
+                VoteRenderOptions(),
+                isect_offsets=offsets,
+                flatten_ids=flatten_ids,
+                tile_size=tile_size,
+                chunk=10_000,
             )
             losses = vote_losses(out, target, valid)
             (losses["vote"].sum() + losses["distortion"].sum()).backward()
@@ -1078,7 +1099,9 @@ def test_pixel_distortion_is_scale_free():
     for mode in ("l1", "l1_pixels"):
         options = VoteRenderOptions(distortion=mode, vote_transmittance=0.0)
         for scale in (1.0, 7.0):
-            render = render_votes_reference(means2d, conics, opacities, depths * scale, votes * scale, viewmat, K, pixel_xy, options)
+            render = render_votes_reference(
+                means2d, conics, opacities, depths * scale, votes * scale, viewmat, K, pixel_xy, options
+            )
             results[mode, scale] = render.distortion
     assert (results["l1", 1.0] > 0).all()
     torch.testing.assert_close(results["l1", 7.0], 7.0 * results["l1", 1.0])

@@ -97,7 +97,7 @@ def _rewrite_paths(obj, mapping: Dict[str, str], seen=None):
         text = str(obj)
         for old, new in mapping.items():
             if text == old or text.startswith(old + "/"):
-                return Path(new + text[len(old):])
+                return Path(new + text[len(old) :])
         return obj
     if isinstance(obj, list):
         for i, value in enumerate(obj):

@@ -142,7 +142,9 @@ def verify_with_nerfstudio(dst: Path, factor: int) -> int:
     outputs = NerfstudioDataParserConfig(data=dst, downscale_factor=factor).setup().get_dataparser_outputs("train")
     missing = [p for p in outputs.image_filenames if not Path(p).is_file()]
     if missing:
-        raise RuntimeError(f"nerfstudio's dataparser wants {missing[0]} (and {len(missing) - 1} more), which was not written")
+        raise RuntimeError(
+            f"nerfstudio's dataparser wants {missing[0]} (and {len(missing) - 1} more), which was not written"
+        )
     with Image.open(outputs.image_filenames[0]) as first:
         width, height = first.size
     camera_size = (int(outputs.cameras.width[0]), int(outputs.cameras.height[0]))
@@ -190,7 +192,9 @@ def main(argv: List[str] | None = None) -> int:
             for frame in transforms["frames"]
         ]
         # spawn, not fork: after a forked pool the nerfstudio/torch import below hung once here.
-        with ProcessPoolExecutor(max_workers=max(1, args.workers), mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(
+            max_workers=max(1, args.workers), mp_context=multiprocessing.get_context("spawn")
+        ) as pool:
             counts = []
             for done, view_counts in enumerate(pool.map(process_view, tasks), start=1):
                 counts.append(view_counts)
@@ -204,9 +208,11 @@ def main(argv: List[str] | None = None) -> int:
     for level in LEVELS:
         per_view = np.array([c[level.name] for c in counts])
         print(f"{level.name}: {per_view.min()}..{per_view.max()} segments per view (mean {per_view.mean():.0f})")
-    print(f"{len(names)} views; {dst} holds {folder_size(dst) / 1e6:.1f} MB "
-          f"(images_{args.factor} {folder_size(dst / f'images_{args.factor}') / 1e6:.1f} MB, "
-          f"masks {folder_size(dst / MASK_FOLDER) / 1e6:.1f} MB)")
+    print(
+        f"{len(names)} views; {dst} holds {folder_size(dst) / 1e6:.1f} MB "
+        f"(images_{args.factor} {folder_size(dst / f'images_{args.factor}') / 1e6:.1f} MB, "
+        f"masks {folder_size(dst / MASK_FOLDER) / 1e6:.1f} MB)"
+    )
     if not args.no_verify:
         try:
             count = verify_with_nerfstudio(dst, args.factor)

@@ -107,7 +107,9 @@ def check_device_available(device: Union[str, torch.device]) -> None:
 
 
 @contextlib.contextmanager
-def one_line_errors(catch: Tuple[Type[BaseException], ...] = (VoteSplatInputError,), prog: Optional[str] = None) -> Iterator[None]:
+def one_line_errors(
+    catch: Tuple[Type[BaseException], ...] = (VoteSplatInputError,), prog: Optional[str] = None
+) -> Iterator[None]:
     """Run a console script's work; an exception of a ``catch`` type ends it with one line on stderr and exit 1.
 
     ``prog`` names the command in the line (default: :func:`program_name` of ``sys.argv``).
@@ -164,7 +166,9 @@ def input_error_for_write(error: OSError, folder: Union[str, Path], flag: str) -
     if failed != target and target not in failed.parents and failed not in target.parents:
         return None
     reason = error.strerror or os.strerror(error.errno)
-    return VoteSplatInputError(f"{flag} {folder}: cannot write {failed} ({reason}); make it writable or choose another {flag}")
+    return VoteSplatInputError(
+        f"{flag} {folder}: cannot write {failed} ({reason}); make it writable or choose another {flag}"
+    )
 
 
 @contextlib.contextmanager
@@ -244,7 +248,9 @@ def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Pat
 
     load_config = Path(load_config)
     if not load_config.is_file():
-        raise VoteSplatInputError(f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)")
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)"
+        )
     try:
         config = yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
         checkpoint = _latest_checkpoint(config) if hasattr(config, "get_checkpoint_dir") else None

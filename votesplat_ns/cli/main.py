@@ -77,9 +77,12 @@ def main(args: Optional[Sequence[str]] = None, alias: Optional[str] = None) -> A
         cls, flags_take_values = COMMANDS[name]
         command = tyro.cli(_annotated(cls, flags_take_values), args=args[1:], prog=prog)
     else:  # no or an unknown subcommand: tyro lists the subcommands
-        subcommands = Union[tuple(  # type: ignore[misc]
-            Annotated[_annotated(cls, flags), tyro.conf.subcommand(name=key)] for key, (cls, flags) in COMMANDS.items()
-        )]
+        subcommands = Union[
+            tuple(  # type: ignore[misc]
+                Annotated[_annotated(cls, flags), tyro.conf.subcommand(name=key)]
+                for key, (cls, flags) in COMMANDS.items()
+            )
+        ]
         description = f"VoteSplat tools; also 'votesplat {SYNTH} --help' (render a synthetic scene with exact labels)."
         command = tyro.cli(subcommands, args=args, prog="votesplat", description=description)
         name = next(key for key, (cls, _) in COMMANDS.items() if isinstance(command, cls))

@@ -83,7 +83,9 @@ class _EncoderArgs(_RunArgs):
         return make_encoder(self.clip_model, self.clip_checkpoint, self.clip_random_init)
 
     def feature_options(self) -> FeatureOptions:
-        return FeatureOptions(feature_views=self.feature_views, feature_width=self.feature_width, min_pixels=self.min_pixels)
+        return FeatureOptions(
+            feature_views=self.feature_views, feature_width=self.feature_width, min_pixels=self.min_pixels
+        )
 
 
 @dataclass
@@ -101,7 +103,9 @@ class Query(_EncoderArgs):
 
     def run(self, encoder: Optional[EncoderProtocol] = None, scene: Optional[QueryScene] = None) -> Dict[str, Any]:
         if not self.text.strip():
-            raise ValueError(f"the text query is empty ({self.text!r}); pass the words to look for, e.g. votesplat query --load-config C \"red mug\"")
+            raise ValueError(
+                f'the text query is empty ({self.text!r}); pass the words to look for, e.g. votesplat query --load-config C "red mug"'
+            )
         if self.output_dir is not None:
             check_writable_folder(self.output_dir, "--output-dir")
         encoder = encoder or self.encoder()
@@ -112,8 +116,18 @@ class Query(_EncoderArgs):
         cache = features_cache_path(scene, self.features_cache)
         output_dir = self.output_dir if self.output_dir is not None else scene.run_dir or Path(".")
         with writing_into(output_dir, "--output-dir"):
-            return run_query(scene, self.text, encoder, self.output_dir, self.views, self.top_k, self.threshold,
-                             self.negatives, self.feature_options(), cache)
+            return run_query(
+                scene,
+                self.text,
+                encoder,
+                self.output_dir,
+                self.views,
+                self.top_k,
+                self.threshold,
+                self.negatives,
+                self.feature_options(),
+                cache,
+            )
 
 
 @dataclass
@@ -158,14 +172,26 @@ class QueryEval(_EncoderArgs):
         encoder = encoder or self.encoder()
         scene = scene or self.load_scene()
         cache = features_cache_path(scene, self.features_cache)
-        score, selections = evaluate_queries(scene, frames, encoder, self.threshold, self.negatives,
-                                             self.feature_options(), cache, scene_name=self.labels.name)
+        score, selections = evaluate_queries(
+            scene,
+            frames,
+            encoder,
+            self.threshold,
+            self.negatives,
+            self.feature_options(),
+            cache,
+            scene_name=self.labels.name,
+        )
         summary = score.to_dict()
         summary["selections"] = selections
         summary["encoder"] = dict(encoder.config)
         for query in score.queries:
-            print(f"{query.frame:>16}  {query.category:<24} IoU {query.iou:.3f}  selected {selections.get(query.category)}")
-        print(f"{score.scene or 'scene'}: {len(score.queries)} queries, mIoU {score.miou:.4f}, mAcc@0.25 {score.accuracy(0.25):.4f}")
+            print(
+                f"{query.frame:>16}  {query.category:<24} IoU {query.iou:.3f}  selected {selections.get(query.category)}"
+            )
+        print(
+            f"{score.scene or 'scene'}: {len(score.queries)} queries, mIoU {score.miou:.4f}, mAcc@0.25 {score.accuracy(0.25):.4f}"
+        )
         if self.output is not None:
             with writing_into(Path(self.output), "--output"):
                 write_json(Path(self.output), summary)

@@ -29,7 +29,9 @@ def viewmat_from_camera_to_world(camera_to_world: torch.Tensor) -> torch.Tensor:
 
     The same conversion as splatfacto's ``get_viewmat``.
     """
-    rotation = camera_to_world[:3, :3] * torch.tensor([1.0, -1.0, -1.0], dtype=camera_to_world.dtype, device=camera_to_world.device)
+    rotation = camera_to_world[:3, :3] * torch.tensor(
+        [1.0, -1.0, -1.0], dtype=camera_to_world.dtype, device=camera_to_world.device
+    )
     translation = camera_to_world[:3, 3:4]
     viewmat = torch.eye(4, dtype=camera_to_world.dtype, device=camera_to_world.device)
     viewmat[:3, :3] = rotation.T
@@ -37,8 +39,9 @@ def viewmat_from_camera_to_world(camera_to_world: torch.Tensor) -> torch.Tensor:
     return viewmat
 
 
-def scaled_view(view: PinholeView, max_width: Optional[int] = None, width: Optional[int] = None,
-                height: Optional[int] = None) -> PinholeView:
+def scaled_view(
+    view: PinholeView, max_width: Optional[int] = None, width: Optional[int] = None, height: Optional[int] = None
+) -> PinholeView:
     """``view`` at another resolution: at most ``max_width`` wide, or exactly ``width`` x ``height``.
 
     Intrinsics scale with the image in the continuous pixel frame (pixel centre = index + 0.5).

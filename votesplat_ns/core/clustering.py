@@ -151,7 +151,9 @@ def cluster_votes_detailed(
         raise ValueError(f"max_points must be at least 2, got {max_points}")
     bad = ~np.isfinite(votes).all(axis=1)
     if bad.any():
-        raise ValueError(f"{int(bad.sum())} of {votes.shape[0]} votes are NaN/Inf; drop those Gaussians before clustering")
+        raise ValueError(
+            f"{int(bad.sum())} of {votes.shape[0]} votes are NaN/Inf; drop those Gaussians before clustering"
+        )
     num_votes = votes.shape[0]
     if num_votes == 0:
         raise ValueError("no votes to cluster (the vote array is empty)")
@@ -230,7 +232,9 @@ def cluster_votes_detailed(
         unlabelled = np.flatnonzero(labels < 0)
         if members.any() and unlabelled.size:
             tree = cKDTree(sample[members])
-            distance, nearest = tree.query(votes[unlabelled], k=1, distance_upper_bound=noise_radius * (1 + 1e-9), workers=n_jobs)
+            distance, nearest = tree.query(
+                votes[unlabelled], k=1, distance_upper_bound=noise_radius * (1 + 1e-9), workers=n_jobs
+            )
             close = np.isfinite(distance)
             labels[unlabelled[close]] = sample_labels[members][nearest[close]]
 
@@ -254,7 +258,13 @@ def cluster_votes(
     See ``cluster_votes_detailed`` for the parameters and the module docstring for the rules.
     """
     return cluster_votes_detailed(
-        votes, min_cluster_size=min_cluster_size, min_samples=min_samples, max_points=max_points, seed=seed, noise=noise, **kwargs
+        votes,
+        min_cluster_size=min_cluster_size,
+        min_samples=min_samples,
+        max_points=max_points,
+        seed=seed,
+        noise=noise,
+        **kwargs,
     ).labels
 
 
@@ -422,7 +432,9 @@ def cluster_levels(
         raise ValueError(f"vote_support must have shape [N, L] = [{n}, {num_levels}], got {list(support.shape)}")
     level_names = tuple(str(name) for name in level_names)
     if len(level_names) != num_levels:
-        raise ValueError(f"{len(level_names)} level names {level_names} for {num_levels} vote levels; pass one name per level")
+        raise ValueError(
+            f"{len(level_names)} level names {level_names} for {num_levels} vote levels; pass one name per level"
+        )
     if len(set(level_names)) != num_levels:
         raise ValueError(f"level names must be unique, got {level_names}")
 
@@ -450,7 +462,10 @@ def cluster_levels(
             params = dict(result.params)
             if merge_separation is not None:
                 labels = merge_spread_clusters(votes, labels, merge_separation)
-                params.update(merge_separation=float(merge_separation), num_clusters_before_merge=int(result.params["num_clusters"]))
+                params.update(
+                    merge_separation=float(merge_separation),
+                    num_clusters_before_merge=int(result.params["num_clusters"]),
+                )
             if fill:
                 labels = fill_from_neighbours(means[fg_index], labels, min_instance_fraction=min_instance_fraction)
                 params.update(

@@ -88,7 +88,9 @@ class LevelInstances:
         return int((self.foreground & (self.ids < 0)).sum())
 
     @classmethod
-    def from_ids(cls, name: str, ids, foreground, means, votes, clustering: Optional[Dict[str, object]] = None) -> "LevelInstances":
+    def from_ids(
+        cls, name: str, ids, foreground, means, votes, clustering: Optional[Dict[str, object]] = None
+    ) -> "LevelInstances":
         """Build a level from per-Gaussian ids [N] (0..K-1, -1), means [N, 3] and votes [N, 3]."""
         ids = np.asarray(ids, dtype=np.int64)
         foreground = np.asarray(foreground, dtype=bool)
@@ -98,7 +100,9 @@ class LevelInstances:
         k = int(ids[members].max()) + 1 if members.size else 0
         counts = np.bincount(ids[members], minlength=k).astype(np.int64)
         if (counts == 0).any():
-            raise ValueError(f"level {name!r}: instance ids must be 0..K-1 without gaps; missing {np.flatnonzero(counts == 0).tolist()}")
+            raise ValueError(
+                f"level {name!r}: instance ids must be 0..K-1 without gaps; missing {np.flatnonzero(counts == 0).tolist()}"
+            )
         order = members[np.argsort(ids[members], kind="stable")]
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
         if k:
@@ -113,7 +117,11 @@ class LevelInstances:
         """The dictionary of the paper: instance id -> sorted Gaussian indices."""
         members = np.flatnonzero(self.ids >= 0)
         order = members[np.argsort(self.ids[members], kind="stable")]
-        return {i: chunk for i, chunk in enumerate(np.split(order, np.cumsum(self.counts)[:-1]))} if self.num_instances else {}
+        return (
+            {i: chunk for i, chunk in enumerate(np.split(order, np.cumsum(self.counts)[:-1]))}
+            if self.num_instances
+            else {}
+        )
 
     def gaussian_indices(self, instance_id: int) -> np.ndarray:
         if not 0 <= instance_id < self.num_instances:
@@ -134,7 +142,9 @@ class LevelInstances:
         self.parents = np.where(best_count > 0, best, -1).astype(np.int64)
         self.parent_overlap = best_count / self.counts
 
-    def to_manifest(self, parent_level: Optional[str] = None, extra: Optional[Dict[int, Dict[str, object]]] = None) -> Dict[str, object]:
+    def to_manifest(
+        self, parent_level: Optional[str] = None, extra: Optional[Dict[int, Dict[str, object]]] = None
+    ) -> Dict[str, object]:
         """JSON-ready description; ``extra`` adds fields to instance entries (e.g. exported file)."""
         colors = instance_colors(np.arange(self.num_instances))
         instances = []
@@ -184,7 +194,9 @@ def vote_level_index(level_names: Sequence[str], key: Union[int, str, None]) -> 
         if key in level_names:
             return list(level_names).index(key)
         if not key.lstrip("-").isdigit():
-            raise ValueError(f"unknown vote level {key!r}; this model has levels {list(level_names)} (pass a name or an index)")
+            raise ValueError(
+                f"unknown vote level {key!r}; this model has levels {list(level_names)} (pass a name or an index)"
+            )
     index = int(key)
     if not -len(level_names) <= index < len(level_names):
         raise ValueError(f"vote level index {index} out of range; this model has levels {list(level_names)}")
@@ -226,7 +238,9 @@ class InstanceSet:
                 raise ValueError(f"level {level.name!r}: a background Gaussian is assigned to an instance")
             counts = np.bincount(level.ids[level.ids >= 0], minlength=k)
             if not np.array_equal(counts, level.counts) or (counts == 0).any():
-                raise ValueError(f"level {level.name!r}: instance counts do not match the ids (or an instance is empty)")
+                raise ValueError(
+                    f"level {level.name!r}: instance counts do not match the ids (or an instance is empty)"
+                )
             parent_name = self.parent_levels[index]
             if parent_name is not None:
                 parent_k = self.level(parent_name).num_instances
@@ -234,7 +248,9 @@ class InstanceSet:
                     raise ValueError(f"level {level.name!r}: parent ids must lie in -1..{parent_k - 1}")
 
     def to_manifest(
-        self, instance_extra: Optional[Dict[str, Dict[int, Dict[str, object]]]] = None, extra: Optional[Dict[str, object]] = None
+        self,
+        instance_extra: Optional[Dict[str, Dict[int, Dict[str, object]]]] = None,
+        extra: Optional[Dict[str, object]] = None,
     ) -> Dict[str, object]:
         """The instances.json content; ``instance_extra[level][id]`` adds per-instance fields,
         ``extra`` adds top-level keys."""
@@ -245,7 +261,8 @@ class InstanceSet:
             "level_names": list(self.level_names),
             "ids_file": IDS_NAME,
             "levels": [
-                level.to_manifest(self.parent_levels[i], (instance_extra or {}).get(level.name)) for i, level in enumerate(self.levels)
+                level.to_manifest(self.parent_levels[i], (instance_extra or {}).get(level.name))
+                for i, level in enumerate(self.levels)
             ],
         }
         if extra:
@@ -265,8 +282,12 @@ class InstanceSet:
         np.savez_compressed(
             buffer,
             level_names=np.array(self.level_names),
-            ids=np.stack([level.ids for level in self.levels]).astype(np.int32) if self.levels else np.zeros((0, self.num_gaussians), np.int32),
-            foreground=np.stack([level.foreground for level in self.levels]) if self.levels else np.zeros((0, self.num_gaussians), bool),
+            ids=np.stack([level.ids for level in self.levels]).astype(np.int32)
+            if self.levels
+            else np.zeros((0, self.num_gaussians), np.int32),
+            foreground=np.stack([level.foreground for level in self.levels])
+            if self.levels
+            else np.zeros((0, self.num_gaussians), bool),
         )
         with atomic_write(folder / IDS_NAME) as handle:
             handle.write(buffer.getvalue())
@@ -283,7 +304,9 @@ class InstanceSet:
             raise ValueError(f"{manifest_path} not found; point at a folder written by the votesplat instance export")
         manifest = json.loads(manifest_path.read_text())
         if manifest.get("format") != MANIFEST_FORMAT:
-            raise ValueError(f"{manifest_path} is not a votesplat instance manifest (format={manifest.get('format')!r})")
+            raise ValueError(
+                f"{manifest_path} is not a votesplat instance manifest (format={manifest.get('format')!r})"
+            )
         with np.load(folder / manifest.get("ids_file", IDS_NAME)) as data:
             ids, foreground = data["ids"].astype(np.int64), data["foreground"].astype(bool)
         levels = []
@@ -304,7 +327,11 @@ class InstanceSet:
                     clustering=entry.get("clustering", {}),
                 )
             )
-        return cls(levels=levels, num_gaussians=int(manifest["num_gaussians"]), parent_levels=[e.get("parent_level") for e in manifest["levels"]])
+        return cls(
+            levels=levels,
+            num_gaussians=int(manifest["num_gaussians"]),
+            parent_levels=[e.get("parent_level") for e in manifest["levels"]],
+        )
 
 
 RasterizeFn = Callable[..., tuple]
@@ -346,7 +373,11 @@ def render_instance_ids(
     if channels_per_pass < 1:
         raise ValueError(f"channels_per_pass must be >= 1, got {channels_per_pass}")
     device = means.device
-    ids = torch.as_tensor(np.asarray(instance_ids) if not torch.is_tensor(instance_ids) else instance_ids, device=device).long().reshape(-1)
+    ids = (
+        torch.as_tensor(np.asarray(instance_ids) if not torch.is_tensor(instance_ids) else instance_ids, device=device)
+        .long()
+        .reshape(-1)
+    )
     if ids.shape[0] != means.shape[0]:
         raise ValueError(f"instance_ids has {ids.shape[0]} entries for {means.shape[0]} Gaussians")
     opacities = opacities.reshape(-1)
@@ -363,7 +394,9 @@ def render_instance_ids(
         inside = (compact >= start) & (compact < stop)
         colors = torch.zeros(means.shape[0], stop - start, device=device, dtype=means.dtype)
         colors[inside, compact[inside] - start] = 1.0
-        rendered, _, _ = rasterize_fn(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=None, **rasterize_kwargs)
+        rendered, _, _ = rasterize_fn(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=None, **rasterize_kwargs
+        )
         weight, channel = rendered[0].max(dim=-1)
         better = weight > best_weight
         best_weight = torch.where(better, weight, best_weight)
@@ -388,7 +421,9 @@ def instance_picture(id_maps: Sequence, images: Optional[Sequence] = None, gap: 
         rows.insert(0, row)
     widths = [max(row[c].shape[1] for row in rows) for c in range(len(id_maps))]
     heights = [max(tile.shape[0] for tile in row) for row in rows]
-    canvas = np.full((sum(heights) + gap * (len(rows) - 1), sum(widths) + gap * (len(widths) - 1), 3), 255, dtype=np.uint8)
+    canvas = np.full(
+        (sum(heights) + gap * (len(rows) - 1), sum(widths) + gap * (len(widths) - 1), 3), 255, dtype=np.uint8
+    )
     y = 0
     for row, row_height in zip(rows, heights):
         x = 0
@@ -399,7 +434,9 @@ def instance_picture(id_maps: Sequence, images: Optional[Sequence] = None, gap: 
     return canvas
 
 
-def save_instance_picture(path: Union[str, os.PathLike], id_maps: Sequence, images: Optional[Sequence] = None, gap: int = 4) -> np.ndarray:
+def save_instance_picture(
+    path: Union[str, os.PathLike], id_maps: Sequence, images: Optional[Sequence] = None, gap: int = 4
+) -> np.ndarray:
     """Save ``instance_picture`` as a PNG (atomically); returns the picture."""
     from PIL import Image
 

@@ -96,7 +96,16 @@ def seen_pixels(
     z = cam[:, 2]
     with torch.no_grad():
         rendered, alpha, _ = rasterize_fn(
-            means, quats, scales, opacities.reshape(-1), z[:, None], viewmat[None], K[None], view.width, view.height, sh_degree=None
+            means,
+            quats,
+            scales,
+            opacities.reshape(-1),
+            z[:, None],
+            viewmat[None],
+            K[None],
+            view.width,
+            view.height,
+            sh_degree=None,
         )
     alpha = alpha[0, ..., 0]
     depth = rendered[0, ..., 0] / alpha.clamp_min(1e-6)
@@ -111,7 +120,6 @@ def seen_pixels(
     return torch.where(seen, flat, torch.full_like(flat, -1)).cpu().numpy()
 
 
-
 def seen_mask_table(pixels_per_view: Sequence[np.ndarray], views: Sequence[MaskView]) -> np.ndarray:
     """[V, N] int32: the mask id under each Gaussian's centre per view (0: seen, in no mask;
     -1: not seen), from :func:`seen_pixels` of each view."""
@@ -122,7 +130,9 @@ def seen_mask_table(pixels_per_view: Sequence[np.ndarray], views: Sequence[MaskV
     return table
 
 
-def sitting_masks(table: np.ndarray, members: np.ndarray, min_share: float = DEFAULT_MIN_SHARE, min_seen: int = DEFAULT_MIN_SEEN) -> np.ndarray:
+def sitting_masks(
+    table: np.ndarray, members: np.ndarray, min_share: float = DEFAULT_MIN_SHARE, min_seen: int = DEFAULT_MIN_SEEN
+) -> np.ndarray:
     """Per view [V]: the mask (>= 1) holding at least ``min_share`` of the seen ``members``; 0 when
     that share of them is in no mask; -1 when too few are seen or no mask has the majority."""
     out = np.full(table.shape[0], -1, dtype=np.int64)
@@ -228,7 +238,9 @@ def merge_agreeing(
     return out, merges
 
 
-def drop_unmasked(labels: np.ndarray, table: np.ndarray, min_share: float = DEFAULT_MIN_SHARE, min_seen: int = DEFAULT_MIN_SEEN) -> np.ndarray:
+def drop_unmasked(
+    labels: np.ndarray, table: np.ndarray, min_share: float = DEFAULT_MIN_SHARE, min_seen: int = DEFAULT_MIN_SEEN
+) -> np.ndarray:
     """Clusters that sit in no mask in most of the views where they are decided become -1
     (background that the vote support let through: floaters, backdrop bits)."""
     out = labels.copy()

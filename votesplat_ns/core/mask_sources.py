@@ -180,11 +180,15 @@ class FolderMaskSource(MaskSource):
     def __init__(self, root: PathLike, levels: Optional[Sequence[str]] = None):
         self.root = Path(root)
         if not self.root.is_dir():
-            raise VoteSplatInputError(f"mask folder {self.root} does not exist; it must hold one sub-folder of label PNGs per level")
+            raise VoteSplatInputError(
+                f"mask folder {self.root} does not exist; it must hold one sub-folder of label PNGs per level"
+            )
         if levels is None:
             levels = sorted(p.name for p in self.root.iterdir() if p.is_dir() and not _is_hidden_folder(p.name))
             if not levels:
-                raise VoteSplatInputError(f"mask folder {self.root} has no level sub-folders (expected <root>/<level>/<image_stem>.png)")
+                raise VoteSplatInputError(
+                    f"mask folder {self.root} has no level sub-folders (expected <root>/<level>/<image_stem>.png)"
+                )
         self.levels = _validate_levels(levels, f"mask folder {self.root}")
         for level in self.levels:
             if not (self.root / level).is_dir():
@@ -234,7 +238,9 @@ class DatasetMaskSource(MaskSource):
         data = Path(data)
         self.transforms_path = data if data.suffix == ".json" else data / "transforms.json"
         if not self.transforms_path.is_file():
-            raise VoteSplatInputError(f"{self.transforms_path} does not exist; the 'dataset' mask source reads label paths from it")
+            raise VoteSplatInputError(
+                f"{self.transforms_path} does not exist; the 'dataset' mask source reads label paths from it"
+            )
         self.root = self.transforms_path.parent
         self.levels = _validate_levels(levels, "dataset mask source")
         with open(self.transforms_path, encoding="utf-8") as handle:
@@ -295,7 +301,9 @@ class DatasetMaskSource(MaskSource):
 
     def view_fingerprint(self, image_path: PathLike, frame_index: int) -> str:
         entry = self._frame_for(image_path)
-        return ";".join(f"{level}:{file_digest(entry[level]) if entry[level].is_file() else 'missing'}" for level in self.levels)
+        return ";".join(
+            f"{level}:{file_digest(entry[level]) if entry[level].is_file() else 'missing'}" for level in self.levels
+        )
 
 
 # ------------------------------------------------------------------------------------- SAM
@@ -331,9 +339,16 @@ class _OneGranularityPredictor:
         self._embeddings.clear()
         self._predictor.reset_image()
 
-    def predict_torch(self, point_coords, point_labels, boxes=None, mask_input=None, multimask_output=True, return_logits=False):
+    def predict_torch(
+        self, point_coords, point_labels, boxes=None, mask_input=None, multimask_output=True, return_logits=False
+    ):
         masks, iou_predictions, low_res = self._predictor.predict_torch(
-            point_coords, point_labels, boxes, mask_input, multimask_output=multimask_output, return_logits=return_logits
+            point_coords,
+            point_labels,
+            boxes,
+            mask_input,
+            multimask_output=multimask_output,
+            return_logits=return_logits,
         )
         if self.output_index is None or not multimask_output:
             return masks, iou_predictions, low_res
@@ -381,7 +396,9 @@ class SamMaskSource(MaskSource):
         sam_model: Any = None,
     ):
         if model_type not in SAM_CHECKPOINT_FILES:
-            raise VoteSplatInputError(f"unknown SAM model type '{model_type}'; use one of {sorted(SAM_CHECKPOINT_FILES)}")
+            raise VoteSplatInputError(
+                f"unknown SAM model type '{model_type}'; use one of {sorted(SAM_CHECKPOINT_FILES)}"
+            )
         self.levels = _validate_levels(levels, "SAM mask source")
         unknown = [level for level in self.levels if level not in SAM_LEVELS]
         if unknown:
@@ -432,9 +449,8 @@ class SamMaskSource(MaskSource):
         return "cuda" if torch.cuda.is_available() else "cpu"
 
     def _build_generator(self):
-        from segment_anything import SamAutomaticMaskGenerator, sam_model_registry
-
         import torch
+        from segment_anything import SamAutomaticMaskGenerator, sam_model_registry
 
         if self._sam_model is None:
             try:
@@ -601,7 +617,9 @@ def make_mask_source(
         return DatasetMaskSource(data, levels=tuple(levels) if levels else ("instance", "part"))
     if kind == "folder":
         if mask_folder is None:
-            raise VoteSplatInputError("mask source 'folder' needs a mask folder: pass --mask-folder <root> (<root>/<level>/<image_stem>.png)")
+            raise VoteSplatInputError(
+                "mask source 'folder' needs a mask folder: pass --mask-folder <root> (<root>/<level>/<image_stem>.png)"
+            )
         return FolderMaskSource(mask_folder, levels=tuple(levels) if levels else None)
     if kind == "sam":
         return SamMaskSource(

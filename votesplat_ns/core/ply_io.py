@@ -41,16 +41,33 @@ MIN_OPACITY_LOGIT = -5.5373
 SH_C0 = 0.28209479177387814
 
 _PLY_TO_NUMPY = {
-    "char": "i1", "int8": "i1",
-    "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4",
-    "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4",
-    "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
-_NUMPY_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
+_NUMPY_TO_PLY = {
+    "i1": "char",
+    "u1": "uchar",
+    "i2": "short",
+    "u2": "ushort",
+    "i4": "int",
+    "u4": "uint",
+    "f4": "float",
+    "f8": "double",
+}
 
 
 TEMP_MARKER = ".tmp-"
@@ -144,7 +161,11 @@ def gaussian_vertex_table(
     opacity_logits = _as_numpy(opacity_logits).reshape(-1)
     log_scales = _as_numpy(log_scales)
     quats = _as_numpy(quats)
-    for name, value, shape in (("opacity_logits", opacity_logits, (n,)), ("log_scales", log_scales, (n, 3)), ("quats", quats, (n, 4))):
+    for name, value, shape in (
+        ("opacity_logits", opacity_logits, (n,)),
+        ("log_scales", log_scales, (n, 3)),
+        ("quats", quats, (n, 4)),
+    ):
         if value.shape != shape:
             raise ValueError(f"{name} must have shape {list(shape)} to match means, got {list(value.shape)}")
 
@@ -314,9 +335,11 @@ def read_vertex_ply(path: PathLike) -> Dict[str, np.ndarray]:
     return {name: data[name].copy() for name, _ in props}
 
 
-_REQUIRED_GAUSSIAN_PROPERTIES = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{i}" for i in range(3)] + [
-    f"rot_{i}" for i in range(4)
-]
+_REQUIRED_GAUSSIAN_PROPERTIES = (
+    ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    + [f"scale_{i}" for i in range(3)]
+    + [f"rot_{i}" for i in range(4)]
+)
 _OPTIONAL_GAUSSIAN_PROPERTIES = ("nx", "ny", "nz")  # zeros in every writer; gsplat's export_splats leaves them out
 MAX_SH_DEGREE = 4  # the highest degree gsplat renders
 
@@ -335,7 +358,12 @@ def sh_degree_of_rest_count(num_rest: int) -> Optional[int]:
 
 def _gaussians_from_columns(columns: Dict[str, np.ndarray], num_rest: int) -> Dict[str, np.ndarray]:
     n = columns["x"].shape[0]
-    stack = lambda names: np.stack([columns[k].astype(np.float32) for k in names], axis=1) if names else np.zeros((n, 0), np.float32)  # noqa: E731
+
+    def stack(names):
+        if not names:
+            return np.zeros((n, 0), np.float32)
+        return np.stack([columns[k].astype(np.float32) for k in names], axis=1)
+
     # channel-major in the file (all R coefficients, then G, then B), [N, K, 3] in splatfacto
     rest = stack([f"f_rest_{i}" for i in range(num_rest)]).reshape(n, 3, num_rest // 3).transpose(0, 2, 1)
     return {
@@ -403,8 +431,14 @@ def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
     known = set(_REQUIRED_GAUSSIAN_PROPERTIES) | set(_OPTIONAL_GAUSSIAN_PROPERTIES) | set(expected_rest)
     extra = [name for name in names if name not in known]
     if missing:
-        hint = "; it stores RGB colours, export with --ply-color-mode sh_coeffs" if "red" in names and "f_dc_0" not in names else ""
-        raise GaussianPlyError(f"{path} is not a 3DGS PLY: it lacks the properties {_names_list(missing)}{hint}; {what_to_do}")
+        hint = (
+            "; it stores RGB colours, export with --ply-color-mode sh_coeffs"
+            if "red" in names and "f_dc_0" not in names
+            else ""
+        )
+        raise GaussianPlyError(
+            f"{path} is not a 3DGS PLY: it lacks the properties {_names_list(missing)}{hint}; {what_to_do}"
+        )
     if extra:
         raise GaussianPlyError(
             f"{path} has properties a standard 3DGS PLY does not have ({_names_list(extra)}); they would change the scene "

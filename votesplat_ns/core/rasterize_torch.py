@@ -44,16 +44,11 @@ import math
 from typing import Any, Dict, List, Optional, Tuple
 
 import torch
-from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 # gsplat's own pure-torch helpers; they are exact re-implementations of its CUDA maths.
-from gsplat.cuda._torch_impl import (
-    _persp_proj,
-    _quat_scale_to_covar_preci,
-    _spherical_harmonics,
-    _world_to_cam,
-)
+from gsplat.cuda._torch_impl import _persp_proj, _quat_scale_to_covar_preci, _spherical_harmonics, _world_to_cam
+from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 GSPLAT_ALPHA_MAX = 0.999
 """Upper clamp on a Gaussian's alpha in gsplat 1.4.0's kernels."""
@@ -435,7 +430,9 @@ def _block_candidate_lists(
     mx = mean[:, 0].gather(0, gid)[:, None]
     my = mean[:, 1].gather(0, gid)[:, None]
     hit_x = (mx + ex >= first_x[tile_of_entry]) & (mx - ex <= last_x[tile_of_entry]) & (block_x0[tile_of_entry] < width)
-    hit_y = (my + ey >= first_y[tile_of_entry]) & (my - ey <= last_y[tile_of_entry]) & (block_y0[tile_of_entry] < height)
+    hit_y = (
+        (my + ey >= first_y[tile_of_entry]) & (my - ey <= last_y[tile_of_entry]) & (block_y0[tile_of_entry] < height)
+    )
     hit = hit_y[:, :, None] & hit_x[:, None, :] & reachable.gather(0, gid)[:, None, None]
     hit = hit.reshape(n_isects, n_sub)
 
@@ -447,7 +444,11 @@ def _block_candidate_lists(
     block_first = torch.cumsum(per_block, 0) - per_block
     entry, sub_index = hit.nonzero(as_tuple=True)
     block_of_entry = tile_of_entry.gather(0, entry) * n_sub + sub_index  # (tile, sub-block)
-    rank = kept_before[1:].reshape(-1).gather(0, entry * n_sub + sub_index) - tile_first.reshape(-1).gather(0, block_of_entry) - 1
+    rank = (
+        kept_before[1:].reshape(-1).gather(0, entry * n_sub + sub_index)
+        - tile_first.reshape(-1).gather(0, block_of_entry)
+        - 1
+    )
     destination = block_first.gather(0, block_of_entry) + rank
     candidates = torch.empty_like(entry).index_copy_(0, destination, entry)
 
@@ -536,7 +537,9 @@ def _walk_block_group(
             skip |= neg_sigma > 0
         factor = neg_sigma.exp_()
         # 1 - alpha = max(1 - alpha_max, 1 - o exp(-sigma))
-        torch.addcmul(torch.ones((), dtype=dtype, device=device), factor, opacity[:, None, None, :], value=-1.0, out=factor)
+        torch.addcmul(
+            torch.ones((), dtype=dtype, device=device), factor, opacity[:, None, None, :], value=-1.0, out=factor
+        )
         factor.clamp_(min=1.0 - alpha_max)
         factor.masked_fill_(skip, 1.0)
         # Carry T in as the first factor: cumprod then multiplies in exactly the kernel's
@@ -640,8 +643,21 @@ def _contributing_pairs(
         n_group = max(1, chunk_elements // (pixels_per_block * width_k))
         group = blocks[at : at + n_group]
         local_pixel, gaussian = _walk_block_group(
-            group, starts[at : at + n_group], counts[at : at + n_group], candidates, means2d_flat, conics_flat,
-            opacities_flat, flatten_ids, width, height, block_size, blocks_wide, blocks_per_camera, alpha_max, k_chunk,
+            group,
+            starts[at : at + n_group],
+            counts[at : at + n_group],
+            candidates,
+            means2d_flat,
+            conics_flat,
+            opacities_flat,
+            flatten_ids,
+            width,
+            height,
+            block_size,
+            blocks_wide,
+            blocks_per_camera,
+            alpha_max,
+            k_chunk,
         )
         at += n_group
         # group-local pixel -> image coordinates through small lookup tables
@@ -716,8 +732,18 @@ def rasterize_to_pixels_torch(
     colors_flat = colors.reshape(C * N, D)
 
     pixel, pixel_x, pixel_y, gaussian = _contributing_pairs(
-        means2d_flat.detach(), conics_flat.detach(), opacities_flat.detach(), isect_offsets, flatten_ids,
-        width, height, tile_size, alpha_max, block_size, chunk_elements, k_chunk,
+        means2d_flat.detach(),
+        conics_flat.detach(),
+        opacities_flat.detach(),
+        isect_offsets,
+        flatten_ids,
+        width,
+        height,
+        tile_size,
+        alpha_max,
+        block_size,
+        chunk_elements,
+        k_chunk,
     )
 
     absgrad_buffer = None
@@ -749,8 +775,14 @@ def rasterize_to_pixels_torch(
             first_pixel = int(pixel_number[lo].item())
             starts = pixel_starts[first_pixel : int(pixel_number[hi - 1].item()) + 1] - lo
             colour, final_t = _CompositePairs.apply(
-                table_t, gaussian[lo:hi], pixel_x[lo:hi], pixel_y[lo:hi], pixel_number[lo:hi] - first_pixel,
-                starts, alpha_max, absgrad_buffer,
+                table_t,
+                gaussian[lo:hi],
+                pixel_x[lo:hi],
+                pixel_y[lo:hi],
+                pixel_number[lo:hi] - first_pixel,
+                starts,
+                alpha_max,
+                absgrad_buffer,
             )
             found_colours.append(colour)
             found_t.append(final_t)
@@ -836,7 +868,9 @@ def _validate(
             colors.dim() == 4 and colors.shape[:2] == (C, N) and colors.shape[3] == 3
         )
         if not ok:
-            raise ValueError(f"with sh_degree set colors must be SH coefficients [N, K, 3] or [C, N, K, 3], got {tuple(colors.shape)}")
+            raise ValueError(
+                f"with sh_degree set colors must be SH coefficients [N, K, 3] or [C, N, K, 3], got {tuple(colors.shape)}"
+            )
         if (sh_degree + 1) ** 2 > colors.shape[-2]:
             raise ValueError(
                 f"sh_degree={sh_degree} needs {(sh_degree + 1) ** 2} SH bases but colors has {colors.shape[-2]}; lower sh_degree"
@@ -900,15 +934,37 @@ def rasterize_torch(
     """
     _check_gsplat_extras(ignored)
     _validate(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, tile_size,
-        backgrounds, render_mode, rasterize_mode, packed,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        sh_degree,
+        tile_size,
+        backgrounds,
+        render_mode,
+        rasterize_mode,
+        packed,
     )
     width, height, tile_size = int(width), int(height), int(tile_size)
     C = viewmats.shape[0]
 
     radii, means2d, depths, conics, compensations = project_gaussians_torch(
-        means, quats, scales, viewmats, Ks, width, height,
-        eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+        means,
+        quats,
+        scales,
+        viewmats,
+        Ks,
+        width,
+        height,
+        eps2d=eps2d,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        radius_clip=radius_clip,
         calc_compensations=(rasterize_mode == "antialiased"),
     )
     view_opacities = opacities.repeat(C, 1)
@@ -942,9 +998,19 @@ def rasterize_torch(
     )
 
     render_colors, render_alphas = rasterize_to_pixels_torch(
-        means2d, conics, view_colors, view_opacities, width, height, tile_size,
-        isect_offsets, flatten_ids, backgrounds=backgrounds, absgrad=absgrad,
-        alpha_max=alpha_max, chunk_elements=chunk_elements,
+        means2d,
+        conics,
+        view_colors,
+        view_opacities,
+        width,
+        height,
+        tile_size,
+        isect_offsets,
+        flatten_ids,
+        backgrounds=backgrounds,
+        absgrad=absgrad,
+        alpha_max=alpha_max,
+        chunk_elements=chunk_elements,
     )
     if render_mode in ("ED", "RGB+ED"):
         render_colors = torch.cat(

@@ -64,8 +64,9 @@ class TrainedScene:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def from_model(cls, model: Any, level_names: Optional[Sequence[str]] = None,
-                   sh_degree: Optional[int] = None) -> "TrainedScene":
+    def from_model(
+        cls, model: Any, level_names: Optional[Sequence[str]] = None, sh_degree: Optional[int] = None
+    ) -> "TrainedScene":
         """From a VoteSplat model: ``gauss_params``, ``config.vote_levels`` and ``config.sh_degree``."""
         config = getattr(model, "config", None)
         if level_names is None:
@@ -80,8 +81,9 @@ class TrainedScene:
         return scene
 
     @classmethod
-    def from_params(cls, params: Mapping[str, Any], level_names: Optional[Sequence[str]] = None,
-                    sh_degree: Optional[int] = None) -> "TrainedScene":
+    def from_params(
+        cls, params: Mapping[str, Any], level_names: Optional[Sequence[str]] = None, sh_degree: Optional[int] = None
+    ) -> "TrainedScene":
         """From splatfacto's raw gauss_params (tensors or arrays) plus ``vote_offsets`` and ``vote_support``."""
         keys = set(params.keys())
         missing_votes = [k for k in (VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY) if k not in keys]
@@ -103,7 +105,9 @@ class TrainedScene:
             level_names = tuple(f"level_{i}" for i in range(offsets.shape[1]))
         level_names = tuple(str(name) for name in level_names)
         if len(level_names) != offsets.shape[1]:
-            raise ValueError(f"the model has {offsets.shape[1]} vote levels but {len(level_names)} level names {level_names}")
+            raise ValueError(
+                f"the model has {offsets.shape[1]} vote levels but {len(level_names)} level names {level_names}"
+            )
         rest = to_numpy(params["features_rest"]) if "features_rest" in keys else None
         if sh_degree is None:
             sh_degree = int(round(math.sqrt(rest.shape[1] + 1))) - 1 if rest is not None and rest.ndim == 3 else 0
@@ -158,4 +162,6 @@ class TrainedScene:
 
     def vertex_table(self) -> np.ndarray:
         """The standard 3DGS PLY vertex table of every Gaussian (see ``ply_io.gaussian_vertex_table``)."""
-        return gaussian_vertex_table(self.means, self.sh_dc, self.sh_rest, self.opacity_logits, self.log_scales, self.quats)
+        return gaussian_vertex_table(
+            self.means, self.sh_dc, self.sh_rest, self.opacity_logits, self.log_scales, self.quats
+        )

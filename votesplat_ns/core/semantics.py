@@ -103,8 +103,15 @@ class ClipEncoder:
     :func:`instance_features` does.
     """
 
-    def __init__(self, model: torch.nn.Module, preprocess: Any, tokenizer: Any, config: Dict[str, Any],
-                 device: Union[str, torch.device] = "cpu", batch_size: int = 32) -> None:
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        preprocess: Any,
+        tokenizer: Any,
+        config: Dict[str, Any],
+        device: Union[str, torch.device] = "cpu",
+        batch_size: int = 32,
+    ) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.model = model.to(device).eval()
@@ -115,8 +122,13 @@ class ClipEncoder:
         self.batch_size = batch_size
 
     @classmethod
-    def from_checkpoint(cls, model_name: str, checkpoint_path: Union[str, os.PathLike],
-                        device: Union[str, torch.device] = "cpu", batch_size: int = 32) -> "ClipEncoder":
+    def from_checkpoint(
+        cls,
+        model_name: str,
+        checkpoint_path: Union[str, os.PathLike],
+        device: Union[str, torch.device] = "cpu",
+        batch_size: int = 32,
+    ) -> "ClipEncoder":
         """Load ``model_name`` with weights from a local file; never downloads anything."""
         checkpoint = Path(checkpoint_path).expanduser().resolve()
         if not checkpoint.is_file():
@@ -129,7 +141,9 @@ class ClipEncoder:
 
         try:
             # An absolute path never matches one of open_clip's pretrained tags, so it loads the file.
-            model, _, preprocess = open_clip.create_model_and_transforms(model_name, pretrained=str(checkpoint), device="cpu")
+            model, _, preprocess = open_clip.create_model_and_transforms(
+                model_name, pretrained=str(checkpoint), device="cpu"
+            )
         except Exception as error:  # torch.load/load_state_dict raise many types for a wrong file
             # never relay torch's text: for a non-weights file it suggests weights_only=False, unsafe here
             raise ValueError(
@@ -145,8 +159,13 @@ class ClipEncoder:
         return cls(model, preprocess, open_clip.get_tokenizer(model_name), config, device, batch_size)
 
     @classmethod
-    def random_init(cls, model_name: str = SMALLEST_OPEN_CLIP_MODEL, device: Union[str, torch.device] = "cpu",
-                    seed: int = 0, batch_size: int = 32) -> "ClipEncoder":
+    def random_init(
+        cls,
+        model_name: str = SMALLEST_OPEN_CLIP_MODEL,
+        device: Union[str, torch.device] = "cpu",
+        seed: int = 0,
+        batch_size: int = 32,
+    ) -> "ClipEncoder":
         """Real open_clip model code with seeded random weights, for tests (features mean nothing)."""
         _check_open_clip_model_name(model_name)
         import open_clip
@@ -170,14 +189,20 @@ class ClipEncoder:
         pil_images = []
         for index, crop in enumerate(crops):
             crop = np.asarray(crop)
-            if crop.dtype != np.uint8 or crop.ndim != 3 or crop.shape[2] != 3 or crop.shape[0] == 0 or crop.shape[1] == 0:
+            if (
+                crop.dtype != np.uint8
+                or crop.ndim != 3
+                or crop.shape[2] != 3
+                or crop.shape[0] == 0
+                or crop.shape[1] == 0
+            ):
                 raise ValueError(
                     f"crop {index} has dtype {crop.dtype} and shape {crop.shape}; expected a non-empty HxWx3 uint8 image"
                 )
             pil_images.append(Image.fromarray(np.ascontiguousarray(crop)))
         features = []
         for start in range(0, len(pil_images), self.batch_size):
-            batch = torch.stack([self.preprocess(image) for image in pil_images[start:start + self.batch_size]])
+            batch = torch.stack([self.preprocess(image) for image in pil_images[start : start + self.batch_size]])
             features.append(self.model.encode_image(batch.to(self.device)).float().cpu())
         return F.normalize(torch.cat(features), dim=-1)
 
@@ -205,7 +230,7 @@ class ClipEncoder:
         self.check_text_length(texts)
         features = []
         for start in range(0, len(texts), self.batch_size):
-            tokens = self.tokenizer(list(texts[start:start + self.batch_size])).to(self.device)
+            tokens = self.tokenizer(list(texts[start : start + self.batch_size])).to(self.device)
             features.append(self.model.encode_text(tokens).float().cpu())
         return F.normalize(torch.cat(features), dim=-1)
 
@@ -226,7 +251,8 @@ def check_same_encoder(stored: Mapping[str, Any], encoder: EncoderProtocol, what
         keys = sorted(set(stored_identity) | set(current_identity))
         differences = ", ".join(
             f"{key}: {stored_identity.get(key)!r} vs {current_identity.get(key)!r}"
-            for key in keys if stored_identity.get(key) != current_identity.get(key)
+            for key in keys
+            if stored_identity.get(key) != current_identity.get(key)
         )
         raise ValueError(
             f"{what} were made with a different encoder ({differences}); recompute them with this encoder "
@@ -241,8 +267,13 @@ class InstanceFeatures(dict):
     ``view_count`` record, per instance, the total pixel weight and number of views that entered the mean.
     """
 
-    def __init__(self, features: Mapping[int, torch.Tensor], config: Mapping[str, Any],
-                 visible_pixels: Mapping[int, int], view_count: Mapping[int, int]) -> None:
+    def __init__(
+        self,
+        features: Mapping[int, torch.Tensor],
+        config: Mapping[str, Any],
+        visible_pixels: Mapping[int, int],
+        view_count: Mapping[int, int],
+    ) -> None:
         super().__init__({int(key): value for key, value in features.items()})
         self.config = dict(config)
         self.visible_pixels = {int(key): int(value) for key, value in visible_pixels.items()}
@@ -271,12 +302,19 @@ class InstanceFeatures(dict):
             np.savez(handle, **arrays)
 
     @classmethod
-    def load(cls, path: Union[str, os.PathLike], encoder: Optional[EncoderProtocol] = None,
-             crop_mode: Optional[str] = None, min_pixels: Optional[int] = None) -> "InstanceFeatures":
+    def load(
+        cls,
+        path: Union[str, os.PathLike],
+        encoder: Optional[EncoderProtocol] = None,
+        crop_mode: Optional[str] = None,
+        min_pixels: Optional[int] = None,
+    ) -> "InstanceFeatures":
         """Read :meth:`save`'s file; with ``encoder``/``crop_mode``/``min_pixels`` given, refuse a mismatch."""
         path = Path(path)
         if not path.is_file():
-            raise ValueError(f"instance feature file not found: {path}; compute it with instance_features(...).save(path)")
+            raise ValueError(
+                f"instance feature file not found: {path}; compute it with instance_features(...).save(path)"
+            )
         with np.load(path, allow_pickle=False) as data:
             missing = {"instance_ids", "features", "visible_pixels", "view_count", "config_json"} - set(data.files)
             if missing:
@@ -330,7 +368,7 @@ def instance_crop(image: np.ndarray, instance_mask: np.ndarray, crop_mode: str =
     side = max(height, width)
     square = np.zeros((side, side, 3), dtype=np.uint8)
     y0, x0 = (side - height) // 2, (side - width) // 2
-    square[y0:y0 + height, x0:x0 + width] = crop
+    square[y0 : y0 + height, x0 : x0 + width] = crop
     return square
 
 
@@ -410,7 +448,8 @@ def instance_features(
     }
     kept_ids = set(result)
     return InstanceFeatures(
-        result, config,
+        result,
+        config,
         {i: n for i, n in visible_pixels.items() if i in kept_ids},
         {i: n for i, n in view_count.items() if i in kept_ids},
     )
@@ -420,8 +459,9 @@ def instance_features(
 # Text query
 
 
-def lerf_relevancy(instance_matrix: torch.Tensor, positive: torch.Tensor, negatives: torch.Tensor,
-                   scale: float = LERF_SCALE) -> torch.Tensor:
+def lerf_relevancy(
+    instance_matrix: torch.Tensor, positive: torch.Tensor, negatives: torch.Tensor, scale: float = LERF_SCALE
+) -> torch.Tensor:
     """LERF relevancy of each row of ``instance_matrix`` [n, D] for one positive [D] vs negatives [m, D].
 
     Per negative j: p_j = softmax(scale * [pos.x, neg_j.x])[0] = sigmoid(scale * (pos.x - neg_j.x));
@@ -464,7 +504,9 @@ def query_text(
         check_same_encoder(stored_config["encoder"], encoder)
     if scale is None:
         if not hasattr(encoder, "logit_scale"):
-            raise ValueError("scale=None uses the encoder's logit_scale, which this encoder does not have; pass a number")
+            raise ValueError(
+                "scale=None uses the encoder's logit_scale, which this encoder does not have; pass a number"
+            )
         scale = float(encoder.logit_scale)
 
     ids = sorted(int(i) for i in instance_feats)
@@ -514,7 +556,9 @@ def click_select(instance_map: ArrayLike, x: float, y: float) -> Optional[int]:
     if not (math.isfinite(x) and math.isfinite(y)):
         raise ValueError(f"click ({x}, {y}) is not a finite pixel position")
     if not (0 <= x < width and 0 <= y < height):
-        raise ValueError(f"click ({x}, {y}) is outside the {width}x{height} image; x must be in [0, {width}), y in [0, {height})")
+        raise ValueError(
+            f"click ({x}, {y}) is outside the {width}x{height} image; x must be in [0, {width}), y in [0, {height})"
+        )
     value = int(instance_map[int(math.floor(y)), int(math.floor(x))])
     return None if value < 0 else value
 
@@ -537,12 +581,16 @@ def _selected_ids(selected: Union[int, Iterable[int], None]) -> List[int]:
 def _membership(instance_ids_per_gaussian: ArrayLike, selected: Union[int, Iterable[int], None]) -> torch.Tensor:
     ids = torch.as_tensor(instance_ids_per_gaussian)
     if ids.ndim != 1 or ids.is_floating_point() or ids.dtype == torch.bool:
-        raise ValueError(f"instance_ids_per_gaussian must be a 1-D integer array [N], got {ids.dtype} {tuple(ids.shape)}")
+        raise ValueError(
+            f"instance_ids_per_gaussian must be a 1-D integer array [N], got {ids.dtype} {tuple(ids.shape)}"
+        )
     wanted = torch.as_tensor(_selected_ids(selected), dtype=ids.dtype, device=ids.device)
     present = torch.isin(wanted, ids)
     if not bool(present.all()):
         missing = wanted[~present].tolist()
-        raise ValueError(f"selected instance ids {missing} own no Gaussian; select from the ids in instance_ids_per_gaussian")
+        raise ValueError(
+            f"selected instance ids {missing} own no Gaussian; select from the ids in instance_ids_per_gaussian"
+        )
     return torch.isin(ids, wanted)
 
 

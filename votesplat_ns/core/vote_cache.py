@@ -233,9 +233,7 @@ class VoteCache:
         # written last: an entry without its .votes.npz is not an entry
         atomic_write_bytes(self.votes_path(key), lambda handle: np.savez(handle, **record))
 
-    def get(
-        self, frame_index: int, image_path: PathLike, image_loader: Optional[ImageLoader] = None
-    ) -> VoteMaps:
+    def get(self, frame_index: int, image_path: PathLike, image_loader: Optional[ImageLoader] = None) -> VoteMaps:
         """Vote maps of one view: from the cache if a valid entry exists, else made and stored.
 
         Args:
@@ -307,7 +305,9 @@ def _check_label_ids(labels: np.ndarray, centroids: Sequence[np.ndarray]) -> Non
             continue
         low, high = int(level_labels.min()), int(level_labels.max())
         if low < 0 or high >= table.shape[0]:
-            raise ValueError(f"level {level} holds label ids {low}..{high}, outside its masks' ids 0..{table.shape[0] - 1}")
+            raise ValueError(
+                f"level {level} holds label ids {low}..{high}, outside its masks' ids 0..{table.shape[0] - 1}"
+            )
 
 
 def _progress(items: Sequence[int], description: str, enabled: bool):

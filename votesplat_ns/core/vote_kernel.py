@@ -162,10 +162,27 @@ class _VoteSums(torch.autograd.Function):
         if p > 0:
             with _on(device):
                 _vote_fwd_kernel[(p,)](
-                    geometry, table, pixel_xy, run_start, run_end, flatten_ids, consts,
-                    count, last, weight_sum, value_sum, depth_sum, spread,
-                    LEVELS=levels, LP=_pow2(levels), D1=width, LDP=_pow2(levels * width),
-                    ALPHA_T=alpha_t, DIST=dist, BLOCK=BLOCK, num_warps=NUM_WARPS,
+                    geometry,
+                    table,
+                    pixel_xy,
+                    run_start,
+                    run_end,
+                    flatten_ids,
+                    consts,
+                    count,
+                    last,
+                    weight_sum,
+                    value_sum,
+                    depth_sum,
+                    spread,
+                    LEVELS=levels,
+                    LP=_pow2(levels),
+                    D1=width,
+                    LDP=_pow2(levels * width),
+                    ALPHA_T=alpha_t,
+                    DIST=dist,
+                    BLOCK=BLOCK,
+                    num_warps=NUM_WARPS,
                 )
         ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum)
         ctx.config = config
@@ -191,15 +208,39 @@ class _VoteSums(torch.autograd.Function):
         g_geometry = torch.zeros_like(geometry) if geometry_grad else g_table  # a dummy pointer when unused
         with _on(table.device):
             _vote_bwd_kernel[(p,)](
-                geometry, table, pixel_xy, run_start, last, count, depth_sum, flatten_ids, consts,
-                g_weight_sum, g_value_sum, g_spread, g_table, g_geometry,
-                LEVELS=levels, LP=_pow2(levels), D1=width, LDP=_pow2(levels * width),
-                ALPHA_T=alpha_t, DIST=dist, GEOMETRY_GRAD=geometry_grad, BLOCK=BLOCK, num_warps=NUM_WARPS,
+                geometry,
+                table,
+                pixel_xy,
+                run_start,
+                last,
+                count,
+                depth_sum,
+                flatten_ids,
+                consts,
+                g_weight_sum,
+                g_value_sum,
+                g_spread,
+                g_table,
+                g_geometry,
+                LEVELS=levels,
+                LP=_pow2(levels),
+                D1=width,
+                LDP=_pow2(levels * width),
+                ALPHA_T=alpha_t,
+                DIST=dist,
+                GEOMETRY_GRAD=geometry_grad,
+                BLOCK=BLOCK,
+                num_warps=NUM_WARPS,
             )
         return (
             g_geometry if geometry_grad else None,
             g_table if ctx.needs_input_grad[1] else None,
-            None, None, None, None, None, None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
         )
 
 
@@ -229,10 +270,26 @@ if triton is not None:
 
     @triton.jit
     def _vote_fwd_kernel(
-        geom_ptr, table_ptr, pix_ptr, start_ptr, end_ptr, ids_ptr, consts_ptr,
-        count_ptr, last_ptr, wsum_ptr, vsum_ptr, zsum_ptr, spread_ptr,
-        LEVELS: tl.constexpr, LP: tl.constexpr, D1: tl.constexpr, LDP: tl.constexpr,
-        ALPHA_T: tl.constexpr, DIST: tl.constexpr, BLOCK: tl.constexpr,
+        geom_ptr,
+        table_ptr,
+        pix_ptr,
+        start_ptr,
+        end_ptr,
+        ids_ptr,
+        consts_ptr,
+        count_ptr,
+        last_ptr,
+        wsum_ptr,
+        vsum_ptr,
+        zsum_ptr,
+        spread_ptr,
+        LEVELS: tl.constexpr,
+        LP: tl.constexpr,
+        D1: tl.constexpr,
+        LDP: tl.constexpr,
+        ALPHA_T: tl.constexpr,
+        DIST: tl.constexpr,
+        BLOCK: tl.constexpr,
     ):
         pid = tl.program_id(0).to(tl.int64)
         px = tl.load(pix_ptr + 2 * pid)
@@ -334,10 +391,28 @@ if triton is not None:
 
     @triton.jit
     def _vote_bwd_kernel(
-        geom_ptr, table_ptr, pix_ptr, start_ptr, last_ptr, count_ptr, zsum_ptr, ids_ptr, consts_ptr,
-        g_wsum_ptr, g_vsum_ptr, g_spread_ptr, g_table_ptr, g_geom_ptr,
-        LEVELS: tl.constexpr, LP: tl.constexpr, D1: tl.constexpr, LDP: tl.constexpr,
-        ALPHA_T: tl.constexpr, DIST: tl.constexpr, GEOMETRY_GRAD: tl.constexpr, BLOCK: tl.constexpr,
+        geom_ptr,
+        table_ptr,
+        pix_ptr,
+        start_ptr,
+        last_ptr,
+        count_ptr,
+        zsum_ptr,
+        ids_ptr,
+        consts_ptr,
+        g_wsum_ptr,
+        g_vsum_ptr,
+        g_spread_ptr,
+        g_table_ptr,
+        g_geom_ptr,
+        LEVELS: tl.constexpr,
+        LP: tl.constexpr,
+        D1: tl.constexpr,
+        LDP: tl.constexpr,
+        ALPHA_T: tl.constexpr,
+        DIST: tl.constexpr,
+        GEOMETRY_GRAD: tl.constexpr,
+        BLOCK: tl.constexpr,
     ):
         pid = tl.program_id(0).to(tl.int64)
         px = tl.load(pix_ptr + 2 * pid)

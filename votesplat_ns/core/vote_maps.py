@@ -49,9 +49,7 @@ def _check_label_image(labels: np.ndarray, name: str = "labels") -> np.ndarray:
     return labels
 
 
-def labels_from_binary_masks(
-    masks: Sequence[np.ndarray], shape: Optional[Tuple[int, int]] = None
-) -> np.ndarray:
+def labels_from_binary_masks(masks: Sequence[np.ndarray], shape: Optional[Tuple[int, int]] = None) -> np.ndarray:
     """Merge possibly overlapping binary masks into one label image (int32 [H, W]).
 
     Overlap rule: masks are painted from the largest area to the smallest, so where masks

@@ -143,17 +143,11 @@ class VoteRenderOptions:
         if self.weighting not in _WEIGHTINGS:
             raise ValueError(f"VoteRenderOptions.weighting must be one of {_WEIGHTINGS}, got {self.weighting!r}")
         if self.blend_space not in _BLEND_SPACES:
-            raise ValueError(
-                f"VoteRenderOptions.blend_space must be one of {_BLEND_SPACES}, got {self.blend_space!r}"
-            )
+            raise ValueError(f"VoteRenderOptions.blend_space must be one of {_BLEND_SPACES}, got {self.blend_space!r}")
         if self.distortion not in _DISTORTIONS:
-            raise ValueError(
-                f"VoteRenderOptions.distortion must be one of {_DISTORTIONS}, got {self.distortion!r}"
-            )
+            raise ValueError(f"VoteRenderOptions.distortion must be one of {_DISTORTIONS}, got {self.distortion!r}")
         if not 0.0 <= float(self.vote_transmittance) < 1.0:
-            raise ValueError(
-                f"VoteRenderOptions.vote_transmittance must be in [0, 1), got {self.vote_transmittance!r}"
-            )
+            raise ValueError(f"VoteRenderOptions.vote_transmittance must be in [0, 1), got {self.vote_transmittance!r}")
         if not ALPHA_MIN < float(self.alpha_max) < 1.0:
             raise ValueError(f"VoteRenderOptions.alpha_max must be in (1/255, 1), got {self.alpha_max!r}")
         if not float(self.vote_near_plane) > 0.0:
@@ -363,8 +357,15 @@ def render_votes_tiled(
     threshold = _vote_threshold(options)
     with torch.no_grad():
         member_ids, count = _tiled_members(
-            geometry.detach(), pixel_xy.detach(), run_start, run_end, flatten_ids, min(chunk, longest), longest,
-            threshold, options.alpha_max,
+            geometry.detach(),
+            pixel_xy.detach(),
+            run_start,
+            run_end,
+            flatten_ids,
+            min(chunk, longest),
+            longest,
+            threshold,
+            options.alpha_max,
         )
     capacity = member_ids.shape[1]
     if capacity == 0:

@@ -67,16 +67,22 @@ def _as_views(maps, what: str) -> list:
         if view.ndim != 2:
             raise ValueError(f"{what}: view {i} has shape {view.shape}; each view must be a 2D [H,W] id map")
         if not (np.issubdtype(view.dtype, np.integer) or view.dtype == np.bool_):
-            raise ValueError(f"{what}: view {i} has dtype {view.dtype}; instance maps must be integer ids (cast with .astype(int))")
+            raise ValueError(
+                f"{what}: view {i} has dtype {view.dtype}; instance maps must be integer ids (cast with .astype(int))"
+            )
     return views
 
 
 def _check_pairs(gt_views: list, pred_views: list) -> None:
     if len(gt_views) != len(pred_views):
-        raise ValueError(f"{len(gt_views)} ground-truth views but {len(pred_views)} predicted views; pass one prediction per GT view")
+        raise ValueError(
+            f"{len(gt_views)} ground-truth views but {len(pred_views)} predicted views; pass one prediction per GT view"
+        )
     for i, (g, p) in enumerate(zip(gt_views, pred_views)):
         if g.shape != p.shape:
-            raise ValueError(f"view {i}: ground truth is {g.shape} but prediction is {p.shape}; resize the prediction (nearest) first")
+            raise ValueError(
+                f"view {i}: ground truth is {g.shape} but prediction is {p.shape}; resize the prediction (nearest) first"
+            )
 
 
 @dataclass(frozen=True)
@@ -100,7 +106,9 @@ def contingency(gt_maps, pred_maps) -> Contingency:
     _check_pairs(gt_views, pred_views)
     for i, g in enumerate(gt_views):
         if g.size and g.min() < 0:
-            raise ValueError(f"gt_maps: view {i} has negative ids; ground truth uses 0 for background and k > 0 for instances")
+            raise ValueError(
+                f"gt_maps: view {i} has negative ids; ground truth uses 0 for background and k > 0 for instances"
+            )
     pair_counts: Dict[Tuple[int, int], int] = {}
     gt_area: Dict[int, int] = {}
     pred_area: Dict[int, int] = {}
@@ -301,7 +309,9 @@ DEFAULT_MIN_GAIN_DB = 2.0
 def _rgb_pair(prediction, target) -> Tuple[np.ndarray, np.ndarray]:
     prediction, target = np.asarray(prediction, dtype=np.float64), np.asarray(target, dtype=np.float64)
     if prediction.shape != target.shape:
-        raise ValueError(f"prediction is {prediction.shape} but the target image is {target.shape}; render at the image's size")
+        raise ValueError(
+            f"prediction is {prediction.shape} but the target image is {target.shape}; render at the image's size"
+        )
     if target.ndim not in (2, 3) or target.size == 0:
         raise ValueError(f"images must be [H,W] or [H,W,C] with pixels, got shape {target.shape}")
     return prediction, target

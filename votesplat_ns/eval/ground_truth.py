@@ -57,7 +57,9 @@ def read_dataparser_transform(config_path: Union[str, Path]) -> Tuple[np.ndarray
     """(transform [3,4], scale) from the ``dataparser_transforms.json`` next to a run's config.yml."""
     path = Path(config_path).parent / DATAPARSER_TRANSFORMS_NAME
     if not path.is_file():
-        raise ValueError(f"{path} not found; it is written by ns-train next to config.yml (evaluate a complete run folder)")
+        raise ValueError(
+            f"{path} not found; it is written by ns-train next to config.yml (evaluate a complete run folder)"
+        )
     data = json.loads(path.read_text(encoding="utf-8"))
     return np.asarray(data["transform"], dtype=np.float64), float(data["scale"])
 
@@ -252,9 +254,13 @@ def gaussian_ground_truth(
     else:
         info.update(method="projection", depth_tolerance=footprint, num_views=len(train_views))
         for level in levels:
-            labelled = [LabelledView(v.viewmat, v.K, dataset.labels(v.name, level), dataset.depth(v.name)) for v in train_views]
+            labelled = [
+                LabelledView(v.viewmat, v.K, dataset.labels(v.name, level), dataset.depth(v.name)) for v in train_views
+            ]
             labels[level] = projected_majority_labels(means_world, labelled, depth_tolerance=footprint)
-    info["fraction_on_objects"] = {level: float((labels[level] > 0).mean()) if len(labels[level]) else 0.0 for level in levels}
+    info["fraction_on_objects"] = {
+        level: float((labels[level] > 0).mean()) if len(labels[level]) else 0.0 for level in levels
+    }
     return labels, info
 
 
@@ -281,7 +287,9 @@ def score_level(
     shifted_maps = [np.asarray(m).astype(np.int64) + 1 for m in pred_maps]
     gt_maps = [np.asarray(m).astype(np.int64) for m in gt_maps]
     scores2d = match_instances(gt_maps, shifted_maps, iou_threshold=iou_threshold)
-    scores3d = gaussian_purity(np.asarray(pred_gaussians).astype(np.int64) + 1, np.asarray(gt_gaussians).astype(np.int64))
+    scores3d = gaussian_purity(
+        np.asarray(pred_gaussians).astype(np.int64) + 1, np.asarray(gt_gaussians).astype(np.int64)
+    )
     names = dict(names or {})
     gt_area = {int(g): 0 for g in scores2d.gt_ids}
     for m in gt_maps:

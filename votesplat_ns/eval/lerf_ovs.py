@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
+
 from votesplat_ns.core.ply_io import atomic_write
 
 try:  # torch is optional here: predictions may be numpy arrays or tensors.
@@ -124,8 +125,12 @@ def polygon_perimeter(polygon: Union[Polygon, np.ndarray]) -> float:
 
 def polygon_bbox(polygon: Union[Polygon, np.ndarray]) -> Tuple[float, float, float, float]:
     vertices = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
-    return (float(vertices[:, 0].min()), float(vertices[:, 1].min()),
-            float(vertices[:, 0].max()), float(vertices[:, 1].max()))
+    return (
+        float(vertices[:, 0].min()),
+        float(vertices[:, 1].min()),
+        float(vertices[:, 0].max()),
+        float(vertices[:, 1].max()),
+    )
 
 
 def rasterise_polygon(polygon: Union[Polygon, np.ndarray], width: int, height: int) -> np.ndarray:
@@ -158,8 +163,11 @@ def category_masks(frame: LabelFrame) -> Dict[str, np.ndarray]:
         mask = rasterise_polygon(obj.polygon, frame.width, frame.height)
         masks[obj.category] = masks[obj.category] | mask if obj.category in masks else mask
     for category in [c for c, m in masks.items() if not m.any()]:
-        warnings.warn(f"{frame.source or frame.name}: category {category!r} covers no pixel of the image; not scored",
-                      LabelWarning, stacklevel=2)
+        warnings.warn(
+            f"{frame.source or frame.name}: category {category!r} covers no pixel of the image; not scored",
+            LabelWarning,
+            stacklevel=2,
+        )
         del masks[category]
     return masks
 
@@ -216,8 +224,11 @@ def parse_label_frame(data: Mapping[str, Any], source: str = "<label dict>") -> 
                 raise ValueError(f"{where}: segmentation point {point!r} is not an [x, y] pair")
             points.append((_number(point[0], f"{where} x"), _number(point[1], f"{where} y")))
         if len(points) < 3:
-            warnings.warn(f"{where}: polygon has {len(points)} vertices (< 3), encloses nothing; skipped",
-                          LabelWarning, stacklevel=2)
+            warnings.warn(
+                f"{where}: polygon has {len(points)} vertices (< 3), encloses nothing; skipped",
+                LabelWarning,
+                stacklevel=2,
+            )
             continue
         polygon = tuple(points)
         area = _number(raw["area"], f"{where} area") if raw.get("area") is not None else polygon_area(polygon)
@@ -228,18 +239,27 @@ def parse_label_frame(data: Mapping[str, Any], source: str = "<label dict>") -> 
             if not isinstance(bbox_raw, (list, tuple)) or len(bbox_raw) != 4:
                 raise ValueError(f"{where}: bbox must be [x1, y1, x2, y2], got {bbox_raw!r}")
             bbox = tuple(_number(v, f"{where} bbox") for v in bbox_raw)
-        objects.append(LabelObject(
-            category=category,
-            polygon=polygon,
-            area=area,
-            bbox=bbox,  # type: ignore[arg-type]
-            group=int(raw.get("group", 0) or 0),
-            layer=float(raw.get("layer", 0.0) or 0.0),
-            iscrowd=bool(raw.get("iscrowd", False)),
-            note=str(raw.get("note", "") or ""),
-        ))
-    return LabelFrame(name=name, width=int(width), height=int(height), objects=tuple(objects),
-                      depth=int(info.get("depth", 3) or 3), note=str(info.get("note", "") or ""), source=source)
+        objects.append(
+            LabelObject(
+                category=category,
+                polygon=polygon,
+                area=area,
+                bbox=bbox,  # type: ignore[arg-type]
+                group=int(raw.get("group", 0) or 0),
+                layer=float(raw.get("layer", 0.0) or 0.0),
+                iscrowd=bool(raw.get("iscrowd", False)),
+                note=str(raw.get("note", "") or ""),
+            )
+        )
+    return LabelFrame(
+        name=name,
+        width=int(width),
+        height=int(height),
+        objects=tuple(objects),
+        depth=int(info.get("depth", 3) or 3),
+        note=str(info.get("note", "") or ""),
+        source=source,
+    )
 
 
 def load_label_frame(path: Union[str, os.PathLike]) -> LabelFrame:
@@ -303,7 +323,9 @@ def mask_to_polygons(mask: np.ndarray) -> List[Polygon]:
     return polygons
 
 
-def frame_from_masks(name: str, masks: Mapping[str, Union[np.ndarray, Sequence[np.ndarray]]], note: str = "") -> LabelFrame:
+def frame_from_masks(
+    name: str, masks: Mapping[str, Union[np.ndarray, Sequence[np.ndarray]]], note: str = ""
+) -> LabelFrame:
     """A :class:`LabelFrame` from named ground-truth masks (e.g. a synthetic scene's objects).
 
     ``masks[category]`` is one [H, W] bool mask or a list of them (several objects of one
@@ -321,11 +343,20 @@ def frame_from_masks(name: str, masks: Mapping[str, Union[np.ndarray, Sequence[n
             if shape is None:
                 shape = mask.shape
             elif mask.shape != shape:
-                raise ValueError(f"mask of {category!r} has shape {mask.shape}, others {shape}; all masks must share the image size")
+                raise ValueError(
+                    f"mask of {category!r} has shape {mask.shape}, others {shape}; all masks must share the image size"
+                )
             for polygon in mask_to_polygons(mask):
-                objects.append(LabelObject(category=category, polygon=polygon, area=polygon_area(polygon),
-                                           bbox=polygon_bbox(polygon), group=len(objects) + 1,
-                                           layer=float(len(objects) + 1)))
+                objects.append(
+                    LabelObject(
+                        category=category,
+                        polygon=polygon,
+                        area=polygon_area(polygon),
+                        bbox=polygon_bbox(polygon),
+                        group=len(objects) + 1,
+                        layer=float(len(objects) + 1),
+                    )
+                )
     if shape is None:
         raise ValueError("frame_from_masks got no masks; pass {category: [H, W] bool mask}")
     return LabelFrame(name=name, width=shape[1], height=shape[0], objects=tuple(objects), note=note)
@@ -333,7 +364,13 @@ def frame_from_masks(name: str, masks: Mapping[str, Union[np.ndarray, Sequence[n
 
 def label_frame_to_json(frame: LabelFrame) -> Dict[str, Any]:
     return {
-        "info": {"name": frame.name, "width": frame.width, "height": frame.height, "depth": frame.depth, "note": frame.note},
+        "info": {
+            "name": frame.name,
+            "width": frame.width,
+            "height": frame.height,
+            "depth": frame.depth,
+            "note": frame.note,
+        },
         "objects": [
             {
                 "category": obj.category,
@@ -459,7 +496,9 @@ def evaluate_scene(
     queries = dict(queries or {})
     unknown = sorted(set(queries) - known)
     if unknown:
-        raise ValueError(f"queries name categories {unknown} that are not in the labels; known categories: {sorted(known)}")
+        raise ValueError(
+            f"queries name categories {unknown} that are not in the labels; known categories: {sorted(known)}"
+        )
     scores: List[QueryScore] = []
     for frame in frames:
         for category, ground_truth in category_masks(frame).items():
@@ -481,7 +520,9 @@ def summarise_scenes(scores: Sequence[SceneScore]) -> Dict[str, Any]:
     names = [score.scene for score in scores]
     if len(set(names)) != len(names):
         raise ValueError(f"scene names must be distinct to be summarised, got {names}")
-    per_scene = {score.scene: {key: value for key, value in score.to_dict().items() if key != "queries"} for score in scores}
+    per_scene = {
+        score.scene: {key: value for key, value in score.to_dict().items() if key != "queries"} for score in scores
+    }
     metric_keys = ["mIoU"] + [f"mAcc@{threshold}" for threshold in ACCURACY_IOU_THRESHOLDS]
     mean = {key: float(np.mean([per_scene[name][key] for name in names])) for key in metric_keys}
     return {"scenes": per_scene, "mean": mean}

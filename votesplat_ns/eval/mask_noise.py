@@ -227,7 +227,9 @@ def write_noisy_masks(
             raise ValueError(f"{output} is a file; pass a folder path")
         if any(output.iterdir()):
             if not (output / NOISE_MANIFEST_NAME).is_file():
-                raise ValueError(f"{output} is a non-empty folder that is not a noisy-mask folder; choose a new or empty folder")
+                raise ValueError(
+                    f"{output} is a non-empty folder that is not a noisy-mask folder; choose a new or empty folder"
+                )
             if not overwrite:
                 raise ValueError(f"{output} already holds noisy masks; pass --overwrite to replace them")
     if output.resolve() == dataset.root.resolve() or dataset.root.resolve() in output.resolve().parents:

@@ -38,7 +38,6 @@ from typing import Dict, List, Literal, Optional, Tuple, Type
 import cv2
 import numpy as np
 import torch
-
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -56,7 +55,6 @@ from votesplat_ns.core.mask_sources import (
     make_mask_source,
     read_image_rgb,
 )
-from votesplat_ns.ns.retrofit import retrofit_reference
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions
 from votesplat_ns.core.vote_maps import (
     DEFAULT_BORDER_MASKS,
@@ -65,6 +63,7 @@ from votesplat_ns.core.vote_maps import (
     resize_vote_maps,
     vote_maps_from_labels,
 )
+from votesplat_ns.ns.retrofit import retrofit_reference
 
 DEFAULT_OUTPUT_DIR = Path("outputs")
 DATASET_LEVELS = ("instance", "part")
@@ -156,16 +155,22 @@ def check_data_input(
         transforms = data / "transforms.json"
         if not transforms.is_file():
             if config.data is None and data == Path("."):
-                raise VoteSplatInputError(f"no --data given and the current folder holds no transforms.json; {MAKE_DATASET_HINT}")
+                raise VoteSplatInputError(
+                    f"no --data given and the current folder holds no transforms.json; {MAKE_DATASET_HINT}"
+                )
             raise VoteSplatInputError(f"{where}: this folder holds no transforms.json; {MAKE_DATASET_HINT}")
     elif data.suffix == ".json":
         transforms = data
     else:
-        raise VoteSplatInputError(f"{where} is a file, not a dataset; {MAKE_DATASET_HINT}, or that transforms.json itself")
+        raise VoteSplatInputError(
+            f"{where} is a file, not a dataset; {MAKE_DATASET_HINT}, or that transforms.json itself"
+        )
     try:
         meta = json.loads(transforms.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise VoteSplatInputError(f"{transforms} is not valid JSON ({err}); fix it or make it again with ns-process-data") from None
+        raise VoteSplatInputError(
+            f"{transforms} is not valid JSON ({err}); fix it or make it again with ns-process-data"
+        ) from None
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and "file_path" in f for f in frames):
         raise VoteSplatInputError(
@@ -189,7 +194,11 @@ def _frame_name(number: int, frame: dict) -> str:
 
 
 def check_frames(
-    transforms: Path, meta: dict, config: "VoteDataManagerConfig", where: str, mask_source_flag: str = "--pipeline.datamanager.mask-source"
+    transforms: Path,
+    meta: dict,
+    config: "VoteDataManagerConfig",
+    where: str,
+    mask_source_flag: str = "--pipeline.datamanager.mask-source",
 ) -> None:
     """Check every frame of a transforms.json before anything is trained or cached.
 
@@ -217,7 +226,11 @@ def check_frames(
         matrix = frame.get("transform_matrix")
         rows = np.asarray(matrix, dtype=object) if isinstance(matrix, list) else None
         if rows is None or rows.shape not in ((4, 4), (3, 4)) or not all(_is_finite_number(v) for v in rows.ravel()):
-            problem = "no transform_matrix" if matrix is None else "a transform_matrix that is not a 4x4 (or 3x4) grid of finite numbers"
+            problem = (
+                "no transform_matrix"
+                if matrix is None
+                else "a transform_matrix that is not a 4x4 (or 3x4) grid of finite numbers"
+            )
             raise VoteSplatInputError(
                 f"{transforms}: {_frame_name(number, frame)} has {problem} (NaN/Inf in a pose usually means a camera "
                 f"COLMAP failed to register); fix or remove that frame, {remake}"
@@ -331,13 +344,19 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
 
     def _require_mask_folder(self) -> Path:
         if self.mask_folder is None:
-            raise VoteSplatInputError("mask source 'folder' needs --pipeline.datamanager.mask-folder <root> (<root>/<level>/<image_stem>.png)")
+            raise VoteSplatInputError(
+                "mask source 'folder' needs --pipeline.datamanager.mask-folder <root> (<root>/<level>/<image_stem>.png)"
+            )
         return Path(self.mask_folder)
 
     def make_mask_source(self) -> MaskSource:
         kind = self.resolved_mask_source()
         if kind == "sam" and self.sam_checkpoint is None:
-            reason = "this dataset lists no instance_mask_path, so masks come from SAM; " if self.mask_source == "auto" else ""
+            reason = (
+                "this dataset lists no instance_mask_path, so masks come from SAM; "
+                if self.mask_source == "auto"
+                else ""
+            )
             raise VoteSplatInputError(
                 f"{reason}give the SAM checkpoint with --pipeline.datamanager.sam-checkpoint /path/to/"
                 f"{SAM_CHECKPOINT_FILES[self.sam_model_type]} (the official checkpoints are listed in the README of "
@@ -367,13 +386,17 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
 class VoteDataManager(FullImageDatamanager[InputDataset]):
     config: VoteDataManagerConfig
 
-    def __init__(self, config: VoteDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs):
+    def __init__(
+        self, config: VoteDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs
+    ):
         # bad input fails here with one actionable line (cli_errors), before images are loaded or masks made
         check_device_available(device)
         where = None if test_mode == "val" else f"dataset {config.dataset_path} (the data path of the run's config.yml)"
         check_data_input(config, check_images=test_mode != "inference", where=where)
         try:
-            super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
+            super().__init__(
+                config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs
+            )
         except FileNotFoundError as err:
             if err.filename is None:
                 raise
@@ -412,7 +435,9 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
             return
         source = self.config.make_mask_source()
         if tuple(source.levels) != self.vote_levels:
-            raise ValueError(f"mask source levels {list(source.levels)} differ from the announced {list(self.vote_levels)}")
+            raise ValueError(
+                f"mask source levels {list(source.levels)} differ from the announced {list(self.vote_levels)}"
+            )
         cache_dir = self.vote_cache_dir
         views = [(index, Path(path)) for index, path in enumerate(self.train_dataset.image_filenames)]
         with writing_into(cache_dir, CACHE_DIR_FLAG):
@@ -492,14 +517,18 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         data.update(self.host_vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
         return camera, data
 
-    def vote_batch(self, index: int, height: Optional[int] = None, width: Optional[int] = None) -> Dict[str, torch.Tensor]:
+    def vote_batch(
+        self, index: int, height: Optional[int] = None, width: Optional[int] = None
+    ) -> Dict[str, torch.Tensor]:
         """``vote_labels`` [L,H,W] and ``vote_centroids`` [L,K+1,2] of train view ``index``, on the device.
 
         At the training image's resolution unless ``height``/``width`` are given.
         """
         return {name: tensor.to(self.device) for name, tensor in self.host_vote_batch(index, height, width).items()}
 
-    def host_vote_batch(self, index: int, height: Optional[int] = None, width: Optional[int] = None) -> Dict[str, torch.Tensor]:
+    def host_vote_batch(
+        self, index: int, height: Optional[int] = None, width: Optional[int] = None
+    ) -> Dict[str, torch.Tensor]:
         """``vote_batch`` in host memory (the kept copy: do not modify it)."""
         if height is None or width is None:
             camera = self.train_dataset.cameras[index]
@@ -536,14 +565,18 @@ def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
     camera_type = camera.camera_type.item()
     if camera_type == CameraType.PERSPECTIVE.value:
         if params[3] != 0:
-            raise ValueError("nerfstudio cannot undistort with the 4th Brown parameter (k4); only k1, k2, k3, p1, p2 may be non-zero")
+            raise ValueError(
+                "nerfstudio cannot undistort with the 4th Brown parameter (k4); only k1, k2, k3, p1, p2 may be non-zero"
+            )
         opencv_params = np.array([params[0], params[1], params[4], params[5], params[2], params[3], 0, 0])
         K[0, 2] -= 0.5  # OpenCV's pixel centres are at integers
         K[1, 2] -= 0.5
         if np.any(opencv_params):
             new_K, roi = cv2.getOptimalNewCameraMatrix(K, opencv_params, (width, height), 0)
             map_x, map_y = cv2.initUndistortRectifyMap(K, opencv_params, None, new_K, (width, height), cv2.CV_32FC1)
-            warped = cv2.remap(source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            warped = cv2.remap(
+                source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            )
         else:
             warped, roi = source, (0, 0, width, height)
         x, y, w, h = roi
@@ -552,9 +585,15 @@ def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
         K[0, 2] -= 0.5
         K[1, 2] -= 0.5
         fisheye_params = params[:4]
-        new_K = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(K, fisheye_params, (width, height), np.eye(3), balance=0)
-        map_x, map_y = cv2.fisheye.initUndistortRectifyMap(K, fisheye_params, np.eye(3), new_K, (width, height), cv2.CV_32FC1)
-        warped = cv2.remap(source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        new_K = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(
+            K, fisheye_params, (width, height), np.eye(3), balance=0
+        )
+        map_x, map_y = cv2.fisheye.initUndistortRectifyMap(
+            K, fisheye_params, np.eye(3), new_K, (width, height), cv2.CV_32FC1
+        )
+        warped = cv2.remap(
+            source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
         return warped.astype(np.int32)
     raise ValueError(
         f"vote maps for distorted cameras of type {CameraType(camera_type).name} are not supported; "

@@ -87,7 +87,9 @@ def render_id_maps(
     """
     keep = scene.finite()
     means, quats, scales, opacities, _, _ = scene.gaussians(keep)
-    ids = torch.as_tensor(np.asarray(gaussian_ids), device=means.device).long()[torch.as_tensor(keep, device=means.device)]
+    ids = torch.as_tensor(np.asarray(gaussian_ids), device=means.device).long()[
+        torch.as_tensor(keep, device=means.device)
+    ]
     maps = []
     for index, view in enumerate(views):
         height, width = out_sizes[index] if out_sizes is not None else (view.height, view.width)
@@ -120,7 +122,9 @@ def render_rgb_psnr(model, dataset, index: int) -> Tuple[float, float]:
     camera = dataset.cameras[index : index + 1]
     with torch.no_grad():
         outputs = model.get_outputs_for_camera(camera)
-        target = model.composite_with_background(model.get_gt_img(dataset.get_image_float32(index)), outputs["background"])
+        target = model.composite_with_background(
+            model.get_gt_img(dataset.get_image_float32(index)), outputs["background"]
+        )
     rendered = outputs["rgb"].detach().float().cpu().numpy()
     target = target.detach().float().cpu().numpy()
     return psnr(rendered, target), flat_image_psnr(target)
@@ -135,7 +139,9 @@ def load_votesplat_config(config_path: Union[str, Path]):
 
     config_path = Path(config_path)
     if not config_path.is_file():
-        raise ValueError(f"{config_path} not found; pass the config.yml of a votesplat run (outputs/<name>/votesplat/<time>/config.yml)")
+        raise ValueError(
+            f"{config_path} not found; pass the config.yml of a votesplat run (outputs/<name>/votesplat/<time>/config.yml)"
+        )
     try:
         config = yaml.load(config_path.read_text(encoding="utf-8"), Loader=yaml.Loader)
     except Exception as err:
@@ -144,16 +150,24 @@ def load_votesplat_config(config_path: Union[str, Path]):
     if method is None:
         raise ValueError(f"{config_path} is not a nerfstudio config.yml (no method_name)")
     if method != "votesplat":
-        raise ValueError(f"{config_path} is a {method!r} run; votesplat-eval scores votesplat runs (train with ns-train votesplat)")
+        raise ValueError(
+            f"{config_path} is a {method!r} run; votesplat-eval scores votesplat runs (train with ns-train votesplat)"
+        )
     checkpoints = sorted(config_path.parent.joinpath(config.relative_model_dir).glob("step-*.ckpt"))
     if not checkpoints:
-        raise ValueError(f"no checkpoint in {config_path.parent / config.relative_model_dir}; the run saved no model yet")
+        raise ValueError(
+            f"no checkpoint in {config_path.parent / config.relative_model_dir}; the run saved no model yet"
+        )
     return config
 
 
 def _dataset_of(config) -> Path:
     datamanager = config.pipeline.datamanager
-    data = getattr(datamanager, "data", None) or getattr(config, "data", None) or getattr(datamanager.dataparser, "data", None)
+    data = (
+        getattr(datamanager, "data", None)
+        or getattr(config, "data", None)
+        or getattr(datamanager.dataparser, "data", None)
+    )
     if data is None:
         raise ValueError("the run's config names no dataset (pipeline.datamanager.data); pass --data")
     return Path(data)
@@ -164,7 +178,9 @@ def _views_of(dataset) -> List[PinholeView]:
     distortion = dataset.cameras.distortion_params
     for index, filename in enumerate(dataset.image_filenames):
         if distortion is not None and bool(torch.any(distortion[index] != 0)):
-            raise ValueError(f"view {Path(filename).name} has lens distortion; votesplat-eval supports undistorted (pinhole) datasets")
+            raise ValueError(
+                f"view {Path(filename).name} has lens distortion; votesplat-eval supports undistorted (pinhole) datasets"
+            )
     return [dataclasses.replace(view, name=Path(view.name).name) for view in dataset_views(dataset)]
 
 
@@ -184,7 +200,9 @@ def _check_reconstruction_options(max_psnr_drop_db: float, min_gain_db: float) -
         raise VoteSplatInputError(f"--min-gain-db must be a number of dB (-inf turns the rule off), got {min_gain_db}")
 
 
-def _levels_to_score(model_levels: Sequence[str], gt_levels: Sequence[str], level: Optional[str], gt_level: Optional[str]) -> List[Tuple[str, str]]:
+def _levels_to_score(
+    model_levels: Sequence[str], gt_levels: Sequence[str], level: Optional[str], gt_level: Optional[str]
+) -> List[Tuple[str, str]]:
     if level is None:
         if gt_level is not None:
             raise ValueError("--gt-level needs --level (the model level to compare with it)")
@@ -199,11 +217,15 @@ def _levels_to_score(model_levels: Sequence[str], gt_levels: Sequence[str], leve
         raise ValueError(f"unknown vote level {level!r}; this model has levels {list(model_levels)}")
     target = gt_level or level
     if target not in gt_levels:
-        raise ValueError(f"the dataset has no {target!r} ground truth (it has {list(gt_levels)}); pass --gt-level {gt_levels[0]}")
+        raise ValueError(
+            f"the dataset has no {target!r} ground truth (it has {list(gt_levels)}); pass --gt-level {gt_levels[0]}"
+        )
     return [(level, target)]
 
 
-def select_views(kind: ViewSplit, eval_views: Callable[[], List[PinholeView]], train_views: Callable[[], List[PinholeView]]) -> List[PinholeView]:
+def select_views(
+    kind: ViewSplit, eval_views: Callable[[], List[PinholeView]], train_views: Callable[[], List[PinholeView]]
+) -> List[PinholeView]:
     """The views of a split: held-out ("eval"), training ("train") or both ("all", held-out first, no repeats)."""
     if kind not in ("eval", "train", "all"):
         raise ValueError(f"views must be 'eval', 'train' or 'all' (got {kind!r})")
@@ -305,12 +327,18 @@ def evaluate_run(
         min_samples=min_samples,
         max_points=max_points,
         seed=seed,
-        refine=training_mask_check(pipeline, rasterize, **(mask_check if isinstance(mask_check, dict) else {})) if mask_check is not False else None,
+        refine=training_mask_check(pipeline, rasterize, **(mask_check if isinstance(mask_check, dict) else {}))
+        if mask_check is not False
+        else None,
         **(cluster_options or {}),
     )
     means_world = points_to_dataset_frame(scene.means, transform, scale)
     gt_gaussians, gt_info = gaussian_ground_truth(
-        dataset, means_world, sorted({gt for _, gt in pairs}), method=gaussian_gt, surface_tolerance_px=surface_tolerance_px
+        dataset,
+        means_world,
+        sorted({gt for _, gt in pairs}),
+        method=gaussian_gt,
+        surface_tolerance_px=surface_tolerance_px,
     )
     predicted = {name: instance_set.level(name).ids for name, _ in pairs}
     if gaussian_ids_override is not None:
@@ -323,7 +351,13 @@ def evaluate_run(
         gt_maps = [dataset.labels(v.name, gt) for v in chosen]
         pred_maps = render_id_maps(scene, predicted[name], chosen, rasterize, [m.shape for m in gt_maps], min_weight)
         result = score_level(
-            gt_maps, pred_maps, gt_gaussians[gt], predicted[name], dataset.named_ids(gt), iou_threshold, view_ok=check.ok.tolist()
+            gt_maps,
+            pred_maps,
+            gt_gaussians[gt],
+            predicted[name],
+            dataset.named_ids(gt),
+            iou_threshold,
+            view_ok=check.ok.tolist(),
         )
         picture = output_dir / f"comparison_{name}.png"
         save_comparison_png(gt_maps, [m + 1 for m in pred_maps], picture, scale=2)
@@ -353,8 +387,17 @@ def evaluate_run(
 
 
 SUMMARY_KEYS = (
-    "miou", "precision", "recall", "f1", "purity", "completeness", "num_predicted_instances",
-    "miou_valid_views", "precision_valid_views", "recall_valid_views", "num_valid_views",
+    "miou",
+    "precision",
+    "recall",
+    "f1",
+    "purity",
+    "completeness",
+    "num_predicted_instances",
+    "miou_valid_views",
+    "precision_valid_views",
+    "recall_valid_views",
+    "num_valid_views",
 )
 
 
@@ -386,7 +429,8 @@ def format_table(metrics: dict) -> str:
         f"or less than {_fmt_rule(check['min_gain_db'])} dB above a flat image of the view's mean colour)"
     )
     details = [
-        f"  {view['name']}: PSNR {_fmt_db(view['psnr'])} dB, flat image {_fmt_db(view['flat_psnr'])} dB" for view in flagged
+        f"  {view['name']}: PSNR {_fmt_db(view['psnr'])} dB, flat image {_fmt_db(view['flat_psnr'])} dB"
+        for view in flagged
     ]
     return "\n".join(rows + [line] + details)
 

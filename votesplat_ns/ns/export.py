@@ -42,13 +42,20 @@ import torch
 import tyro
 from typing_extensions import Annotated
 
-from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_writable_folder, one_line_errors, writing_into
+from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
-from votesplat_ns.core.instances import IDS_NAME, MANIFEST_NAME, InstanceSet, render_instance_ids, save_instance_picture, vote_level_index
+from votesplat_ns.core.instances import (
+    IDS_NAME,
+    MANIFEST_NAME,
+    InstanceSet,
+    render_instance_ids,
+    save_instance_picture,
+    vote_level_index,
+)
 from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
 from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY, TrainedScene  # noqa: F401 (keys re-exported)
+from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 from votesplat_ns.ns.run import camera_view, load_run
 
 SUBCOMMAND_NAME = "votesplat-instances"
@@ -63,18 +70,22 @@ def _scene_of(model_or_params, level_names: Optional[Sequence[str]], sh_degree: 
         return TrainedScene.from_model(model_or_params, level_names, sh_degree)
     if isinstance(model_or_params, Mapping):
         return TrainedScene.from_params(model_or_params, level_names, sh_degree)
-    raise ValueError(f"expected a VoteSplat model or a dict of Gaussian parameters, got {type(model_or_params).__name__}")
+    raise ValueError(
+        f"expected a VoteSplat model or a dict of Gaussian parameters, got {type(model_or_params).__name__}"
+    )
 
 
 @contextlib.contextmanager
 def _progress(enabled: bool) -> Iterator[Callable[..., Callable[[int], None]]]:
     """``task(description, total) -> advance(n)``; a rich progress bar when enabled."""
     if not enabled:
-        yield lambda description, total=None: (lambda n=1: None)
+        yield lambda description, total=None: lambda n=1: None
         return
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=False) as bar:
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=False
+    ) as bar:
 
         def task(description: str, total: Optional[int] = None) -> Callable[[int], None]:
             task_id = bar.add_task(description, total=total)
@@ -145,7 +156,9 @@ def _nonfinite_votes(params: TrainedScene) -> Dict[str, int]:
     for index, name in enumerate(params.level_names):
         support = params.vote_support[:, index]
         supervised = np.isfinite(support) & (support > 0)
-        counts[name] = int((supervised & ~(finite_means & np.isfinite(params.vote_offsets[:, index]).all(axis=1))).sum())
+        counts[name] = int(
+            (supervised & ~(finite_means & np.isfinite(params.vote_offsets[:, index]).all(axis=1))).sum()
+        )
     return counts
 
 
@@ -211,7 +224,9 @@ def export_instances(
     level_index = vote_level_index(names, level)
     level_name = names[level_index]
 
-    foreground_count = int(((params.vote_support[:, level_index] > 0) & np.isfinite(params.vote_support[:, level_index])).sum())
+    foreground_count = int(
+        ((params.vote_support[:, level_index] > 0) & np.isfinite(params.vote_support[:, level_index])).sum()
+    )
     if foreground_count == 0:
         raise ValueError(
             f"no foreground Gaussians at vote level {level_name!r}: vote_support is zero everywhere "
@@ -254,13 +269,24 @@ def export_instances(
         remove_ids = sorted({int(i) for i in (remove or [])})
         bad = [i for i in remove_ids if not 0 <= i < chosen.num_instances]
         if bad:
-            raise ValueError(f"cannot remove instances {bad}: level {level_name!r} has instances 0..{chosen.num_instances - 1}")
+            raise ValueError(
+                f"cannot remove instances {bad}: level {level_name!r} has instances 0..{chosen.num_instances - 1}"
+            )
 
         output_dir.parent.mkdir(parents=True, exist_ok=True)
         staging = make_temp_dir(output_dir, ".partial")  # umask permissions: it becomes the export folder
         try:
             manifest = _write_export(
-                params, instance_set, level_index, remove_ids, staging, views, rasterize_fn, render_device, task, source,
+                params,
+                instance_set,
+                level_index,
+                remove_ids,
+                staging,
+                views,
+                rasterize_fn,
+                render_device,
+                task,
+                source,
                 _nonfinite_votes(params),
             )
             _move_into_place(staging, output_dir)
@@ -335,7 +361,9 @@ def _write_export(
     return instance_set.save(folder, instance_extra={chosen.name: per_instance}, extra=extra)
 
 
-def _write_picture(params: TrainedScene, ids: np.ndarray, views: Sequence[PinholeView], rasterize_fn, device, path: Path, task) -> str:
+def _write_picture(
+    params: TrainedScene, ids: np.ndarray, views: Sequence[PinholeView], rasterize_fn, device, path: Path, task
+) -> str:
     device = torch.device(device) if device is not None else torch.device("cpu")
     finite = params.finite()
     means, quats, scales, opacities, _, _ = params.gaussians(finite, device)
@@ -344,7 +372,16 @@ def _write_picture(params: TrainedScene, ids: np.ndarray, views: Sequence[Pinhol
     maps, images = [], []
     for view in views:
         id_map = render_instance_ids(
-            rasterize_fn, means, quats, scales, opacities, instance_ids, view.viewmat.to(device), view.K.to(device), int(view.width), int(view.height)
+            rasterize_fn,
+            means,
+            quats,
+            scales,
+            opacities,
+            instance_ids,
+            view.viewmat.to(device),
+            view.K.to(device),
+            int(view.width),
+            int(view.height),
         )
         maps.append(id_map.cpu().numpy())
         images.append(view.image)
@@ -376,7 +413,9 @@ def training_views(pipeline, num_views: int, max_width: int = 320) -> List[Pinho
         image = None
         with contextlib.suppress(Exception):  # the picture still works without the photo row
             image = dataset[index]["image"][..., :3].float()
-            image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(out_h, out_w), mode="area")[0].permute(1, 2, 0)
+            image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(out_h, out_w), mode="area")[
+                0
+            ].permute(1, 2, 0)
         views.append(PinholeView(view.viewmat, K, out_w, out_h, image=image))
     return views
 
@@ -445,12 +484,16 @@ class ExportVoteSplatInstances:
                 try:
                     views = training_views(pipeline, self.num_views, self.picture_width)
                 except Exception as err:  # a missing dataset must not stop the PLY export
-                    CONSOLE.print(f"[yellow]Training cameras unavailable ({type(err).__name__}: {err}); instances.png is skipped.")
+                    CONSOLE.print(
+                        f"[yellow]Training cameras unavailable ({type(err).__name__}: {err}); instances.png is skipped."
+                    )
             refine = None
             if self.mask_check:
                 check_rasterizer = rasterize_fn or default_rasterizer()
                 if check_rasterizer is None:
-                    raise ValueError("--mask-check needs a rasterizer (gsplat or the torch fallback); pass --mask-check False")
+                    raise ValueError(
+                        "--mask-check needs a rasterizer (gsplat or the torch fallback); pass --mask-check False"
+                    )
                 try:
                     refine = mask_check(pipeline, check_rasterizer, max_views=self.mask_check_views)
                 except (OSError, ValueError) as err:  # the instances are still valid without it

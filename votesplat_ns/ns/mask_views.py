@@ -16,7 +16,9 @@ DEFAULT_MASK_VIEWS = 32
 DEFAULT_MASK_VIEW_WIDTH = 320
 
 
-def training_mask_views(pipeline, level_names: Sequence[str], max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH) -> Dict[str, list]:
+def training_mask_views(
+    pipeline, level_names: Sequence[str], max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH
+) -> Dict[str, list]:
     """Up to ``max_views`` evenly spaced training views, at most ``max_width`` wide, with the
     masks of each level in ``level_names`` (names of the datamanager's vote levels)."""
     datamanager = pipeline.datamanager
@@ -38,7 +40,9 @@ def training_mask_views(pipeline, level_names: Sequence[str], max_views: int = D
     return views
 
 
-def mask_check(pipeline, rasterize_fn, max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH, **options):
+def mask_check(
+    pipeline, rasterize_fn, max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH, **options
+):
     """The ``refine`` callback of :func:`votesplat_ns.core.clustering.cluster_levels` that checks a
     loaded run's instances against its training masks (``options``: those of
     :func:`votesplat_ns.core.mask_consensus.regroup_with_masks`). The depth test of every view is

@@ -38,7 +38,9 @@ def _install_export_hook() -> None:
 
         install_ns_export_hook()
     except Exception as err:  # pragma: no cover - reported, not fatal
-        warnings.warn(f"votesplat: ns-export votesplat-instances unavailable ({err}); use votesplat export", RuntimeWarning)
+        warnings.warn(
+            f"votesplat: ns-export votesplat-instances unavailable ({err}); use votesplat export", RuntimeWarning
+        )
 
 
 def splatfacto_optimizers(max_steps: int = 30000) -> dict:
@@ -202,8 +204,17 @@ def train_in_process(
     import torch
 
     trainer = setup_trainer_in_process(
-        data, output_dir, steps, vote_start, device, timestamp, mask_folder, seed,
-        datamanager_overrides=datamanager_overrides, load_dir=load_dir, **model_overrides,
+        data,
+        output_dir,
+        steps,
+        vote_start,
+        device,
+        timestamp,
+        mask_folder,
+        seed,
+        datamanager_overrides=datamanager_overrides,
+        load_dir=load_dir,
+        **model_overrides,
     )
     config_path = trainer.config.get_base_dir() / "config.yml"
     trainer.train()

@@ -17,21 +17,20 @@ from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import numpy as np
 import torch
-from torch.nn import Parameter
-
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch.nn import Parameter
 
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
-from votesplat_ns.ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
 from votesplat_ns.core.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
 from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
+from votesplat_ns.core.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
+from votesplat_ns.ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
 from votesplat_ns.ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
 from votesplat_ns.ns.viewer import VoteSplatViewerState
-from votesplat_ns.core.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
 SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
@@ -136,8 +135,7 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
     vote_backend: Literal["auto", "torch", "triton"] = "auto"
-    """Vote pass implementation: auto (the torch code, until the fused Triton kernels are measured faster), torch, or
-    triton (the kernels, CUDA; VoteRenderOptions.backend)."""
+    """Vote pass: auto (torch code; the Triton kernels are not faster yet), torch, or triton (fused kernels, CUDA)."""
     retrofit_from: Optional[Path] = None
     """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
     retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
@@ -239,7 +237,9 @@ class VoteSplatModel(SplatfactoModel):
             )
         device = torch.device(self.kwargs.get("device") or "cpu")
         gaussians = {name: value.to(device) for name, value in gaussians_from_ply_arrays(arrays).items()}
-        frame, moved, fits = resolve_frame(gaussians, reference, self.config.retrofit_frame, source, rasterize, sh_degree)
+        frame, moved, fits = resolve_frame(
+            gaussians, reference, self.config.retrofit_frame, source, rasterize, sh_degree
+        )
         self.retrofit_source_frame = frame
         fit = next(f for f in fits if frame == f.name or frame in f.same_as)
         CONSOLE.log(
@@ -261,7 +261,11 @@ class VoteSplatModel(SplatfactoModel):
         callbacks = super().get_training_callbacks(training_callback_attributes)
         trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
-        if self.config.foreground_min_masked_share is not None and trainer is not None and hasattr(datamanager, "vote_batch"):
+        if (
+            self.config.foreground_min_masked_share is not None
+            and trainer is not None
+            and hasattr(datamanager, "vote_batch")
+        ):
             # after the last step's other callbacks (densification) and before the final checkpoint is saved
             last_step = trainer._start_step + trainer.config.max_num_iterations - 1
             callbacks.append(
@@ -317,7 +321,9 @@ class VoteSplatModel(SplatfactoModel):
                         continue
                     state = optimizer.state.pop(old, None)
                     fits = state is not None and all(
-                        value.shape == new.shape for value in state.values() if torch.is_tensor(value) and value.dim() > 0
+                        value.shape == new.shape
+                        for value in state.values()
+                        if torch.is_tensor(value) and value.dim() > 0
                     )
                     if fits:
                         optimizer.state[new] = state
@@ -345,7 +351,9 @@ class VoteSplatModel(SplatfactoModel):
         def views():
             for index in range(cameras.shape[0]):
                 camera = cameras[index : index + 1]
-                labels = datamanager.vote_batch(index, int(camera.height.item()), int(camera.width.item()))["vote_labels"]
+                labels = datamanager.vote_batch(index, int(camera.height.item()), int(camera.width.item()))[
+                    "vote_labels"
+                ]
                 yield get_viewmat(camera.camera_to_worlds)[0], camera.get_intrinsics_matrices()[0], labels
 
         exposure = mask_exposure(
@@ -368,7 +376,9 @@ class VoteSplatModel(SplatfactoModel):
         data_levels = (self.kwargs.get("metadata") or {}).get("vote_levels")
         levels = self.config.vote_levels or data_levels
         if not levels:
-            raise ValueError("no vote levels: set --pipeline.model.vote-levels (e.g. instance part) or use the votesplat datamanager")
+            raise ValueError(
+                "no vote levels: set --pipeline.model.vote-levels (e.g. instance part) or use the votesplat datamanager"
+            )
         if data_levels is not None and tuple(levels) != tuple(data_levels):
             raise ValueError(
                 f"--pipeline.model.vote-levels {' '.join(levels)} does not match the datamanager's mask levels "

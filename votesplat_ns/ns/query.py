@@ -74,8 +74,12 @@ def expected_checkpoint_file(model_name: str) -> str:
     return f"the open_clip weights file for {model_name!r} (tag {tag!r})"
 
 
-def make_encoder(clip_model: str = DEFAULT_CLIP_MODEL, clip_checkpoint: Optional[Path] = None,
-                 clip_random_init: bool = False, device: Union[str, torch.device, None] = None) -> ClipEncoder:
+def make_encoder(
+    clip_model: str = DEFAULT_CLIP_MODEL,
+    clip_checkpoint: Optional[Path] = None,
+    clip_random_init: bool = False,
+    device: Union[str, torch.device, None] = None,
+) -> ClipEncoder:
     """The CLIP encoder the CLI options describe; never downloads anything."""
     device = device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu")
     if clip_random_init:
@@ -114,8 +118,13 @@ def features_cache_path(scene: QueryScene, cache_dir: Optional[Path] = None) -> 
     return folder / FEATURES_FILE_TEMPLATE.format(level=level)
 
 
-def scene_instance_features(scene: QueryScene, encoder: EncoderProtocol, options: FeatureOptions = FeatureOptions(),
-                            cache_path: Optional[Path] = None, log=print) -> Tuple[InstanceFeatures, bool]:
+def scene_instance_features(
+    scene: QueryScene,
+    encoder: EncoderProtocol,
+    options: FeatureOptions = FeatureOptions(),
+    cache_path: Optional[Path] = None,
+    log=print,
+) -> Tuple[InstanceFeatures, bool]:
     """Per-instance CLIP features of ``scene``; read from ``cache_path`` when it was made the same way.
 
     Returns the features and whether they came from the cache. A missing, unreadable or differently
@@ -124,12 +133,15 @@ def scene_instance_features(scene: QueryScene, encoder: EncoderProtocol, options
     views = evenly_spaced(len(scene.train_views), options.feature_views)
     if not views:
         raise ValueError("the run has no training views to compute instance features from")
-    scene_key = dict(scene.fingerprint(), views=views, feature_width=int(options.feature_width),
-                     cache_version=FEATURE_CACHE_VERSION)
+    scene_key = dict(
+        scene.fingerprint(), views=views, feature_width=int(options.feature_width), cache_version=FEATURE_CACHE_VERSION
+    )
     if cache_path is not None and Path(cache_path).is_file():
         reason = None
         try:
-            cached = InstanceFeatures.load(cache_path, encoder=encoder, crop_mode=options.crop_mode, min_pixels=options.min_pixels)
+            cached = InstanceFeatures.load(
+                cache_path, encoder=encoder, crop_mode=options.crop_mode, min_pixels=options.min_pixels
+            )
             if cached.config.get("scene") != json.loads(json.dumps(scene_key)):
                 reason = "the Gaussians, instances or views changed"
         except ValueError as error:
@@ -198,17 +210,28 @@ def _slug(text: str) -> str:
 # ----------------------------------------------------------------------------- query / click / eval
 
 
-def run_query(scene: QueryScene, text: str, encoder: EncoderProtocol, output_dir: Optional[Path] = None,
-              views: Optional[Sequence[int]] = None, top_k: int = 5, threshold: Optional[float] = None,
-              negatives: Sequence[str] = DEFAULT_NEGATIVES, feature_options: FeatureOptions = FeatureOptions(),
-              cache_path: Optional[Path] = None, log=print) -> Dict[str, Any]:
+def run_query(
+    scene: QueryScene,
+    text: str,
+    encoder: EncoderProtocol,
+    output_dir: Optional[Path] = None,
+    views: Optional[Sequence[int]] = None,
+    top_k: int = 5,
+    threshold: Optional[float] = None,
+    negatives: Sequence[str] = DEFAULT_NEGATIVES,
+    feature_options: FeatureOptions = FeatureOptions(),
+    cache_path: Optional[Path] = None,
+    log=print,
+) -> Dict[str, Any]:
     """Rank the instances for ``text``, print the top ``top_k``, write masks and renders of the selection.
 
     Selection: the best instance, or with ``threshold`` every instance with relevancy >= threshold.
     ``views`` are training view indices (default: 4 evenly spaced). Returns what ranking.json holds.
     """
     if not isinstance(text, str) or not text.strip():
-        raise ValueError(f"the text query is empty ({text!r}); pass the words to look for, e.g. votesplat query ... \"red mug\"")
+        raise ValueError(
+            f'the text query is empty ({text!r}); pass the words to look for, e.g. votesplat query ... "red mug"'
+        )
     if top_k < 1:
         raise ValueError(f"--top-k must be >= 1, got {top_k}")
     views = list(evenly_spaced(len(scene.train_views), 4) if views is None else views)
@@ -218,14 +241,18 @@ def run_query(scene: QueryScene, text: str, encoder: EncoderProtocol, output_dir
     ranked = query_text(text, features, encoder, negatives=negatives)
     selected = select_instances(ranked, threshold)
     counts = scene.instance_counts()
-    log(f"{'features from cache' if cached else 'features computed'}: {len(features)} of {scene.level.num_instances} "
-        f"instances at level {scene.level.name!r}")
+    log(
+        f"{'features from cache' if cached else 'features computed'}: {len(features)} of {scene.level.num_instances} "
+        f"instances at level {scene.level.name!r}"
+    )
     log(f"Query {text!r}: top {min(top_k, len(ranked))} of {len(ranked)} instances")
     log(f"{'rank':>4}  {'id':>5}  {'relevancy':>9}  {'gaussians':>9}")
     for rank, (instance_id, relevancy) in enumerate(ranked[:top_k], start=1):
         mark = "  *" if instance_id in selected else ""
         log(f"{rank:>4}  {instance_id:>5}  {relevancy:>9.4f}  {counts[instance_id]:>9}{mark}")
-    output_dir = Path(output_dir) if output_dir is not None else (scene.run_dir or Path(".")) / QUERY_FOLDER_NAME / _slug(text)
+    output_dir = (
+        Path(output_dir) if output_dir is not None else (scene.run_dir or Path(".")) / QUERY_FOLDER_NAME / _slug(text)
+    )
     if output_dir.exists() and not output_dir.is_dir():
         raise ValueError(f"output_dir {output_dir} is a file; pass a folder path")
     files: List[str] = []
@@ -252,8 +279,15 @@ def run_query(scene: QueryScene, text: str, encoder: EncoderProtocol, output_dir
     return result
 
 
-def run_click(scene: QueryScene, view: int, x: float, y: float, output_dir: Path,
-              mode: Literal["isolate", "remove"] = "isolate", log=print) -> Dict[str, Any]:
+def run_click(
+    scene: QueryScene,
+    view: int,
+    x: float,
+    y: float,
+    output_dir: Path,
+    mode: Literal["isolate", "remove"] = "isolate",
+    log=print,
+) -> Dict[str, Any]:
     """Select the instance under pixel (x, y) of training view ``view``; write its PLY and a render.
 
     ``isolate`` writes ``instance_<id>.ply`` (the instance alone), ``remove`` writes
@@ -293,15 +327,25 @@ def run_click(scene: QueryScene, view: int, x: float, y: float, output_dir: Path
         "render": render_name,
     }
     write_json(output_dir / "click.json", result)
-    log(f"View {view}, pixel ({x}, {y}): instance {instance_id} of level {scene.level.name!r} "
-        f"({result['instance_gaussians']} Gaussians); {mode}: wrote {name} ({written.size} Gaussians) and {render_name} to {output_dir}")
+    log(
+        f"View {view}, pixel ({x}, {y}): instance {instance_id} of level {scene.level.name!r} "
+        f"({result['instance_gaussians']} Gaussians); {mode}: wrote {name} ({written.size} Gaussians) and {render_name} to {output_dir}"
+    )
     return result
 
 
-def evaluate_queries(scene: QueryScene, frames: Sequence[LabelFrame], encoder: EncoderProtocol,
-                     threshold: Optional[float] = None, negatives: Sequence[str] = DEFAULT_NEGATIVES,
-                     feature_options: FeatureOptions = FeatureOptions(), cache_path: Optional[Path] = None,
-                     queries: Optional[Mapping[str, str]] = None, scene_name: str = "", log=print) -> Tuple[SceneScore, Dict[str, List[int]]]:
+def evaluate_queries(
+    scene: QueryScene,
+    frames: Sequence[LabelFrame],
+    encoder: EncoderProtocol,
+    threshold: Optional[float] = None,
+    negatives: Sequence[str] = DEFAULT_NEGATIVES,
+    feature_options: FeatureOptions = FeatureOptions(),
+    cache_path: Optional[Path] = None,
+    queries: Optional[Mapping[str, str]] = None,
+    scene_name: str = "",
+    log=print,
+) -> Tuple[SceneScore, Dict[str, List[int]]]:
     """LERF-OVS protocol on labelled frames of this run's images (OpenGaussian's rule, see lerf_ovs).
 
     Per frame and category: select instances by text, render only them at the label's resolution,

@@ -39,8 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from votesplat_ns.core.cameras import PinholeView, scaled_view
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.core.cameras import PinholeView, scaled_view
 from votesplat_ns.ns.run import camera_view
 
 FRAMES = ("dataparser", "dataset", "colmap")
@@ -223,7 +223,9 @@ def in_view(means: Tensor, views: Sequence[PinholeView], near: float = 0.01, chu
     return seen
 
 
-def render_psnr(gaussians: Dict[str, Tensor], views: Sequence[PinholeView], rasterize_fn: Callable, sh_degree: int) -> float:
+def render_psnr(
+    gaussians: Dict[str, Tensor], views: Sequence[PinholeView], rasterize_fn: Callable, sh_degree: int
+) -> float:
     """Mean PSNR (dB) of the Gaussians rendered over black against each view's ``image`` [H, W, 3] in [0, 1]."""
     means = gaussians["means"]
     quats = gaussians["quats"] / gaussians["quats"].norm(dim=-1, keepdim=True)
@@ -232,8 +234,16 @@ def render_psnr(gaussians: Dict[str, Tensor], views: Sequence[PinholeView], rast
     scores = []
     for view in views:
         render, _, _ = rasterize_fn(
-            means, quats, torch.exp(gaussians["scales"]), opacities, colors,
-            view.viewmat[None].to(means), view.K[None].to(means), view.width, view.height, sh_degree=sh_degree,
+            means,
+            quats,
+            torch.exp(gaussians["scales"]),
+            opacities,
+            colors,
+            view.viewmat[None].to(means),
+            view.K[None].to(means),
+            view.width,
+            view.height,
+            sh_degree=sh_degree,
         )
         mse = float(((render[0].clamp(0, 1) - view.image.to(means)) ** 2).mean())
         scores.append(-10.0 * math.log10(max(mse, 1e-10)))
@@ -294,7 +304,9 @@ def resolve_frame(
     and, for 'auto', when no frame fits or two different frames fit equally well.
     """
     if requested != "auto" and requested not in reference.frames:
-        raise VoteSplatInputError(f"--pipeline.model.retrofit-frame {requested}: unknown frame; use auto or one of {', '.join(reference.frames)}")
+        raise VoteSplatInputError(
+            f"--pipeline.model.retrofit-frame {requested}: unknown frame; use auto or one of {', '.join(reference.frames)}"
+        )
     all_views, photo_views = reference.views()
     device = gaussians["means"].device
     centres = torch.stack([torch.inverse(view.viewmat.double())[:3, 3] for view in all_views])
@@ -314,7 +326,14 @@ def resolve_frame(
                 raise VoteSplatInputError(f"--pipeline.model.retrofit-frame {name}: {err}; use another frame") from None
             continue
         placed = scale * probe.double() @ rotation.T.to(device) + translation.to(device)
-        twin = next((fit for fit in fits if float((probes[fit.name] - placed).norm(dim=-1).max()) <= SAME_FRAME_TOLERANCE * extent), None)
+        twin = next(
+            (
+                fit
+                for fit in fits
+                if float((probes[fit.name] - placed).norm(dim=-1).max()) <= SAME_FRAME_TOLERANCE * extent
+            ),
+            None,
+        )
         if twin is not None:
             twin.same_as.append(name)
             continue
@@ -328,7 +347,8 @@ def resolve_frame(
 
     def summary() -> str:
         return ", ".join(
-            f"{fit.label()}: {fit.in_view_share:.1%} in view" + (f", {fit.psnr:.1f} dB" if fit.psnr is not None else "") for fit in fits
+            f"{fit.label()}: {fit.in_view_share:.1%} in view" + (f", {fit.psnr:.1f} dB" if fit.psnr is not None else "")
+            for fit in fits
         )
 
     fitting = sorted((fit for fit in fits if fit.psnr is not None), key=lambda fit: -fit.psnr)
@@ -336,7 +356,11 @@ def resolve_frame(
     if requested != "auto":
         chosen = next(fit for fit in fits if requested == fit.name or requested in fit.same_as)
         if chosen.psnr is None:
-            better = f"pass {frame_flag} {fitting[0].name}" if fitting else "check that the PLY is a scene of this capture (--data)"
+            better = (
+                f"pass {frame_flag} {fitting[0].name}"
+                if fitting
+                else "check that the PLY is a scene of this capture (--data)"
+            )
             raise VoteSplatInputError(
                 f"only {chosen.in_view_share:.1%} of the Gaussians of {source} project into the training views in frame "
                 f"'{requested}' ({summary()}); {better}"
@@ -383,7 +407,10 @@ def applied_transform_of(data: Path) -> Tuple[Optional[Tensor], float]:
 
 
 def frames_from_dataparser(
-    dataparser_transform: Tensor, dataparser_scale: float, applied_transform: Optional[Tensor], applied_scale: float = 1.0
+    dataparser_transform: Tensor,
+    dataparser_scale: float,
+    applied_transform: Optional[Tensor],
+    applied_scale: float = 1.0,
 ) -> Dict[str, Tensor]:
     """[4, 4] transforms into the training frame of the frames 'dataparser' (identity), 'dataset' and 'colmap'.
 
@@ -404,7 +431,9 @@ def _photo(image: Tensor, view: PinholeView) -> Tensor:
     image = image[..., :3]
     image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
     if image.shape[:2] != (view.height, view.width):
-        image = F.interpolate(image.permute(2, 0, 1)[None], size=(view.height, view.width), mode="area")[0].permute(1, 2, 0)
+        image = F.interpolate(image.permute(2, 0, 1)[None], size=(view.height, view.width), mode="area")[0].permute(
+            1, 2, 0
+        )
     return image.cpu()
 
 
@@ -416,13 +445,17 @@ def retrofit_reference(datamanager) -> RetrofitReference:
     applied, applied_scale = None, 1.0
     if isinstance(datamanager.config.dataparser, NerfstudioDataParserConfig):
         applied, applied_scale = applied_transform_of(Path(datamanager.config.dataparser.data))
-    frames = frames_from_dataparser(outputs.dataparser_transform, float(outputs.dataparser_scale), applied, applied_scale)
+    frames = frames_from_dataparser(
+        outputs.dataparser_transform, float(outputs.dataparser_scale), applied, applied_scale
+    )
 
     def views() -> Tuple[List[PinholeView], List[PinholeView]]:
         cached = datamanager.cached_train  # undistorts the images and updates the cameras to match; do it first
         cameras = datamanager.train_dataset.cameras
         every = [camera_view(cameras.to("cpu"), i, str(i), dtype=torch.float64) for i in range(cameras.shape[0])]
-        picks = sorted({int(round(x)) for x in torch.linspace(0, len(every) - 1, min(PHOTO_VIEWS, len(every))).tolist()})
+        picks = sorted(
+            {int(round(x)) for x in torch.linspace(0, len(every) - 1, min(PHOTO_VIEWS, len(every))).tolist()}
+        )
         photos = []
         for i in picks:
             view = scaled_view(every[i], max_width=PHOTO_MAX_WIDTH)

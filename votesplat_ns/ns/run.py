@@ -28,8 +28,12 @@ class LoadedRun(NamedTuple):
     step: int
 
 
-def load_run(load_config: Union[str, Path], flag: str = "--load-config", test_mode: str = "inference",
-             update_config_callback: Optional[Callable[[Any], Any]] = None) -> LoadedRun:
+def load_run(
+    load_config: Union[str, Path],
+    flag: str = "--load-config",
+    test_mode: str = "inference",
+    update_config_callback: Optional[Callable[[Any], Any]] = None,
+) -> LoadedRun:
     """Load a run's newest checkpoint with nerfstudio's ``eval_setup``; bad input raises one-line errors.
 
     A missing config file, a run without checkpoints or a damaged checkpoint raise
@@ -41,12 +45,16 @@ def load_run(load_config: Union[str, Path], flag: str = "--load-config", test_mo
     load_config = Path(load_config)
     checkpoint = check_run(load_config, flag)
     try:
-        _, pipeline, _, step = eval_setup(load_config, test_mode=test_mode, update_config_callback=update_config_callback)
+        _, pipeline, _, step = eval_setup(
+            load_config, test_mode=test_mode, update_config_callback=update_config_callback
+        )
     except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
         problem = checkpoint_problem(checkpoint)
         if problem is None:
             raise
-        raise VoteSplatInputError(f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {DAMAGED_HINT}") from error
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {DAMAGED_HINT}"
+        ) from error
     return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), int(step))
 
 

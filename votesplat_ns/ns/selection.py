@@ -56,10 +56,17 @@ class QueryScene:
     ``image_loader()`` returns the view's image as [H, W, 3] uint8 at the camera's resolution.
     """
 
-    def __init__(self, params: TrainedScene, level: LevelInstances, train_views: Sequence[Tuple[PinholeView, Any]],
-                 eval_views: Sequence[Tuple[PinholeView, Any]] = (), run_dir: Optional[Path] = None,
-                 device: Union[str, torch.device] = "cpu", rasterize_mode: str = "classic",
-                 instances_source: str = "clustered") -> None:
+    def __init__(
+        self,
+        params: TrainedScene,
+        level: LevelInstances,
+        train_views: Sequence[Tuple[PinholeView, Any]],
+        eval_views: Sequence[Tuple[PinholeView, Any]] = (),
+        run_dir: Optional[Path] = None,
+        device: Union[str, torch.device] = "cpu",
+        rasterize_mode: str = "classic",
+        instances_source: str = "clustered",
+    ) -> None:
         self.params = params
         self.level = level
         self.train_views = list(train_views)
@@ -73,15 +80,22 @@ class QueryScene:
             raise ValueError(f"instance ids cover {level.ids.shape[0]} Gaussians but the model has {n}")
         finite = params.finite(colours=True)
         self.finite = finite
-        self.means, self.quats, self.scales, self.opacities, self.colors, self.sh_degree = params.gaussians(finite, self.device)
+        self.means, self.quats, self.scales, self.opacities, self.colors, self.sh_degree = params.gaussians(
+            finite, self.device
+        )
         self.ids = torch.as_tensor(level.ids[finite], dtype=torch.long, device=self.device)
         self._table: Optional[np.ndarray] = None
         self._id_maps: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
 
     # ------------------------------------------------------------------ loading
     @classmethod
-    def from_config(cls, load_config: Path, level: Optional[str] = None, instances: Optional[Path] = None,
-                    clustering: Optional[ClusteringOptions] = None) -> "QueryScene":
+    def from_config(
+        cls,
+        load_config: Path,
+        level: Optional[str] = None,
+        instances: Optional[Path] = None,
+        clustering: Optional[ClusteringOptions] = None,
+    ) -> "QueryScene":
         """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``."""
         load_config = Path(load_config)
         pipeline, params, _ = load_run(load_config)
@@ -92,8 +106,16 @@ class QueryScene:
         train_views = split_views(datamanager, "train")
         eval_views = split_views(datamanager, "eval")
         rasterize_mode = getattr(getattr(model, "config", None), "rasterize_mode", "classic")
-        return cls(params, level_instances, train_views, eval_views, run_dir=load_config.parent, device=device,
-                   rasterize_mode=rasterize_mode, instances_source=source)
+        return cls(
+            params,
+            level_instances,
+            train_views,
+            eval_views,
+            run_dir=load_config.parent,
+            device=device,
+            rasterize_mode=rasterize_mode,
+            instances_source=source,
+        )
 
     # ------------------------------------------------------------------ cameras
     def train_camera(self, index: int, max_width: Optional[int] = None) -> PinholeView:
@@ -143,11 +165,24 @@ class QueryScene:
         if key in self._id_maps:
             self._id_maps.move_to_end(key)
             return self._id_maps[key]
-        id_map = render_instance_ids(
-            rasterize, self.means, self.quats, self.scales, self.opacities, self.ids,
-            camera.viewmat.to(self.device), camera.K.to(self.device), camera.width, camera.height,
-            rasterize_mode=self.rasterize_mode,
-        ).to(torch.int32).cpu().numpy()
+        id_map = (
+            render_instance_ids(
+                rasterize,
+                self.means,
+                self.quats,
+                self.scales,
+                self.opacities,
+                self.ids,
+                camera.viewmat.to(self.device),
+                camera.K.to(self.device),
+                camera.width,
+                camera.height,
+                rasterize_mode=self.rasterize_mode,
+            )
+            .to(torch.int32)
+            .cpu()
+            .numpy()
+        )
         id_map.setflags(write=False)
         self._id_maps[key] = id_map
         while len(self._id_maps) > ID_MAPS_KEPT:
@@ -163,11 +198,21 @@ class QueryScene:
         """RGB [H, W, 3] in [0, 1] (black background) and accumulated opacity [H, W] of the kept Gaussians."""
         keep = torch.as_tensor(np.asarray(keep, dtype=bool)[self.finite], device=self.device)
         if not bool(keep.any()):
-            return np.zeros((camera.height, camera.width, 3), np.float32), np.zeros((camera.height, camera.width), np.float32)
+            return np.zeros((camera.height, camera.width, 3), np.float32), np.zeros(
+                (camera.height, camera.width), np.float32
+            )
         colors, alphas, _ = rasterize(
-            self.means[keep], self.quats[keep], self.scales[keep], self.opacities[keep], self.colors[keep],
-            camera.viewmat.to(self.device)[None].float(), camera.K.to(self.device)[None].float(),
-            int(camera.width), int(camera.height), sh_degree=self.sh_degree, rasterize_mode=self.rasterize_mode,
+            self.means[keep],
+            self.quats[keep],
+            self.scales[keep],
+            self.opacities[keep],
+            self.colors[keep],
+            camera.viewmat.to(self.device)[None].float(),
+            camera.K.to(self.device)[None].float(),
+            int(camera.width),
+            int(camera.height),
+            sh_degree=self.sh_degree,
+            rasterize_mode=self.rasterize_mode,
         )
         return colors[0].clamp(0, 1).cpu().numpy(), alphas[0, ..., 0].cpu().numpy()
 
@@ -184,16 +229,21 @@ class QueryScene:
         """What the instance features of this scene depend on, besides encoder and views."""
         p = self.params
         return {
-            "gaussians_sha256": _sha256(p.means.astype(np.float32), p.opacity_logits.astype(np.float32),
-                                        p.log_scales.astype(np.float32), p.quats.astype(np.float32)),
+            "gaussians_sha256": _sha256(
+                p.means.astype(np.float32),
+                p.opacity_logits.astype(np.float32),
+                p.log_scales.astype(np.float32),
+                p.quats.astype(np.float32),
+            ),
             "instance_ids_sha256": _sha256(self.level.ids.astype(np.int64)),
             "level": self.level.name,
             "num_gaussians": int(p.means.shape[0]),
         }
 
 
-def instances_of_level(params, level: Optional[str], instances_dir: Optional[Path],
-                       clustering: ClusteringOptions) -> Tuple[LevelInstances, str]:
+def instances_of_level(
+    params, level: Optional[str], instances_dir: Optional[Path], clustering: ClusteringOptions
+) -> Tuple[LevelInstances, str]:
     """The instances of one vote level: read from an export folder, or clustered now (export defaults)."""
     names = params.level_names
     n = params.means.shape[0]
@@ -210,8 +260,13 @@ def instances_of_level(params, level: Optional[str], instances_dir: Optional[Pat
         index = vote_level_index(names, level)
         # Levels are clustered independently, so clustering only the asked level gives the same ids.
         chosen = cluster_levels(
-            params.means, params.vote_offsets[:, index:index + 1], params.vote_support[:, index:index + 1], (names[index],),
-            min_cluster_size=clustering.min_cluster_size, min_samples=clustering.min_samples, seed=clustering.seed,
+            params.means,
+            params.vote_offsets[:, index : index + 1],
+            params.vote_support[:, index : index + 1],
+            (names[index],),
+            min_cluster_size=clustering.min_cluster_size,
+            min_samples=clustering.min_samples,
+            seed=clustering.seed,
         ).levels[0]
         source = "clustered"
     if chosen.num_instances == 0:

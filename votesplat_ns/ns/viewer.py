@@ -28,7 +28,21 @@ import threading
 import weakref
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Set, Tuple, Union
+from typing import (
+    TYPE_CHECKING,
+    Any,
+    Callable,
+    Dict,
+    Iterable,
+    Iterator,
+    List,
+    Mapping,
+    Optional,
+    Sequence,
+    Set,
+    Tuple,
+    Union,
+)
 
 import numpy as np
 import torch
@@ -105,7 +119,11 @@ def overlay_instances(
         raise ValueError(
             f"rgb must be [H, W, 3] matching the instance map {tuple(instance_map.shape)}, got {tuple(rgb.shape)}"
         )
-    for name, value in (("opacity", opacity), ("selected_opacity", selected_opacity), ("unselected_opacity", unselected_opacity)):
+    for name, value in (
+        ("opacity", opacity),
+        ("selected_opacity", selected_opacity),
+        ("unselected_opacity", unselected_opacity),
+    ):
         if not 0.0 <= value <= 1.0:
             raise ValueError(f"{name} must be in [0, 1], got {value}")
     colours = palette_rgb(instance_map).to(rgb.dtype)
@@ -176,7 +194,9 @@ def screen_to_pixel(screen_pos: Sequence[float], width: int, height: int) -> Tup
 
 def _check_instance_map(instance_map: Tensor) -> None:
     if instance_map.ndim != 2 or instance_map.is_floating_point() or instance_map.dtype == torch.bool:
-        raise ValueError(f"instance map must be an integer [H, W] tensor, got {instance_map.dtype} {tuple(instance_map.shape)}")
+        raise ValueError(
+            f"instance map must be an integer [H, W] tensor, got {instance_map.dtype} {tuple(instance_map.shape)}"
+        )
 
 
 @dataclass
@@ -246,8 +266,14 @@ def _background_image(scene: SplatScene, view: PinholeView) -> Tensor:
     return scene.background.reshape(1, 1, 3).expand(view.height, view.width, 3).to(scene.means.dtype).clone()
 
 
-def _rasterize(scene: SplatScene, view: PinholeView, colors: Tensor, sh_degree: Optional[int], render_mode: str,
-               rasterize_fn: RasterizeFn) -> Tuple[Tensor, Tensor]:
+def _rasterize(
+    scene: SplatScene,
+    view: PinholeView,
+    colors: Tensor,
+    sh_degree: Optional[int],
+    render_mode: str,
+    rasterize_fn: RasterizeFn,
+) -> Tuple[Tensor, Tensor]:
     render, alpha, _ = rasterize_fn(
         scene.means,
         scene.quats,
@@ -279,15 +305,18 @@ def render_rgb(scene: SplatScene, view: PinholeView, rasterize_fn: Optional[Rast
             "depth": scene.means.new_zeros(view.height, view.width, 1),
             "accumulation": scene.means.new_zeros(view.height, view.width, 1),
         }
-    render, alpha = _rasterize(scene, view, scene.colors, scene.sh_degree, "RGB+ED", rasterize_fn or _default_rasterize())
+    render, alpha = _rasterize(
+        scene, view, scene.colors, scene.sh_degree, "RGB+ED", rasterize_fn or _default_rasterize()
+    )
     rgb = torch.clamp(render[..., :3] + (1 - alpha) * scene.background.to(render), 0.0, 1.0)
     depth = torch.where(alpha > 0, render[..., 3:4], render[..., 3:4].max())
     return {"rgb": rgb, "depth": depth, "accumulation": alpha}
 
 
 @torch.no_grad()
-def render_instance_map(scene: SplatScene, view: PinholeView, instance_ids: Tensor,
-                        rasterize_fn: Optional[RasterizeFn] = None) -> Tensor:
+def render_instance_map(
+    scene: SplatScene, view: PinholeView, instance_ids: Tensor, rasterize_fn: Optional[RasterizeFn] = None
+) -> Tensor:
     """Instance id [H, W] (-1 none) per pixel, by :func:`votesplat_ns.core.instances.render_instance_ids`."""
     if instance_ids.shape != (scene.num_gaussians,):
         raise ValueError(f"instance_ids must be [N] = [{scene.num_gaussians}], got {tuple(instance_ids.shape)}")
@@ -307,8 +336,9 @@ def render_instance_map(scene: SplatScene, view: PinholeView, instance_ids: Tens
 
 
 @torch.no_grad()
-def render_vote_picture(scene: SplatScene, view: PinholeView, level: int,
-                        rasterize_fn: Optional[RasterizeFn] = None) -> Tensor:
+def render_vote_picture(
+    scene: SplatScene, view: PinholeView, level: int, rasterize_fn: Optional[RasterizeFn] = None
+) -> Tensor:
     """The "votes" output [H, W, 3]: :func:`vote_colours` of ``level`` rasterised over the background."""
     if scene.vote_offsets is None:
         raise ValueError("this model has no vote offsets (gauss_params['vote_offsets']); load a votesplat checkpoint")
@@ -470,7 +500,9 @@ class InstanceViewerState:
         instances = self.instances_for(scene)
         key = (self.level, str(scene.means.device))
         if key not in self._ids_cache:
-            self._ids_cache[key] = torch.from_numpy(np.asarray(instances.level(self.level).ids, dtype=np.int64)).to(scene.means.device)
+            self._ids_cache[key] = torch.from_numpy(np.asarray(instances.level(self.level).ids, dtype=np.int64)).to(
+                scene.means.device
+            )
         return self._ids_cache[key]
 
     def num_instances(self) -> int:
@@ -541,7 +573,9 @@ class InstanceViewerState:
                 self._pending_click = self._pending_query = None
                 self._instances_requested = False
         if self.instances is not None and self.selected is not None and self.selected >= self.num_instances():
-            self.status = f"level '{self.level}' has instances 0..{self.num_instances() - 1}; no instance {self.selected}"
+            self.status = (
+                f"level '{self.level}' has instances 0..{self.num_instances() - 1}; no instance {self.selected}"
+            )
             self.selected = None
 
         def visible(selected: Optional[int]) -> Optional[Tensor]:
@@ -553,7 +587,9 @@ class InstanceViewerState:
         keep = visible(self.selected)
         instance_map = None
         if ids is not None and self._pending_click is not None:
-            instance_map = render_instance_map(scene.subset(keep), view, ids if keep is None else ids[keep], self.rasterize_fn)
+            instance_map = render_instance_map(
+                scene.subset(keep), view, ids if keep is None else ids[keep], self.rasterize_fn
+            )
             self._resolve_click(instance_map)
         if ids is not None and self._pending_query is not None:
             self._resolve_query(scene)
@@ -742,24 +778,44 @@ class VoteSplatViewerState:
         levels = list(self.state.level_names)
 
         model.instance_gui_0_level = ViewerDropdown(
-            "Instance level", levels[0], levels, cb_hook=self._on_level, hint="vote level (hierarchy) the instances come from"
+            "Instance level",
+            levels[0],
+            levels,
+            cb_hook=self._on_level,
+            hint="vote level (hierarchy) the instances come from",
         )
-        model.instance_gui_1_compute = ViewerButton("Compute instances", cb_hook=lambda _: self.state.request_instances())
+        model.instance_gui_1_compute = ViewerButton(
+            "Compute instances", cb_hook=lambda _: self.state.request_instances()
+        )
         model.instance_gui_2_click = ViewerCheckbox(
-            "Click to select", False, cb_hook=self._on_click_mode, hint="click the render to select the instance under the cursor"
+            "Click to select",
+            False,
+            cb_hook=self._on_click_mode,
+            hint="click the render to select the instance under the cursor",
         )
         model.instance_gui_3_selected = ViewerNumber(
-            "Selected instance", -1, cb_hook=self._on_selected_number, hint="instance id at the current level; -1 = none"
+            "Selected instance",
+            -1,
+            cb_hook=self._on_selected_number,
+            hint="instance id at the current level; -1 = none",
         )
         model.instance_gui_4_display = ViewerDropdown(
-            "Selected instance display", DISPLAY_ALL, list(DISPLAY_MODES), cb_hook=lambda e: self.state.set_display(e.value)
+            "Selected instance display",
+            DISPLAY_ALL,
+            list(DISPLAY_MODES),
+            cb_hook=lambda e: self.state.set_display(e.value),
         )
         if self.clip_checkpoint:
             model.instance_gui_5_query = ViewerText(
-                "Text query", "", cb_hook=lambda e: self.state.request_query(e.value), hint="open-vocabulary query (CLIP)"
+                "Text query",
+                "",
+                cb_hook=lambda e: self.state.request_query(e.value),
+                hint="open-vocabulary query (CLIP)",
             )
         else:
-            model.instance_gui_5_query = ViewerText("Text query", CLIP_DISABLED_HINT, disabled=True, hint=CLIP_DISABLED_HINT)
+            model.instance_gui_5_query = ViewerText(
+                "Text query", CLIP_DISABLED_HINT, disabled=True, hint=CLIP_DISABLED_HINT
+            )
         model.instance_gui_6_export = ViewerButton("Export selected instance (PLY)", cb_hook=self._on_export)
         model.instance_gui_7_status = ViewerText("Status", self.state.status, disabled=True)
         model.instance_gui_viewer_control = _viewer_control_class()()
@@ -795,7 +851,9 @@ class VoteSplatViewerState:
 
     def _on_export(self, _: Any) -> None:
         viewer = getattr(self.model.instance_gui_viewer_control, "viewer", None)
-        run_folder = Path(viewer.log_filename).parent if viewer is not None else Path.cwd()  # the run's config.yml is there
+        run_folder = (
+            Path(viewer.log_filename).parent if viewer is not None else Path.cwd()
+        )  # the run's config.yml is there
         folder = run_folder.resolve() / EXPORT_FOLDER_NAME
         try:
             self.state.export_selected({k: v.detach() for k, v in self.model.gauss_params.items()}, folder)
@@ -852,7 +910,9 @@ class VoteSplatViewerState:
             wanted.add(panel.split_output_render)
         return self.viewer_outputs(camera, outputs, wanted & set(VIEWER_OUTPUTS))
 
-    def viewer_outputs(self, camera: "Cameras", outputs: Mapping[str, Tensor], wanted: Iterable[str]) -> Dict[str, Tensor]:
+    def viewer_outputs(
+        self, camera: "Cameras", outputs: Mapping[str, Tensor], wanted: Iterable[str]
+    ) -> Dict[str, Tensor]:
         """Every viewer output name, with ``wanted`` ones computed for ``camera`` (others alias rgb)."""
         model = self.model
         wanted = set(wanted)
@@ -860,7 +920,11 @@ class VoteSplatViewerState:
         if self.state.needs_render(wanted):
             with torch.no_grad():
                 scene = scene_from_model(model)
-                crop = model.crop_box.within(scene.means).reshape(-1) if getattr(model, "crop_box", None) is not None else None
+                crop = (
+                    model.crop_box.within(scene.means).reshape(-1)
+                    if getattr(model, "crop_box", None) is not None
+                    else None
+                )
                 extra = self.state.render_outputs(scene, self._view(camera), outputs, wanted, crop)
         rgb = extra.get("rgb", outputs["rgb"])
         for name in VIEWER_OUTPUTS:

@@ -37,7 +37,9 @@ def build_parser(prog: str = "votesplat synth") -> argparse.ArgumentParser:
     parser.add_argument("--eval-views", type=int, default=None, help="held-out views (default: 6, forward: 4)")
     parser.add_argument("--width", type=int, default=256, help="image width in pixels")
     parser.add_argument("--height", type=int, default=192, help="image height in pixels")
-    parser.add_argument("--objects", type=int, default=None, help="number of objects (default: the recipe's random count)")
+    parser.add_argument(
+        "--objects", type=int, default=None, help="number of objects (default: the recipe's random count)"
+    )
     parser.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees")
     parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
     parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
@@ -50,7 +52,9 @@ def build_parser(prog: str = "votesplat synth") -> argparse.ArgumentParser:
 
 def _add_image_arguments(parser: argparse.ArgumentParser, default_format: str) -> None:
     parser.add_argument(
-        "--image-format", choices=["png", "jpg"], default=default_format,
+        "--image-format",
+        choices=["png", "jpg"],
+        default=default_format,
         help=f"RGB image files (default {default_format}); instance/part labels and depth are always lossless PNG",
     )
     parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality 1-100 with --image-format jpg")
@@ -88,7 +92,12 @@ def family_set_main(argv: List[str], prog: str = "votesplat synth") -> int:
 
     def progress(scene: int, scenes: int, done: int, total: int) -> None:
         if not args.quiet:
-            print(f"\rscene {scene + 1}/{scenes}: rendered {done}/{total} views ({time.time() - start:.0f} s)", end="", file=sys.stderr, flush=True)
+            print(
+                f"\rscene {scene + 1}/{scenes}: rendered {done}/{total} views ({time.time() - start:.0f} s)",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
 
     settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
     with _end_progress_line(args.quiet):
@@ -97,8 +106,11 @@ def family_set_main(argv: List[str], prog: str = "votesplat synth") -> int:
         import json
 
         info = json.loads(manifest.read_text(encoding="utf-8"))
-        print(f"\nwrote {manifest}: {len(info['scenes'])} scenes, {info['total_bytes'] / 1e6:.1f} MB, "
-              f"{info['total_render_seconds']:.0f} s", file=sys.stderr)
+        print(
+            f"\nwrote {manifest}: {len(info['scenes'])} scenes, {info['total_bytes'] / 1e6:.1f} MB, "
+            f"{info['total_render_seconds']:.0f} s",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -136,7 +148,12 @@ def main(argv: Optional[List[str]] = None, prog: str = "votesplat synth") -> int
 
         def progress(done: int, total: int) -> None:
             if not args.quiet:
-                print(f"\rrendered {done}/{total} views ({time.time() - start:.0f} s)", end="", file=sys.stderr, flush=True)
+                print(
+                    f"\rrendered {done}/{total} views ({time.time() - start:.0f} s)",
+                    end="",
+                    file=sys.stderr,
+                    flush=True,
+                )
 
         settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
         out = write_dataset(scene, args.output_dir, settings, overwrite=args.overwrite, progress=progress)

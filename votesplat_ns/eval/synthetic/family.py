@@ -41,7 +41,12 @@ def covers(seeds: Iterable[int]) -> bool:
     kinds = {kind for p in props for kind in p.kinds}
     captures = Counter(p.capture for p in props)
     cut_captures = {p.capture for p in props if p.cut_object is not None}
-    return kinds >= set(FAMILY_PROPERTY_KINDS) and captures["360"] >= 3 and captures["forward"] >= 2 and cut_captures == {"360", "forward"}
+    return (
+        kinds >= set(FAMILY_PROPERTY_KINDS)
+        and captures["360"] >= 3
+        and captures["forward"] >= 2
+        and cut_captures == {"360", "forward"}
+    )
 
 
 def covering_block(start: int, size: int = SET_SIZE) -> Tuple[int, ...]:
@@ -115,8 +120,13 @@ def write_family_set(
             "set": name,
             "seeds": [seed for seed, _ in members],
             "scene_options": SET_OPTIONS,
-            "render": {"spp": settings.spp, "max_depth": settings.max_depth, "image_format": settings.image_format,
-                       "jpeg_quality": settings.jpeg_quality, "points": settings.num_points},
+            "render": {
+                "spp": settings.spp,
+                "max_depth": settings.max_depth,
+                "image_format": settings.image_format,
+                "jpeg_quality": settings.jpeg_quality,
+                "points": settings.num_points,
+            },
             "note": "no default may be tuned on the test set (votesplat_ns/eval/synthetic/family.py)",
             "scenes": scenes,
             "total_bytes": sum(s["bytes"] for s in scenes),
@@ -131,11 +141,15 @@ def read_family_set(folder) -> Tuple[str, List[Path]]:
     folder = Path(folder)
     manifest = folder / SET_MANIFEST
     if not manifest.is_file():
-        raise ValueError(f"{manifest} not found; write the set with: votesplat-synth family-set --set <tuning|test> --output-dir {folder}")
+        raise ValueError(
+            f"{manifest} not found; write the set with: votesplat-synth family-set --set <tuning|test> --output-dir {folder}"
+        )
     data = json.loads(manifest.read_text(encoding="utf-8"))
     name = data.get("set")
     if name not in FAMILY_SETS or tuple(data.get("seeds", ())) != FAMILY_SETS[name]:
-        raise ValueError(f"{manifest} lists set {name!r} with seeds {data.get('seeds')}, not this code's sets; render it again")
+        raise ValueError(
+            f"{manifest} lists set {name!r} with seeds {data.get('seeds')}, not this code's sets; render it again"
+        )
     scenes = [folder / scene_folder(seed) for seed in FAMILY_SETS[name]]
     missing = [str(s) for s in scenes if not (s / "transforms.json").is_file()]
     if missing:

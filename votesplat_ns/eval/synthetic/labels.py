@@ -33,16 +33,22 @@ def write_scene_labels(scene_dir: Path, output_dir: Path, frames: Optional[Seque
     names = {int(entry["id"]): str(entry["name"]) for entry in objects}
     by_name = {Path(frame["file_path"]).name: frame for frame in meta.get("frames", [])}
     if frames is None:
-        frames = (meta.get("votesplat_synthetic") or {}).get("eval_frames") or [
-            Path(p).name for p in meta.get("test_filenames") or meta.get("val_filenames") or []
-        ] or sorted(by_name)
+        frames = (
+            (meta.get("votesplat_synthetic") or {}).get("eval_frames")
+            or [Path(p).name for p in meta.get("test_filenames") or meta.get("val_filenames") or []]
+            or sorted(by_name)
+        )
     written = []
     for frame_name in frames:
         frame = by_name.get(Path(frame_name).name)
         if frame is None:
-            raise ValueError(f"frame {frame_name!r} is not in {transforms_path}; pass image file names such as {sorted(by_name)[:2]}")
+            raise ValueError(
+                f"frame {frame_name!r} is not in {transforms_path}; pass image file names such as {sorted(by_name)[:2]}"
+            )
         if "instance_mask_path" not in frame:
-            raise ValueError(f"frame {frame_name!r} of {transforms_path} has no instance_mask_path; labels need ground-truth masks")
+            raise ValueError(
+                f"frame {frame_name!r} of {transforms_path} has no instance_mask_path; labels need ground-truth masks"
+            )
         label_image = np.asarray(Image.open(scene_dir / frame["instance_mask_path"])).astype(np.int64)
         masks: Dict[str, List[np.ndarray]] = {}
         for instance_id, name in names.items():

@@ -115,7 +115,9 @@ def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -
     """Binary PLY with float x,y,z and uchar red,green,blue (what nerfstudio's loader, via open3d, reads)."""
     from plyfile import PlyData, PlyElement
 
-    vertex = np.zeros(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex = np.zeros(
+        len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    )
     vertex["x"], vertex["y"], vertex["z"] = np.asarray(points, dtype=np.float32).T
     vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours_uint8, dtype=np.uint8).T
     data = PlyData([PlyElement.describe(vertex, "vertex")], text=False)
@@ -238,7 +240,11 @@ class SceneRenderer:
     def sensor(self, camera: Camera, spp: int):
         mi = self._mi
         intr = self.scene.intrinsics
-        if abs(intr.cx - intr.width / 2.0) > 1e-9 or abs(intr.cy - intr.height / 2.0) > 1e-9 or abs(intr.fx - intr.fy) > 1e-9:
+        if (
+            abs(intr.cx - intr.width / 2.0) > 1e-9
+            or abs(intr.cy - intr.height / 2.0) > 1e-9
+            or abs(intr.fx - intr.fy) > 1e-9
+        ):
             raise ValueError("the mitsuba sensor needs a centred principal point and square pixels (fx == fy)")
         to_world = np.asarray(camera.c2w, dtype=np.float64) @ _OPENCV_TO_MITSUBA
         return mi.load_dict(

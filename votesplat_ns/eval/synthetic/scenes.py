@@ -187,7 +187,10 @@ class Revolved:
                 faces.append(tris + offset)
                 offset += len(verts)
         return Mesh(
-            np.concatenate(vertices), np.concatenate(faces).astype(np.int64), np.concatenate(uvs), np.concatenate(normals)
+            np.concatenate(vertices),
+            np.concatenate(faces).astype(np.int64),
+            np.concatenate(uvs),
+            np.concatenate(normals),
         )
 
     def local_surface_distance(self, points: np.ndarray) -> np.ndarray:
@@ -521,7 +524,9 @@ class Template:
     kind: str
     parts: Tuple[Tuple[str, Tuple[object, ...], Tuple[int, int, int]], ...]  # (name, primitives, srgb)
     footprint_radius: float  # bounding circle on the table, about the local origin
-    side: Optional[Tuple[str, object]]  # lateral contact shape: ("cylinder", r), ("sphere", r), ("box", (hx, hy, height))
+    side: Optional[
+        Tuple[str, object]
+    ]  # lateral contact shape: ("cylinder", r), ("sphere", r), ("box", (hx, hy, height))
     avoid_direction: Optional[float]  # local yaw that a touching neighbour must not come from (mug handle)
     top: Optional[Tuple[float, float, float]]  # flat top for stacking: (half x, half y, height)
     interior_point: Tuple[float, float, float]
@@ -865,7 +870,8 @@ def _rest_balls_on_tops(rng, placed: List[_Placed], touching: List[Tuple[int, in
             j = bases[int(rng.integers(len(bases)))]
             pose = _stack_on(rng, placed[j], item.template)
             clear = pose is not None and all(
-                np.linalg.norm(other.xy - pose[:2, 3]) >= other.template.footprint_radius + item.template.footprint_radius + 0.012
+                np.linalg.norm(other.xy - pose[:2, 3])
+                >= other.template.footprint_radius + item.template.footprint_radius + 0.012
                 for k, other in enumerate(placed)
                 if k not in (i, j)
             )
@@ -946,7 +952,11 @@ def _ring_cameras(rng, total, radius, elevation_range, target, jitter=0.03) -> L
         elevation = math.radians(lo + (hi - lo) * (0.5 + 0.5 * math.sin(2.0 * math.pi * 3.0 * frac)))
         dist = radius * (1.0 + rng.uniform(-jitter, jitter))
         eye = np.array(
-            [dist * math.cos(elevation) * math.cos(azimuth), dist * math.cos(elevation) * math.sin(azimuth), dist * math.sin(elevation)]
+            [
+                dist * math.cos(elevation) * math.cos(azimuth),
+                dist * math.cos(elevation) * math.sin(azimuth),
+                dist * math.sin(elevation),
+            ]
         ) + np.asarray(target)
         aim = np.asarray(target) + rng.uniform(-0.015, 0.015, size=3)
         cams.append(Camera(look_at(eye, aim)))
@@ -955,11 +965,15 @@ def _ring_cameras(rng, total, radius, elevation_range, target, jitter=0.03) -> L
 
 def _framing(objects: Sequence[SceneObject], intrinsics: Intrinsics, margin: float = 0.85) -> Tuple[np.ndarray, float]:
     """Look-at target and camera distance that keep every object's bounding sphere inside the view."""
-    verts = np.concatenate([primitive_mesh(p).vertices for obj in objects for part in obj.parts for p in part.primitives])
+    verts = np.concatenate(
+        [primitive_mesh(p).vertices for obj in objects for part in obj.parts for p in part.primitives]
+    )
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     target = np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, 0.4 * hi[2]])
     radius = float(np.max(np.linalg.norm(verts - target, axis=1)))
-    half_fov = min(math.atan(intrinsics.width / (2 * intrinsics.fx)), math.atan(intrinsics.height / (2 * intrinsics.fy)))
+    half_fov = min(
+        math.atan(intrinsics.width / (2 * intrinsics.fx)), math.atan(intrinsics.height / (2 * intrinsics.fy))
+    )
     return target, radius / math.sin(margin * half_fov)
 
 
@@ -979,7 +993,10 @@ def _room_background(rng_tex, ground_half: float, wall_radius: float, wall_heigh
     if plain_colours is None:
         ground_tex = make_texture(rng_tex, (256, 256), (180, 150, 110), (150, 120, 85), checks=8, dots=60)
         wall_tex = make_texture(rng_tex, (256, 512), (120, 135, 150), (95, 110, 125), checks=6, dots=90)
-        materials, textures = (Material(texture="table"), Material(texture="wall")), {"table": ground_tex, "wall": wall_tex}
+        materials, textures = (
+            (Material(texture="table"), Material(texture="wall")),
+            {"table": ground_tex, "wall": wall_tex},
+        )
     else:
         materials, textures = (Material(srgb=plain_colours[0]), Material(srgb=plain_colours[1])), {}
     ground = Part(0, "table", (Quad((ground_half, ground_half), uv_tiles=(ground_half, ground_half)),), materials[0])
@@ -991,7 +1008,9 @@ def _room_background(rng_tex, ground_half: float, wall_radius: float, wall_heigh
 def _lighting(rng_light) -> Lighting:
     azimuth = rng_light.uniform(0.0, 2.0 * math.pi)
     elevation = math.radians(rng_light.uniform(50.0, 65.0))
-    toward_sun = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
+    toward_sun = np.array(
+        [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
+    )
     return Lighting(tuple(float(v) for v in -toward_sun), sun_irradiance=1.9, ambient_radiance=0.38)
 
 
@@ -1056,7 +1075,9 @@ def tabletop360(
         intrinsics=intrinsics,
         lighting=_lighting(np.random.default_rng([seed, _STREAM_LIGHTS])),
         touching=tuple(sorted((a + 1, b + 1) for a, b in touching)),
-        parameters=dict(num_objects=count, table_radius=table_radius, camera_distance=distance, camera_target=target.tolist()),
+        parameters=dict(
+            num_objects=count, table_radius=table_radius, camera_distance=distance, camera_target=target.tolist()
+        ),
     )
 
 
@@ -1085,7 +1106,11 @@ def _bowl(rng, s, colour):
     outer[0, 0] = inner[-1, 0] = 0.0
     body = Revolved((outer, np.array([[ro, 0.0], [ri, 0.0]]), inner), pose=translate(0.0, 0.0, zc), segments=64)
     foot = Revolved(
-        (np.array([[0.0, 0.0], [rf, 0.0]]), np.array([[rf, 0.0], [0.8 * rf, hf]]), np.array([[0.8 * rf, hf], [0.0, hf]]))
+        (
+            np.array([[0.0, 0.0], [rf, 0.0]]),
+            np.array([[rf, 0.0], [0.8 * rf, hf]]),
+            np.array([[0.8 * rf, hf], [0.0, hf]]),
+        )
     )
     return Template(
         kind="bowl",
@@ -1103,7 +1128,9 @@ FRUITS = {"apple": 0.042, "orange": 0.045, "lime": 0.033, "plum": 0.032, "lemon"
 _FRUIT_COLOUR = {"orange": "orange", "lime": "green", "plum": "purple", "lemon": "yellow"}
 
 
-def _fill_bowl(rng, s, zc, ri, fruit_count: int, used_colours: set, bowl_pose: Optional[np.ndarray] = None) -> List[_Placed]:
+def _fill_bowl(
+    rng, s, zc, ri, fruit_count: int, used_colours: set, bowl_pose: Optional[np.ndarray] = None
+) -> List[_Placed]:
     """Up to ``fruit_count`` fruits resting on a bowl's inner wall (the first at the bottom), no two touching.
 
     ``zc``/``ri``: the bowl's sphere centre height and inner radius (bowl-local); ``bowl_pose`` moves the
@@ -1122,7 +1149,9 @@ def _fill_bowl(rng, s, zc, ri, fruit_count: int, used_colours: set, bowl_pose: O
             theta = 0.0 if k == 0 else math.radians(rng.uniform(30.0, 62.0))
             phi = rng.uniform(0.0, 2.0 * math.pi)
             d = ri - rf
-            centre = np.array([d * math.sin(theta) * math.cos(phi), d * math.sin(theta) * math.sin(phi), zc - d * math.cos(theta)])
+            centre = np.array(
+                [d * math.sin(theta) * math.cos(phi), d * math.sin(theta) * math.sin(phi), zc - d * math.cos(theta)]
+            )
             if all(np.linalg.norm(centre - c) >= rf + rc + 0.002 for c, rc in centres):
                 break
         else:
@@ -1169,7 +1198,9 @@ def nested(
         return np.array([rho * math.cos(phi), rho * math.sin(phi)])
 
     placed = [bowl] + fruits
-    rest, rest_touching = _place_objects_after(rng, placed, kinds, rng.uniform(1.1, 1.4, size=extra), colours, inside, sample_xy)
+    rest, rest_touching = _place_objects_after(
+        rng, placed, kinds, rng.uniform(1.1, 1.4, size=extra), colours, inside, sample_xy
+    )
     all_placed = placed + rest
     touching = [(0, 1 + i) for i in range(len(fruits))] + rest_touching
     objects = _build_objects(all_placed)
@@ -1215,11 +1246,19 @@ def _forward_background(rng_tex, plain_colours: Optional[Tuple[Tuple[int, int, i
     if plain_colours is None:
         ground_tex = make_texture(rng_tex, (256, 256), (170, 160, 120), (140, 130, 95), checks=8, dots=70)
         wall_tex = make_texture(rng_tex, (256, 512), (150, 120, 120), (120, 95, 100), checks=6, dots=120)
-        materials, textures = (Material(texture="ground"), Material(texture="wall")), {"ground": ground_tex, "wall": wall_tex}
+        materials, textures = (
+            (Material(texture="ground"), Material(texture="wall")),
+            {"ground": ground_tex, "wall": wall_tex},
+        )
     else:
         materials, textures = (Material(srgb=plain_colours[0]), Material(srgb=plain_colours[1])), {}
     ground = Part(0, "ground", (Quad((4.5, 4.0), pose=translate(0.0, 2.5, 0.0), uv_tiles=(9.0, 8.0)),), materials[0])
-    wall = Part(0, "wall", (Quad((4.5, 1.8), pose=translate(0.0, 5.5, 1.8) @ rot_x(math.pi / 2), uv_tiles=(3.0, 1.2)),), materials[1])
+    wall = Part(
+        0,
+        "wall",
+        (Quad((4.5, 1.8), pose=translate(0.0, 5.5, 1.8) @ rot_x(math.pi / 2), uv_tiles=(3.0, 1.2)),),
+        materials[1],
+    )
     return (ground, wall), textures
 
 
@@ -1316,7 +1355,11 @@ def _monitor(rng, s, colour):
     neck = Box((0.025 * s, neck_hy, neck_hz), pose=translate(0.0, ht + neck_hy, 2 * foot_hz + neck_hz))
     return Template(
         kind="monitor",
-        parts=(("screen", (screen,), SCREEN_SRGB), ("housing", (housing,), colour), ("stand", (neck, foot), _shade(colour, 0.6))),
+        parts=(
+            ("screen", (screen,), SCREEN_SRGB),
+            ("housing", (housing,), colour),
+            ("stand", (neck, foot), _shade(colour, 0.6)),
+        ),
         footprint_radius=math.hypot(hw, foot_hy),
         side=None,
         avoid_direction=None,
@@ -1335,7 +1378,9 @@ def _table(rng, s, colour):
     leg_hz = 0.5 * (height - 2 * tt)
     inset = 0.03 * s + leg
     legs = tuple(
-        Box((leg, leg, leg_hz), pose=translate(sx * (hx - inset), sy * (hy - inset), leg_hz)) for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)
+        Box((leg, leg, leg_hz), pose=translate(sx * (hx - inset), sy * (hy - inset), leg_hz))
+        for sx in (-1.0, 1.0)
+        for sy in (-1.0, 1.0)
     )
     return Template(
         kind="table",
@@ -1479,7 +1524,11 @@ def _rings_cameras(rng, total: int, distance: float, elevations: Sequence[float]
         elevation = math.radians(elevations[ring] + rng.uniform(-1.5, 1.5))
         dist = distance * (1.0 + rng.uniform(-jitter, jitter))
         eye = np.array(
-            [dist * math.cos(elevation) * math.cos(azimuth), dist * math.cos(elevation) * math.sin(azimuth), dist * math.sin(elevation)]
+            [
+                dist * math.cos(elevation) * math.cos(azimuth),
+                dist * math.cos(elevation) * math.sin(azimuth),
+                dist * math.sin(elevation),
+            ]
         ) + np.asarray(target)
         aim = np.asarray(target) + rng.uniform(-0.015, 0.015, size=3)
         cams.append(Camera(look_at(eye, aim)))
@@ -1501,7 +1550,9 @@ def surface_samples(obj: SceneObject, count: int = 2000) -> np.ndarray:
     return t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
 
 
-def frame_overflow(camera: Camera, intrinsics: Intrinsics, points: np.ndarray, margin: float = 0.0) -> Tuple[float, bool]:
+def frame_overflow(
+    camera: Camera, intrinsics: Intrinsics, points: np.ndarray, margin: float = 0.0
+) -> Tuple[float, bool]:
     """(share of ``points`` that project into the image, whether others fall outside it or behind the camera);
     ``margin``: a border of this share of the image width that counts as outside."""
     viewmat = camera.viewmat
@@ -1516,7 +1567,9 @@ def frame_overflow(camera: Camera, intrinsics: Intrinsics, points: np.ndarray, m
     return float(inside.mean()), bool((~inside).any())
 
 
-def cut_view_share(cameras: Sequence[Camera], intrinsics: Intrinsics, points: np.ndarray, min_visible: float = 0.05) -> float:
+def cut_view_share(
+    cameras: Sequence[Camera], intrinsics: Intrinsics, points: np.ndarray, min_visible: float = 0.05
+) -> float:
     """Share of views that see at least ``min_visible`` of the points while others overflow the frame."""
     cut = 0
     for camera in cameras:
@@ -1536,7 +1589,9 @@ def _camera_clear(cameras: Sequence[Camera], boxes: Sequence[Tuple[np.ndarray, n
     return True
 
 
-def _place_on_top(rng, placed: List[_Placed], base_index: int, items, touching: List[Tuple[int, int]], margin: float = 0.01):
+def _place_on_top(
+    rng, placed: List[_Placed], base_index: int, items, touching: List[Tuple[int, int]], margin: float = 0.01
+):
     """Stand ``items`` ((kind, size, colour) ...) on the flat top of ``placed[base_index]``, apart from each other.
 
     Each one placed touches the base; one that finds no room is left out.
@@ -1580,7 +1635,9 @@ def _stack_box(rng, placed: List[_Placed], base_index: int, colour: str, touchin
     return True
 
 
-def _family_ground(rng, props: FamilyProperties, palette: List[str], small_size: Tuple[float, float], large_size: Tuple[float, float]):
+def _family_ground(
+    rng, props: FamilyProperties, palette: List[str], small_size: Tuple[float, float], large_size: Tuple[float, float]
+):
     """The objects standing on the table/ground, in placing order: (kind, size, colour) for the large ones and the rest."""
     large = [k for k in props.flat if k != props.cut_object]
     bowl_on_table = props.container and "table" in props.flat and rng.random() < 0.5
@@ -1610,7 +1667,10 @@ def _family_dress(rng, placed, touching, props: FamilyProperties, palette: List[
         bowl_here = kind == "table" and bowl_on_table
         count = max(0, min(count, len(palette) - bowl_here))  # every object other than fruit has a colour of its own
         items = [("bowl", 0.9 * small_size[0] * rng.uniform(1.05, 1.2), palette.pop())] if bowl_here else []
-        items += [(k, rng.uniform(0.9, 1.0) * small_size[0], palette.pop()) for k in _pick_kinds(rng, count, list(_ON_TOP_KINDS))]
+        items += [
+            (k, rng.uniform(0.9, 1.0) * small_size[0], palette.pop())
+            for k in _pick_kinds(rng, count, list(_ON_TOP_KINDS))
+        ]
         _place_on_top(rng, placed, index, items, touching)
     touching = _rest_balls_on_tops(rng, placed, touching)
     if props.container:
@@ -1684,10 +1744,14 @@ def _family_360(seed: int, props: FamilyProperties, total: int, intrinsics: Intr
             # move the cameras in while every view still holds every object whole
             target, distance = _framing(objects, intrinsics)
             points = np.concatenate([surface_samples(obj, 400) for obj in objects])
-            cameras, rings = _rings_cameras(np.random.default_rng(cam_seed), total, distance, props.ring_elevations, target)
+            cameras, rings = _rings_cameras(
+                np.random.default_rng(cam_seed), total, distance, props.ring_elevations, target
+            )
             while True:
                 closer = 0.96 * distance
-                trial, trial_rings = _rings_cameras(np.random.default_rng(cam_seed), total, closer, props.ring_elevations, target)
+                trial, trial_rings = _rings_cameras(
+                    np.random.default_rng(cam_seed), total, closer, props.ring_elevations, target
+                )
                 if not all(frame_overflow(camera, intrinsics, points, margin=0.04)[0] == 1.0 for camera in trial):
                     break
                 distance, cameras, rings = closer, trial, trial_rings
@@ -1703,7 +1767,9 @@ def _family_360(seed: int, props: FamilyProperties, total: int, intrinsics: Intr
         cameras, rings = _rings_cameras(np.random.default_rng(cam_seed), total, distance, props.ring_elevations, target)
         while cut_view_share(cameras, intrinsics, points) < CUT_VIEW_SHARE:
             closer = 0.95 * distance
-            trial, trial_rings = _rings_cameras(np.random.default_rng(cam_seed), total, closer, props.ring_elevations, target)
+            trial, trial_rings = _rings_cameras(
+                np.random.default_rng(cam_seed), total, closer, props.ring_elevations, target
+            )
             if not _camera_clear(trial, boxes, 0.12):
                 break
             distance, cameras, rings = closer, trial, trial_rings
@@ -1713,7 +1779,13 @@ def _family_360(seed: int, props: FamilyProperties, total: int, intrinsics: Intr
         boost *= 1.15
     parameters.update(camera_distance=distance, camera_target=np.asarray(target).tolist(), camera_rings=rings)
     wall_radius = max(2.8, 1.3 * distance + 0.5)
-    return objects, touching, cameras, parameters, dict(ground_half=wall_radius + 0.2, wall_radius=wall_radius, wall_height=2.5)
+    return (
+        objects,
+        touching,
+        cameras,
+        parameters,
+        dict(ground_half=wall_radius + 0.2, wall_radius=wall_radius, wall_height=2.5),
+    )
 
 
 def _family_forward(seed: int, props: FamilyProperties, total: int, intrinsics: Intrinsics):
@@ -1729,7 +1801,9 @@ def _family_forward(seed: int, props: FamilyProperties, total: int, intrinsics: 
         if props.cut_object is not None:
             # near the cameras, across the side of the view: the outer part leaves the frame in every view
             template = FAMILY_KINDS[props.cut_object](rng, rng.uniform(1.6, 1.9), PALETTE[palette[-1]])
-            half_x = max(np.abs(primitive_mesh(p).vertices[:, 0]).max() for _, prims, _ in template.parts for p in prims)
+            half_x = max(
+                np.abs(primitive_mesh(p).vertices[:, 0]).max() for _, prims, _ in template.parts for p in prims
+            )
             y = rng.uniform(1.3, 1.7)
             side = 1.0 if rng.random() < 0.5 else -1.0
             # the cameras span x in [-0.32, 0.32]: reach 0.12 m past the farthest frame edge
@@ -1793,7 +1867,9 @@ def family(
     if room is None:
         background, textures = _forward_background(rng_tex, plain)
     else:
-        background, textures = _room_background(rng_tex, room["ground_half"], room["wall_radius"], room["wall_height"], plain)
+        background, textures = _room_background(
+            rng_tex, room["ground_half"], room["wall_radius"], room["wall_height"], plain
+        )
     large = [o.id for o in objects if o.kind in ("monitor", "table", "board", "carton")]
     parameters.update(
         properties=asdict(props),
@@ -1817,7 +1893,12 @@ def family(
     )
 
 
-RECIPES: Dict[str, Callable[..., Scene]] = {"tabletop360": tabletop360, "nested": nested, "forward": forward, "family": family}
+RECIPES: Dict[str, Callable[..., Scene]] = {
+    "tabletop360": tabletop360,
+    "nested": nested,
+    "forward": forward,
+    "family": family,
+}
 
 
 def make_scene(recipe: str, seed: int = 0, **options) -> Scene:
