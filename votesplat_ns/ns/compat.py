@@ -1,8 +1,9 @@
 """Small fixes that make nerfstudio 1.1.5 usable offline and under torch >= 2.6.
 
-Everything here is applied on import of the plugin (nerfstudio imports every method
-entry point at start-up of ns-train / ns-viewer / ns-export / ns-eval), so users need no
-environment variable and no patched nerfstudio.
+The checkpoint allow-list is applied on import of the plugin (nerfstudio imports every method
+entry point at start-up of ns-train / ns-viewer / ns-export / ns-eval), the others are context
+managers around the nerfstudio calls that need them, so users need no environment variable and
+no patched nerfstudio. All are listed in :mod:`votesplat_ns.ns.patches`.
 """
 
 from __future__ import annotations

@@ -1,15 +1,12 @@
 """The ``votesplat`` method, registered through the ``nerfstudio.method_configs`` entry point.
 
-Importing this module (nerfstudio does so at start-up of every ``ns-*`` command) also
-applies the plugin's compatibility fixes: checkpoint loading under torch >= 2.6 and the
-``ns-export votesplat-instances`` subcommand, and installs the hook that reports bad input
-(:class:`~votesplat_ns.cli.cli_errors.VoteSplatInputError`) as one line instead of a traceback.
+Importing this module (nerfstudio does so at start-up of every ``ns-*`` command) applies the
+plugin's process-wide patches of upstream code, all listed in :mod:`votesplat_ns.ns.patches`.
 """
 
 from __future__ import annotations
 
 import gc
-import warnings
 from pathlib import Path
 from typing import Any, Dict, Optional
 
@@ -21,26 +18,9 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from votesplat_ns.cli.cli_errors import install_excepthook
-from votesplat_ns.ns.compat import register_checkpoint_safe_globals
+from votesplat_ns.ns import patches
 from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 from votesplat_ns.ns.model import VoteSplatModelConfig
-
-register_checkpoint_safe_globals()
-# bad input (missing --data, no CUDA, ...) ends ns-* commands with one line, not a traceback
-install_excepthook()
-
-
-def _install_export_hook() -> None:
-    """Add ``ns-export votesplat-instances``; a failure here must not break every ns-* command."""
-    try:
-        from votesplat_ns.ns.export import install_ns_export_hook
-
-        install_ns_export_hook()
-    except Exception as err:  # pragma: no cover - reported, not fatal
-        warnings.warn(
-            f"votesplat: ns-export votesplat-instances unavailable ({err}); use votesplat export", RuntimeWarning
-        )
 
 
 def splatfacto_optimizers(max_steps: int = 30000) -> dict:
@@ -111,7 +91,9 @@ VOTESPLAT_DESCRIPTION = (
 
 votesplat_method = MethodSpecification(config=votesplat_trainer_config(), description=VOTESPLAT_DESCRIPTION)
 
-_install_export_hook()
+# after the method spec exists: installing the export hook may import nerfstudio's exporter,
+# which imports the method configs (this module)
+patches.apply()
 
 
 def setup_trainer_in_process(

@@ -8,6 +8,7 @@ rebind that name once to :func:`rasterize`, which
   ``info["Ks"]``) so the vote pass projects votes with exactly the camera splatfacto used
   (camera optimiser, resolution schedule) without repeating splatfacto's camera code.
 The rebinding is done once, not per call, because the viewer renders from another thread.
+It is one of the upstream patches listed in :mod:`votesplat_ns.ns.patches`.
 """
 
 from __future__ import annotations
