@@ -109,10 +109,14 @@ def run_job(job: dict) -> List[dict]:
     for cluster_name, cluster_settings in job["cluster_variants"]:
         options = {k: v for k, v in cluster_settings.items() if not k.startswith("mc.")}
         check = {k[3:]: v for k, v in cluster_settings.items() if k.startswith("mc.")}
-        mask_check = check if options.pop("mask_check", True) else False
-        result = evaluate_run(
-            config, run_dir / f"eval_{cluster_name}", mask_check=mask_check, cluster_options=options
-        )  # every level
+        mask_check = bool(options.pop("mask_check", True))
+        result = evaluate_run(  # every level
+            config,
+            run_dir / f"eval_{cluster_name}",
+            mask_check=mask_check,
+            mask_check_options=check,
+            cluster_options=options,
+        )
         for level in LEVELS:
             if level in result.metrics["levels"]:
                 rows.append(

@@ -5,12 +5,13 @@ import math
 import numpy as np
 import torch
 
+from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import cluster_levels
 from votesplat_ns.core.mask_consensus import (
-    MaskView,
     drop_unmasked,
     merge_agreeing,
     regroup_with_masks,
+    seen_mask_table,
     seen_pixels,
     sitting_masks,
     split_deviants,
@@ -88,7 +89,7 @@ def test_seen_pixels_keeps_what_the_render_hides_out():
     scales = torch.full((n, 3), 0.06)
     opacities = torch.full((n,), 0.99)
     K = torch.tensor([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
-    view = MaskView(torch.eye(4), K, np.zeros((48, 64), dtype=np.int64))
+    view = PinholeView(torch.eye(4), K, 64, 48)
 
     def rasterize(*args, **kwargs):
         return rasterize_torch(*args, **kwargs)
@@ -98,6 +99,10 @@ def test_seen_pixels_keeps_what_the_render_hides_out():
     assert seen[:200].mean() > 0.15  # the front of the near blob (centres deeper inside it are hidden)
     assert seen[200:400].mean() < 0.02
     assert seen[400:].mean() > 0.15
+    # the table puts each seen centre in the mask under it; unseen ones are -1
+    masks = np.full((48, 64), 7, dtype=np.int64)
+    table = seen_mask_table([pixels], [masks])
+    assert table.shape == (1, n) and (table[0][seen] == 7).all() and (table[0][~seen] == -1).all()
     # the pixel of a seen centre is where it projects
     i = int(np.flatnonzero(seen[400:])[0]) + 400
     x, y, z = means[i].tolist()

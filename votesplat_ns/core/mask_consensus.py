@@ -34,13 +34,17 @@ passes the views, the training masks and a rasteriser (gsplat's ``rasterization`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Callable, Dict, Sequence, Tuple
 
 import numpy as np
 import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
+from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_FILL_RADIUS_FACTOR, relabel_by_size, typical_spacing
+from votesplat_ns.core.vote_render import project_to_pixels
 
 # Chosen on the tuning scenes (BENCHMARKS.md, "Training-mask check"): 2 views of evidence and
 # split groups from 10 Gaussians (HDBSCAN's own floor) gave the best instance mIoU with GT and
@@ -50,27 +54,9 @@ DEFAULT_MIN_VIEWS = 2
 DEFAULT_MIN_SHARE = 0.5
 DEFAULT_MIN_SEEN = 5
 DEFAULT_MIN_SPLIT_SIZE = 10
-DEFAULT_DEPTH_TOLERANCE = 0.05  # relative depth behind the rendered surface that still counts as on it (training views: 83-98% of an object's centres in its unoccluded views)
-
-
-@dataclass
-class MaskView:
-    """One training view for the mask check: camera and the view's mask labels at one level.
-
-    viewmat [4, 4] world-to-camera (OpenCV), K [3, 3], masks [H, W] integer (0 = no mask).
-    """
-
-    viewmat: torch.Tensor
-    K: torch.Tensor
-    masks: np.ndarray
-
-    @property
-    def height(self) -> int:
-        return int(self.masks.shape[0])
-
-    @property
-    def width(self) -> int:
-        return int(self.masks.shape[1])
+# relative depth behind the rendered surface that still counts as on it (tuning scene 1006's
+# training views: 83-98% of an object's centres in its unoccluded views; 2%: 49-86%)
+DEFAULT_DEPTH_TOLERANCE = 0.05
 
 
 def seen_pixels(
@@ -79,7 +65,7 @@ def seen_pixels(
     quats: torch.Tensor,
     scales: torch.Tensor,
     opacities: torch.Tensor,
-    view: MaskView,
+    view: PinholeView,
     depth_tolerance: float = DEFAULT_DEPTH_TOLERANCE,
     min_alpha: float = 0.5,
 ) -> np.ndarray:
@@ -92,8 +78,7 @@ def seen_pixels(
     device = means.device
     viewmat = view.viewmat.to(device=device, dtype=means.dtype)
     K = view.K.to(device=device, dtype=means.dtype)
-    cam = means @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = cam[:, 2]
+    z = means @ viewmat[2, :3] + viewmat[2, 3]
     with torch.no_grad():
         rendered, alpha, _ = rasterize_fn(
             means,
@@ -109,9 +94,7 @@ def seen_pixels(
         )
     alpha = alpha[0, ..., 0]
     depth = rendered[0, ..., 0] / alpha.clamp_min(1e-6)
-    safe_z = z.clamp_min(1e-6)
-    u = torch.floor(cam[:, 0] / safe_z * K[0, 0] + K[0, 2]).long()
-    v = torch.floor(cam[:, 1] / safe_z * K[1, 1] + K[1, 2]).long()
+    u, v = torch.floor(project_to_pixels(means, viewmat, K, near_plane=1e-6)).long().unbind(-1)
     inside = (z > 1e-6) & (u >= 0) & (u < view.width) & (v >= 0) & (v < view.height)
     flat = torch.where(inside, v * view.width + u, torch.zeros_like(u))
     surface = depth.reshape(-1)[flat]
@@ -120,13 +103,14 @@ def seen_pixels(
     return torch.where(seen, flat, torch.full_like(flat, -1)).cpu().numpy()
 
 
-def seen_mask_table(pixels_per_view: Sequence[np.ndarray], views: Sequence[MaskView]) -> np.ndarray:
+def seen_mask_table(pixels_per_view: Sequence[np.ndarray], masks_per_view: Sequence[np.ndarray]) -> np.ndarray:
     """[V, N] int32: the mask id under each Gaussian's centre per view (0: seen, in no mask;
-    -1: not seen), from :func:`seen_pixels` of each view."""
-    table = np.full((len(views), len(pixels_per_view[0]) if pixels_per_view else 0), -1, dtype=np.int32)
-    for v, (pixels, view) in enumerate(zip(pixels_per_view, views)):
+    -1: not seen), from :func:`seen_pixels` of each view and that view's mask labels [H, W]
+    (0 = no mask) at the view's render size."""
+    table = np.full((len(masks_per_view), len(pixels_per_view[0]) if pixels_per_view else 0), -1, dtype=np.int32)
+    for v, (pixels, masks) in enumerate(zip(pixels_per_view, masks_per_view)):
         seen = pixels >= 0
-        table[v, seen] = np.asarray(view.masks).reshape(-1)[pixels[seen]]
+        table[v, seen] = np.asarray(masks).reshape(-1)[pixels[seen]]
     return table
 
 
@@ -152,10 +136,6 @@ def sitting_masks(
 
 def _components(points: np.ndarray, radius: float) -> np.ndarray:
     """Connected components of points closer than ``radius`` (label per point)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
     return connected_components(graph, directed=False)[1]

@@ -265,15 +265,16 @@ def evaluate_run(
     max_psnr_drop_db: float = DEFAULT_MAX_PSNR_DROP_DB,
     min_gain_db: float = DEFAULT_MIN_GAIN_DB,
     gaussian_ids_override: Optional[Callable[[TrainedScene, Dict[str, np.ndarray]], Dict[str, np.ndarray]]] = None,
-    mask_check: Union[bool, Dict[str, object]] = True,
+    mask_check: bool = True,
+    mask_check_options: Optional[Dict[str, object]] = None,
     cluster_options: Optional[Dict[str, object]] = None,
 ) -> EvaluationResult:
     """Score a votesplat run (see the module doc); writes metrics.json and comparison PNGs.
 
     ``gaussian_ids_override(scene, gt_per_gaussian) -> {level: ids}`` replaces the clustered ids
     (0..K-1, -1 = none) before rendering; tests use it to render the GT itself. ``mask_check``
-    checks the instances against the training masks as ``ns-export votesplat-instances`` does (a
-    dict: with these options of ``regroup_with_masks``); ``cluster_options`` are further keyword
+    checks the instances against the training masks as ``ns-export votesplat-instances`` does
+    (``mask_check_options``: keyword arguments of ``regroup_with_masks``); ``cluster_options`` are further keyword
     arguments of ``cluster_levels`` (benchmark variants).
     """
     from votesplat_ns.ns.rasterizer import rasterize
@@ -327,9 +328,7 @@ def evaluate_run(
         min_samples=min_samples,
         max_points=max_points,
         seed=seed,
-        refine=training_mask_check(pipeline, rasterize, **(mask_check if isinstance(mask_check, dict) else {}))
-        if mask_check is not False
-        else None,
+        refine=training_mask_check(pipeline, scene, rasterize, **(mask_check_options or {})) if mask_check else None,
         **(cluster_options or {}),
     )
     means_world = points_to_dataset_frame(scene.means, transform, scale)

@@ -56,7 +56,7 @@ from votesplat_ns.core.instances import (
 from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
 from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY, TrainedScene  # noqa: F401 (keys re-exported)
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
-from votesplat_ns.ns.run import camera_view, load_run
+from votesplat_ns.ns.run import camera_view, evenly_spaced, load_run
 
 SUBCOMMAND_NAME = "votesplat-instances"
 EXPORTER_MODULE = "nerfstudio.scripts.exporter"
@@ -401,9 +401,8 @@ def training_views(pipeline, num_views: int, max_width: int = 320) -> List[Pinho
     dataset = pipeline.datamanager.train_dataset
     cameras = dataset.cameras
     count = len(cameras)
-    picks = sorted({int(round(x)) for x in np.linspace(0, count - 1, min(num_views, count))})
     views = []
-    for index in picks:
+    for index in evenly_spaced(count, num_views):
         view = camera_view(cameras, index)
         width, height = view.width, view.height
         scale = min(1.0, max_width / width)
@@ -495,7 +494,7 @@ class ExportVoteSplatInstances:
                         "--mask-check needs a rasterizer (gsplat or the torch fallback); pass --mask-check False"
                     )
                 try:
-                    refine = mask_check(pipeline, check_rasterizer, max_views=self.mask_check_views)
+                    refine = mask_check(pipeline, scene, check_rasterizer, max_views=self.mask_check_views)
                 except (OSError, ValueError) as err:  # the instances are still valid without it
                     CONSOLE.print(
                         f"Warning: the training masks are unavailable ({err}); exporting the vote clustering without the mask "

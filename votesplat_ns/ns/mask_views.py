@@ -3,14 +3,14 @@
 
 from __future__ import annotations
 
-from typing import Dict, Sequence
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
-import torch
 
-from votesplat_ns.core.cameras import scaled_view
-from votesplat_ns.core.mask_consensus import MaskView, regroup_with_masks, seen_mask_table, seen_pixels
-from votesplat_ns.ns.run import camera_view
+from votesplat_ns.core.cameras import PinholeView, scaled_view
+from votesplat_ns.core.mask_consensus import regroup_with_masks, seen_mask_table, seen_pixels
+from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.ns.run import camera_view, evenly_spaced
 
 DEFAULT_MASK_VIEWS = 32
 DEFAULT_MASK_VIEW_WIDTH = 320
@@ -18,9 +18,9 @@ DEFAULT_MASK_VIEW_WIDTH = 320
 
 def training_mask_views(
     pipeline, level_names: Sequence[str], max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH
-) -> Dict[str, list]:
-    """Up to ``max_views`` evenly spaced training views, at most ``max_width`` wide, with the
-    masks of each level in ``level_names`` (names of the datamanager's vote levels)."""
+) -> Tuple[List[PinholeView], Dict[str, List[np.ndarray]]]:
+    """Up to ``max_views`` evenly spaced training views, at most ``max_width`` wide, and for each
+    level in ``level_names`` (names of the datamanager's vote levels) their mask labels [H, W]."""
     datamanager = pipeline.datamanager
     if not hasattr(datamanager, "vote_levels"):
         raise ValueError("the run's datamanager has no training masks (not the votesplat vote datamanager)")
@@ -29,37 +29,39 @@ def training_mask_views(
     if missing:
         raise ValueError(f"the run's masks have levels {known}; no masks for {missing}")
     cameras = datamanager.train_dataset.cameras
-    count = len(cameras)
-    picks = sorted({int(round(x)) for x in np.linspace(0, count - 1, min(max_views, count))}) if max_views > 0 else []
-    views: Dict[str, list] = {name: [] for name in level_names}
-    for index in picks:
+    views: List[PinholeView] = []
+    masks: Dict[str, List[np.ndarray]] = {name: [] for name in level_names}
+    for index in evenly_spaced(len(cameras), max_views):
         view = scaled_view(camera_view(cameras, index), max_width=max_width)
         labels = np.asarray(datamanager.vote_maps_for_train_view(index, view.height, view.width).labels)
+        views.append(view)
         for name in level_names:
-            views[name].append(MaskView(view.viewmat, view.K, labels[known.index(name)].astype(np.int64)))
-    return views
+            masks[name].append(labels[known.index(name)].astype(np.int64))
+    return views, masks
 
 
 def mask_check(
-    pipeline, rasterize_fn, max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH, **options
+    pipeline,
+    scene: TrainedScene,
+    rasterize_fn,
+    max_views: int = DEFAULT_MASK_VIEWS,
+    max_width: int = DEFAULT_MASK_VIEW_WIDTH,
+    **options,
 ):
-    """The ``refine`` callback of :func:`votesplat_ns.core.clustering.cluster_levels` that checks a
-    loaded run's instances against its training masks (``options``: those of
-    :func:`votesplat_ns.core.mask_consensus.regroup_with_masks`). The depth test of every view is
-    made once and shared by the levels."""
-    model = pipeline.model
-    params = model.gauss_params
-    means = params["means"].detach().float()
-    quats = params["quats"].detach().float()
-    scales = torch.exp(params["scales"].detach().float())
-    opacities = torch.sigmoid(params["opacities"].detach().float()).reshape(-1)
-    level_names = tuple(str(name) for name in model.config.vote_levels)
-    views = training_mask_views(pipeline, level_names, max_views, max_width)
-    pixels = [seen_pixels(rasterize_fn, means, quats, scales, opacities, view) for view in views[level_names[0]]]
-    points = means.cpu().numpy()
+    """The ``refine`` callback of :func:`votesplat_ns.core.clustering.cluster_levels` that checks the
+    instances of a loaded run (``pipeline`` and its ``scene``) against its training masks
+    (``options``: those of :func:`votesplat_ns.core.mask_consensus.regroup_with_masks`). The depth
+    test of every view is made once and shared by the levels."""
+    views, masks = training_mask_views(pipeline, scene.level_names, max_views, max_width)
+    finite = scene.finite()
+    means, quats, scales, opacities, _, _ = scene.gaussians(finite)
+    pixels = []
+    for view in views:
+        seen = np.full(finite.shape[0], -1, dtype=np.int64)  # non-finite Gaussians are never seen
+        seen[finite] = seen_pixels(rasterize_fn, means, quats, scales, opacities, view)
+        pixels.append(seen)
 
     def refine(index: int, name: str, ids: np.ndarray):
-        table = seen_mask_table(pixels, views[name])
-        return regroup_with_masks(ids, points, table, **options)
+        return regroup_with_masks(ids, scene.means, seen_mask_table(pixels, masks[name]), **options)
 
     return refine

@@ -13,6 +13,7 @@ import zipfile
 from pathlib import Path
 from typing import Any, Callable, List, NamedTuple, Optional, Sequence, Union
 
+import numpy as np
 import torch
 
 from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoint_problem
@@ -68,6 +69,13 @@ def camera_view(cameras: Any, index: int = 0, name: str = "", dtype: torch.dtype
         height=int(camera.height.item()),
         name=name,
     )
+
+
+def evenly_spaced(count: int, num: int) -> List[int]:
+    """Up to ``num`` indices spread evenly over ``range(count)``, first and last included."""
+    if num <= 0 or count <= 0:
+        return []
+    return sorted({int(round(x)) for x in np.linspace(0, count - 1, min(num, count))})
 
 
 def dataset_views(dataset: Any, indices: Optional[Sequence[int]] = None, cameras: Any = None) -> List[PinholeView]:
