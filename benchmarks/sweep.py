@@ -110,12 +110,15 @@ def run_job(job: dict) -> List[dict]:
         options = {k: v for k, v in cluster_settings.items() if not k.startswith("mc.")}
         check = {k[3:]: v for k, v in cluster_settings.items() if k.startswith("mc.")}
         mask_check = bool(options.pop("mask_check", True))
+        # evaluate_run's own clustering arguments are passed as such, the rest to cluster_levels
+        own = {k: options.pop(k) for k in ("min_cluster_size", "min_samples", "max_points") if k in options}
         result = evaluate_run(  # every level
             config,
             run_dir / f"eval_{cluster_name}",
             mask_check=mask_check,
             mask_check_options=check,
             cluster_options=options,
+            **own,
         )
         for level in LEVELS:
             if level in result.metrics["levels"]:

@@ -8,6 +8,7 @@ import torch
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import cluster_levels
 from votesplat_ns.core.mask_consensus import (
+    drawn_masks,
     drop_unmasked,
     merge_agreeing,
     regroup_with_masks,
@@ -107,6 +108,41 @@ def test_seen_pixels_keeps_what_the_render_hides_out():
     i = int(np.flatnonzero(seen[400:])[0]) + 400
     x, y, z = means[i].tolist()
     assert pixels[i] == math.floor(y / z * 60 + 24) * 64 + math.floor(x / z * 60 + 32)
+
+
+def test_drawn_masks_follow_the_blending_weights():
+    # a fruit-like blob hidden behind a nearer wall, the wall, and a blob beside them; the left
+    # half of the image is mask 1, the right half mask 2 (a blob beside the wall lies in mask 2)
+    wall = blob([-0.3, 0, 2.0], 200, 0.05)
+    hidden = blob([-0.3, 0, 2.3], 200, 0.05, seed=1)
+    side = blob([1.2, 0, 4.0], 200, 0.05, seed=2)
+    faint = blob([1.2, 0.6, 4.0], 20, 0.01, seed=3)  # tiny and nearly transparent
+    means = torch.tensor(np.concatenate([wall, hidden, side, faint]), dtype=torch.float32)
+    n = means.shape[0]
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    scales = torch.full((n, 3), 0.06)
+    scales[600:] = 0.003
+    opacities = torch.full((n,), 0.99)
+    opacities[600:] = 0.02
+    K = torch.tensor([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    view = PinholeView(torch.eye(4), K, 64, 48)
+    labels = np.ones((48, 64), dtype=np.int64)
+    labels[:, 32:] = 2
+    drawn = drawn_masks(rasterize_torch, means, quats, scales, opacities, view, labels, chunk=1)
+    assert drawn.shape == (n,) and drawn.dtype == np.int32
+    # the wall's front Gaussians are drawn into mask 1 (those deeper inside it are hidden)
+    assert (drawn[:200] == 1).mean() > 0.15 and (drawn[:200] == 2).sum() == 0
+    assert (drawn[200:400] == -1).mean() > 0.95  # hidden behind it: undecided, not the wall's mask
+    assert (drawn[400:600] == 2).mean() > 0.1 and (drawn[400:600] == 1).sum() == 0
+    assert (drawn[600:] == -1).all()  # under half a pixel of weight
+    # the per-mask sums do not depend on how the masks are chunked into renders
+    assert np.array_equal(drawn, drawn_masks(rasterize_torch, means, quats, scales, opacities, view, labels))
+    # a Gaussian straddling the two masks (about 60% of it right of the border) is decided only
+    # when the share asked for is below its larger share
+    straddle = torch.tensor([[0.03, 0.0, 4.0]])
+    args = (rasterize_torch, straddle, quats[:1], torch.full((1, 3), 0.3), torch.full((1,), 0.99), view, labels)
+    assert drawn_masks(*args).tolist() == [2]
+    assert drawn_masks(*args, min_share=0.7).tolist() == [-1]
 
 
 def test_regroup_end_to_end_on_the_mask_table():
