@@ -27,8 +27,9 @@ from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
 from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
 from votesplat_ns.core.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
-from votesplat_ns.ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
-from votesplat_ns.ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
+from votesplat_ns.ns.compat import UnavailableMetric
+from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
+from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
 from votesplat_ns.ns.viewer import VoteSplatViewerState
 
@@ -170,7 +171,7 @@ class VoteSplatModel(SplatfactoModel):
         if self.config.vote_every_n_steps < 1:
             raise ValueError(f"vote_every_n_steps must be >= 1 (got {self.config.vote_every_n_steps})")
         self.config.vote_levels = self._resolve_vote_levels()
-        install_in_splatfacto()
+        install_rasterizer_in_splatfacto()
         # built on the CPU (splatfacto hard-codes one .cuda()); the pipeline moves the model to its device
         with offline_lpips(), cuda_calls_stay_on_cpu(model_on_cpu=True):
             super().populate_modules()
