@@ -17,7 +17,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Union
 
-import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
@@ -34,50 +33,10 @@ from votesplat_ns.ns.model_config import VoteSplatModelConfig
 from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
+from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, gaussians_from_ply_arrays, latest_checkpoint, load_gaussians  # noqa: F401 (re-exported: tests and benchmarks import them from here)
 from votesplat_ns.ns.viewer import VoteSplatViewerState
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
-SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
-
-
-def latest_checkpoint(path: Path) -> Path:
-    """``path`` itself if it is a file, else the newest step-*.ckpt under it (or its nerfstudio_models/)."""
-    path = Path(path)
-    if path.suffix == ".ckpt" and path.is_file():
-        return path
-    if path.name == "config.yml":
-        path = path.parent
-    candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
-    if not candidates:
-        raise VoteSplatInputError(
-            f"no checkpoint found at {path}: give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
-        )
-    return candidates[-1]
-
-
-def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
-    """splatfacto's Gaussian parameters from a nerfstudio checkpoint (splatfacto or votesplat)."""
-    state = torch.load(checkpoint, map_location="cpu")
-    pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
-    missing = [name for name in SPLAT_PARAM_NAMES if f"_model.gauss_params.{name}" not in pipeline_state]
-    if missing:
-        raise VoteSplatInputError(
-            f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
-            "retrofit needs one written by ns-train splatfacto or votesplat"
-        )
-    return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in SPLAT_PARAM_NAMES}
-
-
-def gaussians_from_ply_arrays(arrays: Dict[str, np.ndarray]) -> Dict[str, torch.Tensor]:
-    """``ply_io.read_3dgs_ply`` arrays as splatfacto's Gaussian parameters (opacities [N, 1])."""
-    return {
-        "means": torch.from_numpy(arrays["means"]),
-        "scales": torch.from_numpy(arrays["log_scales"]),
-        "quats": torch.from_numpy(arrays["quats"]),
-        "features_dc": torch.from_numpy(arrays["features_dc"]),
-        "features_rest": torch.from_numpy(arrays["features_rest"]),
-        "opacities": torch.from_numpy(arrays["opacity_logits"])[:, None],
-    }
 
 
 def _pixels_and_targets(
