@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import votesplat_ns  # noqa: F401  (registers the safe globals on import)
-from votesplat_ns.ns import compat
+from votesplat_ns.ns import compat, patches
 
 
 def test_checkpoint_with_numpy_scalars_loads_with_weights_only(tmp_path):
@@ -42,7 +42,7 @@ def test_offline_lpips_context_replaces_the_constructor_only_inside(tmp_path, mo
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))
     original = lpip_module.LearnedPerceptualImagePatchSimilarity
     compat._warn_once.cache_clear()
-    with pytest.warns(RuntimeWarning), compat.offline_lpips():
+    with pytest.warns(RuntimeWarning), patches.offline_lpips():
         metric = lpip_module.LearnedPerceptualImagePatchSimilarity(normalize=True)
     assert isinstance(metric, compat.UnavailableMetric)
     assert lpip_module.LearnedPerceptualImagePatchSimilarity is original
@@ -55,14 +55,14 @@ def test_cuda_calls_stay_on_cpu_is_reentrant_across_threads():
     release = threading.Event()
 
     def hold():
-        with compat.cuda_calls_stay_on_cpu():
+        with patches.cuda_calls_stay_on_cpu():
             entered.set()
             release.wait(5)
 
     worker = threading.Thread(target=hold)
     worker.start()
     entered.wait(5)
-    with compat.cuda_calls_stay_on_cpu():
+    with patches.cuda_calls_stay_on_cpu():
         x = torch.ones(2)
         assert x.cuda() is x
     # the other thread is still inside: the patch must still be active

@@ -17,6 +17,7 @@ import torch
 from test_instances import brute_force_rasterize  # noqa: E402  (tests/ is on sys.path under pytest)
 
 import votesplat_ns.ns.export as export_module
+import votesplat_ns.ns.instance_export as instance_export_module
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.instances import InstanceSet
 from votesplat_ns.core.ply_io import read_gaussian_ply, read_ply_header
@@ -184,7 +185,7 @@ def test_reexport_replaces_a_previous_export(tmp_path):
 
 def test_an_interrupted_export_leaves_nothing_half_written(tmp_path, monkeypatch):
     params, _ = vote_scene()
-    real_write = export_module.write_gaussian_table
+    real_write = instance_export_module.write_gaussian_table
     calls = []
 
     def failing_write(*args, **kwargs):
@@ -193,16 +194,16 @@ def test_an_interrupted_export_leaves_nothing_half_written(tmp_path, monkeypatch
             raise OSError("disk full")
         return real_write(*args, **kwargs)
 
-    monkeypatch.setattr(export_module, "write_gaussian_table", failing_write)
+    monkeypatch.setattr(instance_export_module, "write_gaussian_table", failing_write)
     with pytest.raises(OSError, match="disk full"):
         export(params, tmp_path / "fresh")
     assert no_leftovers(tmp_path)
 
-    monkeypatch.setattr(export_module, "write_gaussian_table", real_write)
+    monkeypatch.setattr(instance_export_module, "write_gaussian_table", real_write)
     export(params, tmp_path / "old")
     before = (tmp_path / "old" / "instances.json").read_bytes()
     calls.clear()
-    monkeypatch.setattr(export_module, "write_gaussian_table", failing_write)
+    monkeypatch.setattr(instance_export_module, "write_gaussian_table", failing_write)
     with pytest.raises(OSError):
         export(params, tmp_path / "old", remove=[0])
     assert (tmp_path / "old" / "instances.json").read_bytes() == before
@@ -294,11 +295,13 @@ def test_a_previous_export_is_replaced_only_without_user_files(tmp_path, monkeyp
     # a previous export whose folders this process may not write could not be deleted once replaced
     real_access = os.access
     monkeypatch.setattr(
-        export_module.os, "access", lambda path, mode: Path(path) != out / "instances" and real_access(path, mode)
+        instance_export_module.os,
+        "access",
+        lambda path, mode: Path(path) != out / "instances" and real_access(path, mode),
     )
     with pytest.raises(ValueError, match=rf"the previous export's folder {out / 'instances'} is not writable"):
         export(params, out)
-    monkeypatch.setattr(export_module.os, "access", real_access)
+    monkeypatch.setattr(instance_export_module.os, "access", real_access)
     assert no_leftovers(tmp_path, keep=["out"])
     export(params, out)  # replaces it: scene_without_1.ply is gone, nothing hidden is left beside it
     assert not (out / "scene_without_1.ply").exists() and no_leftovers(tmp_path, keep=["out"])
@@ -311,7 +314,7 @@ def test_an_old_export_that_cannot_be_deleted_is_reported(tmp_path, monkeypatch)
     def refuse(path, *args, **kwargs):
         raise PermissionError(13, "Permission denied", str(path))
 
-    monkeypatch.setattr(export_module.shutil, "rmtree", refuse)
+    monkeypatch.setattr(instance_export_module.shutil, "rmtree", refuse)
     with pytest.warns(
         UserWarning, match=r"could not be deleted .*Permission denied.*; delete .*\.out\.old\..* yourself"
     ):

@@ -30,21 +30,25 @@ def test_every_gaussian_parameter_group_has_an_optimizer():
 
 
 def own_fields(cls, base) -> dict:
-    """The dataclass fields ``cls`` adds to ``base``, with the docstring under each (None if missing)."""
+    """The dataclass fields ``cls`` adds to ``base`` (in ``cls`` or an options class it also derives from,
+    e.g. ``SamOptions``), with the docstring under each (None if missing)."""
     import ast
     import inspect
     import textwrap
 
-    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
     docstrings = {}
-    for statement, following in zip(body, body[1:] + [None]):
-        if isinstance(statement, ast.AnnAssign) and isinstance(statement.target, ast.Name):
-            is_doc = (
-                isinstance(following, ast.Expr)
-                and isinstance(following.value, ast.Constant)
-                and isinstance(following.value.value, str)
-            )
-            docstrings[statement.target.id] = following.value.value if is_doc else None
+    for klass in cls.__mro__:
+        if klass is object or issubclass(base, klass):
+            continue
+        body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
+        for statement, following in zip(body, body[1:] + [None]):
+            if isinstance(statement, ast.AnnAssign) and isinstance(statement.target, ast.Name):
+                is_doc = (
+                    isinstance(following, ast.Expr)
+                    and isinstance(following.value, ast.Constant)
+                    and isinstance(following.value.value, str)
+                )
+                docstrings.setdefault(statement.target.id, following.value.value if is_doc else None)
     inherited = {f.name for f in dataclasses.fields(base)}
     return {name: doc for name, doc in docstrings.items() if name not in inherited and not name.startswith("_")}
 

@@ -6,16 +6,15 @@ import warnings
 import pytest
 
 from votesplat_ns.ns import patches
-from votesplat_ns.ns.export import _ExporterFinder
 
 
 def test_apply_installs_every_process_wide_patch_once():
     patches.apply()
     hook = sys.excepthook
-    finders = [f for f in sys.meta_path if isinstance(f, _ExporterFinder)]
+    finders = [f for f in sys.meta_path if isinstance(f, patches._ExporterFinder)]
     patches.apply()  # idempotent: no second wrapper, no second finder
     assert sys.excepthook is hook and getattr(hook, "_votesplat_input_errors", False)
-    assert len([f for f in sys.meta_path if isinstance(f, _ExporterFinder)]) == len(finders) == 1
+    assert len([f for f in sys.meta_path if isinstance(f, patches._ExporterFinder)]) == len(finders) == 1
     assert {p.name for p in patches.PATCHES} == {
         "checkpoint safe globals",
         "one-line input errors",

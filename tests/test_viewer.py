@@ -1,4 +1,4 @@
-"""Tests for votesplat_ns.ns.viewer: overlay, click/text selection, isolate/hide, votes picture, export.
+"""Tests for votesplat_ns.ns.viewer (and its viewer_render, viewer_state): overlay, click/text selection, isolate/hide, votes picture, export.
 
 Model-free scenes (random Gaussians with known instance ids) rendered by the project's torch
 rasteriser, plus one test of the nerfstudio glue on a small real VoteSplatModel.
@@ -18,7 +18,7 @@ from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.instances import InstanceSet, LevelInstances, instance_colors, render_instance_ids
 from votesplat_ns.core.ply_io import read_gaussian_ply
 from votesplat_ns.ns.rasterizer import rasterize
-from votesplat_ns.ns.viewer import (
+from votesplat_ns.ns.viewer_render import (
     DISPLAY_ALL,
     DISPLAY_HIDE,
     DISPLAY_ISOLATE,
@@ -30,7 +30,6 @@ from votesplat_ns.ns.viewer import (
     UNSELECTED_OPACITY,
     VIEWER_OUTPUTS,
     VOTE_BACKGROUND_GREY,
-    InstanceViewerState,
     SplatScene,
     overlay_instances,
     render_rgb,
@@ -38,6 +37,7 @@ from votesplat_ns.ns.viewer import (
     screen_to_pixel,
     vote_colours,
 )
+from votesplat_ns.ns.viewer_state import InstanceViewerState
 
 WIDTH, HEIGHT = 48, 40
 GROUP_CENTRES = ((-0.9, 0.0, 4.0), (0.0, 0.1, 3.5), (0.9, -0.1, 4.2))

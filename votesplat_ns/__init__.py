@@ -3,7 +3,7 @@
 Importing the package makes nerfstudio 1.1.5 checkpoints loadable under torch >= 2.6.
 """
 
-from votesplat_ns.ns.compat import register_checkpoint_safe_globals
+from votesplat_ns.ns.patches import register_checkpoint_safe_globals
 
 register_checkpoint_safe_globals()
 

@@ -124,7 +124,7 @@ def _write_stats():
 atexit.register(_write_stats)
 command = sys.argv[1]
 sys.argv = [f"ns-{command}"] + sys.argv[2:]
-from votesplat_ns.ns.compat import offline_lpips
+from votesplat_ns.ns.patches import offline_lpips
 
 if command == "train":
     from nerfstudio.scripts.train import entrypoint

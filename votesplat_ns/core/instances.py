@@ -26,7 +26,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from votesplat_ns.core.ply_io import atomic_write
+from votesplat_ns.core.ply_io import atomic_write, jsonable
 
 MANIFEST_NAME = "instances.json"
 IDS_NAME = "instance_ids.npz"
@@ -160,7 +160,7 @@ class LevelInstances:
                 "color": [int(c) for c in colors[i]],
             }
             if extra and i in extra:
-                entry.update(_jsonable(extra[i]))
+                entry.update(jsonable(extra[i]))
             instances.append(entry)
         return {
             "name": self.name,
@@ -169,21 +169,9 @@ class LevelInstances:
             "num_foreground": int(self.foreground.sum()),
             "num_background": int((~self.foreground).sum()),
             "num_noise": self.num_noise,
-            "clustering": _jsonable(self.clustering),
+            "clustering": jsonable(self.clustering),
             "instances": instances,
         }
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def vote_level_index(level_names: Sequence[str], key: Union[int, str, None]) -> int:
@@ -266,7 +254,7 @@ class InstanceSet:
             ],
         }
         if extra:
-            manifest.update(_jsonable(extra))
+            manifest.update(jsonable(extra))
         return manifest
 
     def save(

@@ -117,6 +117,21 @@ def atomic_write(path: PathLike, mode: str = "wb") -> Iterator:
         raise
 
 
+def jsonable(value):
+    """``value`` with what ``json.dumps`` refuses made plain: numpy scalars and arrays, paths, non-string keys."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
 def gaussian_property_names(num_rest_coeffs: int) -> list:
     """Vertex property names in file order; ``num_rest_coeffs`` is K of features_rest [N, K, 3]."""
     names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]

@@ -22,13 +22,14 @@ relative to the working directory, i.e. beside ns-train's default run folders
 (``outputs/<experiment>/votesplat/<timestamp>``), shared by all runs on that dataset, never
 inside the dataset. With ``ns-train --output-dir D`` pass ``--pipeline.datamanager.cache-dir``
 as well to keep the cache beside the runs.
+
+The checks of the run's inputs are in :mod:`votesplat_ns.ns.data_checks`, the SAM options in
+:mod:`votesplat_ns.ns.mask_settings`.
 """
 
 from __future__ import annotations
 
 import functools
-import json
-import os
 from collections import OrderedDict
 from copy import deepcopy
 from dataclasses import dataclass, field
@@ -40,7 +41,6 @@ import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -51,7 +51,6 @@ from votesplat_ns.core.mask_sources import (
     DatasetMaskSource,
     FolderMaskSource,
     MaskSource,
-    image_file_size,
     make_mask_source,
     read_image_rgb,
 )
@@ -63,231 +62,26 @@ from votesplat_ns.core.vote_maps import (
     resize_vote_maps,
     vote_maps_from_labels,
 )
+from votesplat_ns.ns.data_checks import (  # noqa: F401 (re-exported: callers import the checks from here)
+    CACHE_DIR_FLAG,
+    CACHE_FOLDER_NAME,
+    DATASET_LEVELS,
+    DEFAULT_OUTPUT_DIR,
+    check_cache_outside_dataset,
+    check_data_input,
+    check_frames,
+    check_vote_schedule,
+    dataset_dir,
+    default_cache_dir,
+    frame_image_path,
+)
+from votesplat_ns.ns.mask_settings import SamOptions
 from votesplat_ns.ns.retrofit import retrofit_reference
-
-DEFAULT_OUTPUT_DIR = Path("outputs")
-DATASET_LEVELS = ("instance", "part")
-CACHE_FOLDER_NAME = "votesplat_cache"
-
-
-def dataset_dir(data: Path) -> Path:
-    """The dataset folder for a ``--data`` argument (a folder or its transforms.json)."""
-    data = Path(data)
-    return data.parent if data.suffix == ".json" else data
-
-
-def default_cache_dir(data: Path, output_dir: Path = DEFAULT_OUTPUT_DIR) -> Path:
-    """``<output_dir>/<dataset folder name>/votesplat_cache``, matching ns-train's experiment folder."""
-    name = dataset_dir(data).resolve().name or "dataset"
-    return Path(output_dir) / name / CACHE_FOLDER_NAME
-
-
-def check_cache_outside_dataset(cache_dir: Path, data: Path) -> None:
-    cache_resolved = Path(cache_dir).resolve()
-    data_resolved = dataset_dir(data).resolve()
-    if cache_resolved == data_resolved or data_resolved in cache_resolved.parents:
-        raise VoteSplatInputError(
-            f"vote cache folder {cache_dir} lies inside the dataset {data_resolved}; "
-            "pass --pipeline.datamanager.cache-dir <folder outside the dataset> (or run from another folder)"
-        )
-
-
-CACHE_DIR_FLAG = "--pipeline.datamanager.cache-dir"
-
-
-def check_vote_schedule(model, start_step: int, num_steps: int) -> None:
-    """Raise :class:`VoteSplatInputError` when no step in ``start_step .. start_step + num_steps - 1`` runs the vote loss.
-
-    Such a run trains splatfacto only and ends with every Gaussian's vote support at zero. A
-    retrofit run (vote-only) votes on every step; a run with both vote loss weights at 0 trains
-    without votes on purpose (e.g. the splatfacto base of a retrofit benchmark).
-    """
-    config = model.config
-    if getattr(model, "vote_only", False) or num_steps <= 0:
-        return
-    if config.vote_loss_weight == 0 and config.distortion_loss_weight == 0:
-        return
-    start, every = int(config.vote_start_step), max(1, int(config.vote_every_n_steps))
-    first_vote = start if start_step <= start else start + -(-(start_step - start) // every) * every
-    last_step = start_step + num_steps - 1
-    if first_vote > last_step:
-        raise VoteSplatInputError(
-            f"--pipeline.model.vote-start-step {start} is past the last training step {last_step} "
-            f"(--max-num-iterations {num_steps}{f', resuming at step {start_step}' if start_step else ''}): "
-            "the vote loss would never run and the run would learn no instances; "
-            "lower --pipeline.model.vote-start-step or raise --max-num-iterations"
-        )
-
-
-MAKE_DATASET_HINT = "give the folder that holds transforms.json (ns-process-data makes one from images or a video)"
-
-
-def frame_image_path(data_dir: Path, file_path: str, downscale_factor: Optional[int]) -> Path:
-    """The image file nerfstudio's dataparser opens for a frame (``images_N/`` with ``--downscale-factor N``)."""
-    if downscale_factor is not None and downscale_factor > 1:
-        return data_dir / f"images_{downscale_factor}" / Path(file_path).name
-    return data_dir / file_path
-
-
-def check_data_input(
-    config: "VoteDataManagerConfig",
-    check_images: bool = True,
-    where: Optional[str] = None,
-    mask_source_flag: str = "--pipeline.datamanager.mask-source",
-) -> None:
-    """Raise :class:`VoteSplatInputError`, saying what to do, for a dataset that would fail later or train wrongly.
-
-    Checks that the data path exists and, for the nerfstudio dataparser, that it holds a readable
-    transforms.json with frames and (``check_images``) the frames themselves (:func:`check_frames`).
-    ``where`` names the path in the message (default ``--data <path>``), ``mask_source_flag`` the
-    option that picks the mask source.
-    """
-    data = config.dataset_path
-    where = where or f"--data {data}"
-    nerfstudio_data = isinstance(config.dataparser, NerfstudioDataParserConfig)
-    if not data.exists():
-        what = "file" if data.suffix else "folder"
-        hint = MAKE_DATASET_HINT if nerfstudio_data else "give the dataset folder"
-        raise VoteSplatInputError(f"{where}: {what} not found; {hint}")
-    if not nerfstudio_data:
-        return
-    if data.is_dir():
-        transforms = data / "transforms.json"
-        if not transforms.is_file():
-            if config.data is None and data == Path("."):
-                raise VoteSplatInputError(
-                    f"no --data given and the current folder holds no transforms.json; {MAKE_DATASET_HINT}"
-                )
-            raise VoteSplatInputError(f"{where}: this folder holds no transforms.json; {MAKE_DATASET_HINT}")
-    elif data.suffix == ".json":
-        transforms = data
-    else:
-        raise VoteSplatInputError(
-            f"{where} is a file, not a dataset; {MAKE_DATASET_HINT}, or that transforms.json itself"
-        )
-    try:
-        meta = json.loads(transforms.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise VoteSplatInputError(
-            f"{transforms} is not valid JSON ({err}); fix it or make it again with ns-process-data"
-        ) from None
-    frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and "file_path" in f for f in frames):
-        raise VoteSplatInputError(
-            f"{transforms} lists no frames (a 'frames' list whose entries have file_path and transform_matrix); "
-            "make it again with ns-process-data"
-        )
-    if not check_images:
-        return
-    check_frames(transforms, meta, config, where, mask_source_flag)
-
-
-CAMERA_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
-
-
-def _is_finite_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
-
-
-def _frame_name(number: int, frame: dict) -> str:
-    return f"frame {number} ({frame['file_path']})"
-
-
-def check_frames(
-    transforms: Path,
-    meta: dict,
-    config: "VoteDataManagerConfig",
-    where: str,
-    mask_source_flag: str = "--pipeline.datamanager.mask-source",
-) -> None:
-    """Check every frame of a transforms.json before anything is trained or cached.
-
-    One place for what would otherwise fail late, with a traceback, or silently: a pose or camera
-    value that is not a finite number (sklearn's "Input X contains NaN" in splatfacto's set-up),
-    the same image listed twice (trained double-weighted), mask paths on only some frames (the
-    'auto' mask source would switch to SAM), image files that are missing, not images, or not the
-    size the frame's camera says (later blamed on their masks).
-    """
-    frames = meta["frames"]
-    name = transforms.name
-    remake = "or make the dataset again with ns-process-data"
-
-    def check_camera_values(entry: dict, what: str) -> None:
-        for key in CAMERA_KEYS:
-            value = entry.get(key)
-            if value is not None and not (_is_finite_number(value) and (value > 0 or key in ("cx", "cy"))):
-                bound = "" if key in ("cx", "cy") else " > 0"
-                raise VoteSplatInputError(
-                    f"{transforms}: {what} has camera value {key}={value!r}; it must be a finite number{bound}; fix it, {remake}"
-                )
-
-    check_camera_values(meta, "the file")
-    for number, frame in enumerate(frames):
-        matrix = frame.get("transform_matrix")
-        rows = np.asarray(matrix, dtype=object) if isinstance(matrix, list) else None
-        if rows is None or rows.shape not in ((4, 4), (3, 4)) or not all(_is_finite_number(v) for v in rows.ravel()):
-            problem = (
-                "no transform_matrix"
-                if matrix is None
-                else "a transform_matrix that is not a 4x4 (or 3x4) grid of finite numbers"
-            )
-            raise VoteSplatInputError(
-                f"{transforms}: {_frame_name(number, frame)} has {problem} (NaN/Inf in a pose usually means a camera "
-                f"COLMAP failed to register); fix or remove that frame, {remake}"
-            )
-        check_camera_values(frame, _frame_name(number, frame))
-    seen: Dict[str, int] = {}
-    for number, frame in enumerate(frames):
-        path = os.path.normpath(str(frame["file_path"]))
-        if path in seen:
-            raise VoteSplatInputError(
-                f"{transforms}: frames {seen[path]} and {number} both list {frame['file_path']} (it would be trained twice as often); "
-                "remove the duplicate frame"
-            )
-        seen[path] = number
-    if config.mask_source in ("auto", "dataset"):
-        levels = ("instance",) if config.mask_source == "auto" else (config.mask_levels or DATASET_LEVELS)
-        for level in levels:
-            key = f"{level}_mask_path"
-            lacking = [number for number, frame in enumerate(frames) if key not in frame]
-            if 0 < len(lacking) < len(frames) or (lacking and config.mask_source == "dataset"):
-                first = lacking[0]
-                raise VoteSplatInputError(
-                    f"{transforms}: {len(lacking)} of {len(frames)} frames list no {key} (first: {_frame_name(first, frames[first])}); "
-                    f"give every frame one, or make masks another way with {mask_source_flag} sam (or folder)"
-                )
-
-    downscale_factor = config.dataparser.downscale_factor
-    downscaled = downscale_factor is not None and downscale_factor > 1
-    images = [frame_image_path(transforms.parent, frame["file_path"], downscale_factor) for frame in frames]
-    missing = [image for image in images if not image.is_file()]
-    if missing:
-        if downscaled:
-            fix = f"put the downscaled images in images_{downscale_factor}/ (--downscale-factor {downscale_factor})"
-        else:
-            fix = f"put the images where the file_path entries of {name} point"
-        raise VoteSplatInputError(
-            f"{where}: {len(missing)} of {len(images)} images listed in {name} are missing (first: {missing[0]}); "
-            f"{fix}, {remake}"
-        )
-    scale = float(downscale_factor) if downscaled else 1.0
-    for number, (frame, image) in enumerate(zip(frames, images)):
-        width, height = frame.get("w", meta.get("w")), frame.get("h", meta.get("h"))
-        if width is None or height is None:
-            continue
-        actual_w, actual_h = image_file_size(image)
-        if abs(actual_w - width / scale) > 1 or abs(actual_h - height / scale) > 1:
-            expected = f"{int(width // scale)}x{int(height // scale)}"
-            raise VoteSplatInputError(
-                f"image {image} is {actual_w}x{actual_h} but {name} gives its camera ({_frame_name(number, frame)}) as "
-                f"{expected}{f' at --downscale-factor {downscale_factor}' if downscaled else ''}; "
-                f"replace the image with one of the camera's size, or fix w/h and the intrinsics in {name}"
-            )
 
 
 @dataclass
-class VoteDataManagerConfig(FullImageDatamanagerConfig):
-    """FullImageDatamanager plus per-view 2D vote maps (VoteSplat Sec. 3.2)."""
+class VoteDataManagerConfig(SamOptions, FullImageDatamanagerConfig):
+    """FullImageDatamanager plus per-view 2D vote maps (VoteSplat Sec. 3.2); the SAM options are :class:`SamOptions`."""
 
     _target: Type = field(default_factory=lambda: VoteDataManager)
     mask_source: Literal["auto", "dataset", "folder", "sam"] = "auto"
@@ -296,24 +90,6 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
     """Mask levels in order, one vote map each (default: instance part / the mask folder's sub-folders / SAM's 4 levels)."""
     mask_folder: Optional[Path] = None
     """For mask-source folder: a folder holding <level>/<image file stem>.png label images (0 = no mask)."""
-    sam_checkpoint: Optional[Path] = None
-    """For mask-source sam: the SAM checkpoint file, e.g. sam_vit_h_4b8939.pth (never downloaded)."""
-    sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = "vit_h"
-    """SAM backbone of that checkpoint."""
-    sam_device: Optional[str] = None
-    """Device SAM runs on (default: cuda when available, else cpu)."""
-    sam_points_per_side: int = 32
-    """SAM automatic mask generator: points per image side."""
-    sam_pred_iou_thresh: float = 0.7
-    """SAM automatic mask generator: lowest predicted IoU of a kept mask."""
-    sam_stability_score_thresh: float = 0.85
-    """SAM automatic mask generator: lowest stability score of a kept mask."""
-    sam_crop_n_layers: int = 1
-    """SAM automatic mask generator: layers of image crops (0: whole image only)."""
-    sam_min_mask_region_area: int = 100
-    """SAM automatic mask generator: smallest mask region kept, in pixels."""
-    sam_max_long_side: Optional[int] = 1080
-    """Images are shrunk to this long side before SAM (None: full size); LangSplat uses 1080."""
     border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
     """A mask touching the image border: vote (its visible part's centroid), mask_only (no vote target) or drop."""
     cache_dir: Optional[Path] = None
@@ -372,14 +148,7 @@ class VoteDataManagerConfig(FullImageDatamanagerConfig):
             sam_checkpoint=self.sam_checkpoint,
             sam_model_type=self.sam_model_type,
             sam_device=self.sam_device,
-            sam_options=dict(
-                points_per_side=self.sam_points_per_side,
-                pred_iou_thresh=self.sam_pred_iou_thresh,
-                stability_score_thresh=self.sam_stability_score_thresh,
-                crop_n_layers=self.sam_crop_n_layers,
-                min_mask_region_area=self.sam_min_mask_region_area,
-                max_long_side=self.sam_max_long_side,
-            ),
+            sam_options=self.sam_generator_options(),
         )
 
 

@@ -21,14 +21,13 @@ from votesplat_ns.cli.cli_errors import VoteSplatInputError, writing_into
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, load_image_rgb
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS
 from votesplat_ns.core.vote_preview import render_vote_preview, write_png
+from votesplat_ns.ns.mask_settings import SamOptions
 
 PREVIEW_FOLDER_NAME = "votesplat_previews"
 
 
 @dataclass
-class MasksConfig:
-    """Precompute VoteSplat masks and 2D votes for a nerfstudio dataset."""
-
+class _MasksInput:
     data: Path
     """Dataset folder (with transforms.json) or the transforms.json file."""
     output_dir: Path = Path("outputs")
@@ -41,24 +40,14 @@ class MasksConfig:
     """Mask levels in order (default: depends on the source)."""
     mask_folder: Optional[Path] = None
     """For --source folder: a folder of <level>/<image file stem>.png label images."""
-    sam_checkpoint: Optional[Path] = None
-    """For --source sam: the SAM checkpoint file (never downloaded)."""
-    sam_model_type: Literal["vit_h", "vit_l", "vit_b"] = "vit_h"
-    """SAM backbone of that checkpoint."""
-    sam_device: Optional[str] = None
-    """Device SAM runs on (default: cuda when available, else cpu)."""
-    sam_points_per_side: int = 32
-    """SAM automatic mask generator: points per image side."""
-    sam_pred_iou_thresh: float = 0.7
-    """SAM automatic mask generator: lowest predicted IoU of a kept mask."""
-    sam_stability_score_thresh: float = 0.85
-    """SAM automatic mask generator: lowest stability score of a kept mask."""
-    sam_crop_n_layers: int = 1
-    """SAM automatic mask generator: layers of image crops (0: whole image only)."""
-    sam_min_mask_region_area: int = 100
-    """SAM automatic mask generator: smallest mask region kept, in pixels."""
-    sam_max_long_side: Optional[int] = 1080
-    """Images are shrunk to this long side before SAM (None: full size)."""
+
+
+# SamOptions before _MasksInput in the bases: dataclass fields follow the reversed MRO, so the
+# options keep their order (data first, then the SAM options, then these)
+@dataclass
+class MasksConfig(SamOptions, _MasksInput):
+    """Precompute VoteSplat masks and 2D votes for a nerfstudio dataset."""
+
     border_masks: Literal["vote", "mask_only", "drop"] = DEFAULT_BORDER_MASKS
     """A mask touching the image border: vote, mask_only (no vote target) or drop, as ns-train's flag."""
     downscale_factor: Optional[int] = None
@@ -103,16 +92,8 @@ def make_masks(config: MasksConfig) -> Dict[str, object]:
         mask_source=config.source,
         mask_levels=config.levels,
         mask_folder=config.mask_folder,
-        sam_checkpoint=config.sam_checkpoint,
-        sam_model_type=config.sam_model_type,
-        sam_device=config.sam_device,
-        sam_points_per_side=config.sam_points_per_side,
-        sam_pred_iou_thresh=config.sam_pred_iou_thresh,
-        sam_stability_score_thresh=config.sam_stability_score_thresh,
-        sam_crop_n_layers=config.sam_crop_n_layers,
-        sam_min_mask_region_area=config.sam_min_mask_region_area,
-        sam_max_long_side=config.sam_max_long_side,
         border_masks=config.border_masks,
+        **config.sam_settings(),
     )
     manager_config.dataparser.downscale_factor = config.downscale_factor
     check_data_input(manager_config, where=f"--data {config.data}", mask_source_flag="--source")

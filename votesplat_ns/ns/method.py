@@ -20,7 +20,7 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from votesplat_ns.ns import patches
 from votesplat_ns.ns.datamanager import VoteDataManagerConfig
-from votesplat_ns.ns.model import VoteSplatModelConfig
+from votesplat_ns.ns.model_config import VoteSplatModelConfig
 
 
 def splatfacto_optimizers(max_steps: int = 30000) -> dict:

@@ -7,73 +7,36 @@ losses); this module only
 - runs splatfacto's own ``get_outputs`` (on CPU through our torch rasteriser), and
 - in ``get_loss_dict`` samples pixels that carry a 2D vote and adds the vote and distortion
   losses, reusing the projection and tile lists of the RGB pass (no second projection).
+
+Its options are :class:`votesplat_ns.ns.model_config.VoteSplatModelConfig` (re-exported here, the
+path config.yml files of earlier runs name).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+from typing import Dict, List, Optional, Tuple, Union
 
-import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
-from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig, get_viewmat
+from nerfstudio.models.splatfacto import SplatfactoModel, get_viewmat
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
-from votesplat_ns.core.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_from_exposure, mask_exposure
+from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
 from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
-from votesplat_ns.core.vote_render import VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
-from votesplat_ns.ns.compat import UnavailableMetric, cuda_calls_stay_on_cpu, offline_lpips
-from votesplat_ns.ns.rasterizer import install_in_splatfacto, project_for_votes, rasterize
+from votesplat_ns.core.vote_render import VoteRender, render_votes_tiled, vote_losses
+from votesplat_ns.ns.compat import UnavailableMetric
+from votesplat_ns.ns.model_config import VoteSplatModelConfig
+from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
+from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
+from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, gaussians_from_ply_arrays, latest_checkpoint, load_gaussians  # noqa: F401 (re-exported: tests and benchmarks import them from here)
 from votesplat_ns.ns.viewer import VoteSplatViewerState
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
-SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
-
-
-def latest_checkpoint(path: Path) -> Path:
-    """``path`` itself if it is a file, else the newest step-*.ckpt under it (or its nerfstudio_models/)."""
-    path = Path(path)
-    if path.suffix == ".ckpt" and path.is_file():
-        return path
-    if path.name == "config.yml":
-        path = path.parent
-    candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
-    if not candidates:
-        raise VoteSplatInputError(
-            f"no checkpoint found at {path}: give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
-        )
-    return candidates[-1]
-
-
-def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
-    """splatfacto's Gaussian parameters from a nerfstudio checkpoint (splatfacto or votesplat)."""
-    state = torch.load(checkpoint, map_location="cpu")
-    pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
-    missing = [name for name in SPLAT_PARAM_NAMES if f"_model.gauss_params.{name}" not in pipeline_state]
-    if missing:
-        raise VoteSplatInputError(
-            f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
-            "retrofit needs one written by ns-train splatfacto or votesplat"
-        )
-    return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in SPLAT_PARAM_NAMES}
-
-
-def gaussians_from_ply_arrays(arrays: Dict[str, np.ndarray]) -> Dict[str, torch.Tensor]:
-    """``ply_io.read_3dgs_ply`` arrays as splatfacto's Gaussian parameters (opacities [N, 1])."""
-    return {
-        "means": torch.from_numpy(arrays["means"]),
-        "scales": torch.from_numpy(arrays["log_scales"]),
-        "quats": torch.from_numpy(arrays["quats"]),
-        "features_dc": torch.from_numpy(arrays["features_dc"]),
-        "features_rest": torch.from_numpy(arrays["features_rest"]),
-        "opacities": torch.from_numpy(arrays["opacity_logits"])[:, None],
-    }
 
 
 def _pixels_and_targets(
@@ -107,57 +70,6 @@ def vote_step_due(step: int, start: int, every: int) -> bool:
     return step >= start and (step - start) % every == 0
 
 
-@dataclass
-class VoteSplatModelConfig(SplatfactoModelConfig):
-    """splatfacto plus VoteSplat's vote offsets and RVD loss."""
-
-    _target: Type = field(default_factory=lambda: VoteSplatModel)
-    vote_levels: Optional[Tuple[str, ...]] = None
-    """Names of the mask levels, one 3D offset per Gaussian per level. Default: the datamanager's levels."""
-    vote_loss_weight: float = 1.0
-    """lambda_vote: weight of the L1 vote loss (in pixels)."""
-    distortion_loss_weight: float = 0.05
-    """lambda_d: weight of the vote depth distortion (with l1_pixels: its mean pairwise gap in pixels)."""
-    vote_start_step: int = 500
-    """Step at which the vote losses start (geometry settles first)."""
-    vote_pixels_per_step: int = 4096
-    """Pixels with a 2D vote sampled per vote step, shared by all levels (the loss is a mean, so a sample suffices)."""
-    vote_every_n_steps: int = 4
-    """Run the vote pass every n-th step (1: every step, as the paper, ~1.5x splatfacto's time; 4: ~1.15x, BENCHMARKS.md)."""
-    vote_transmittance: float = 0.01
-    """Voting transmittance threshold: a Gaussian votes while the transmittance in front of it stays above this."""
-    vote_weighting: Literal["uniform", "alpha_t"] = "uniform"
-    """Ablation: 'alpha_t' blends votes with alpha*T weights instead of the paper's uniform mean."""
-    vote_blend_space: Literal["3d", "2d"] = "3d"
-    """Ablation: '2d' projects each Gaussian's vote first, then blends (the paper blends in 3D)."""
-    vote_distortion: Literal["l1", "l1_pixels", "squared", "none"] = "l1_pixels"
-    """Depth distortion of the votes: l1_pixels (scale-free, chosen on the tuning scenes), the paper's pair sum l1, squared, none."""
-    votes_move_geometry: bool = False
-    """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
-    vote_backend: Literal["auto", "torch", "triton"] = "auto"
-    """Vote pass: auto (torch code; the Triton kernels are not faster yet), torch, or triton (fused kernels, CUDA)."""
-    retrofit_from: Optional[Path] = None
-    """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
-    retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
-    """Frame of a --pipeline.model.retrofit-from .ply: dataparser, dataset, colmap, or auto (README: retrofit frames)."""
-    foreground_min_masked_share: Optional[float] = DEFAULT_MIN_MASKED_SHARE
-    """After training, a Gaussian stays foreground at a level only if more than this share of its weight is in masks (None: all)."""
-    clip_model_name: str = "ViT-B-16"
-    """open_clip model name used by the viewer's text query box."""
-    clip_checkpoint: Optional[Path] = None
-    """open_clip weights file for the viewer's text query box (never downloaded); unset disables the box."""
-
-    def vote_render_options(self) -> VoteRenderOptions:
-        return VoteRenderOptions(
-            weighting=self.vote_weighting,
-            blend_space=self.vote_blend_space,
-            distortion=self.vote_distortion,
-            vote_transmittance=self.vote_transmittance,
-            detach_geometry=not self.votes_move_geometry,
-            backend=self.vote_backend,
-        )
-
-
 class VoteSplatModel(SplatfactoModel):
     config: VoteSplatModelConfig
 
@@ -170,7 +82,7 @@ class VoteSplatModel(SplatfactoModel):
         if self.config.vote_every_n_steps < 1:
             raise ValueError(f"vote_every_n_steps must be >= 1 (got {self.config.vote_every_n_steps})")
         self.config.vote_levels = self._resolve_vote_levels()
-        install_in_splatfacto()
+        install_rasterizer_in_splatfacto()
         # built on the CPU (splatfacto hard-codes one .cuda()); the pipeline moves the model to its device
         with offline_lpips(), cuda_calls_stay_on_cpu(model_on_cpu=True):
             super().populate_modules()

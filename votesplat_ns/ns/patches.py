@@ -1,41 +1,276 @@
-"""Every change this plugin makes to code it does not own, listed in one place.
+"""Every change this plugin makes to code it does not own, in one place: what each changes and why.
 
 They were written against nerfstudio 1.1.5 and gsplat 1.4.0 (:data:`WRITTEN_FOR`); :func:`apply`
 warns once when an installed version differs, since any of them may then no longer fit.
 
 Process-wide, applied by :func:`apply` when nerfstudio imports the method (every ``ns-*`` command):
 
-* ``checkpoint safe globals`` (``ns/compat.py``): adds the numpy/pathlib types that nerfstudio 1.1.5
-  pickles into checkpoints to torch's ``weights_only`` allow-list (torch >= 2.6 refuses them).
-* ``one-line input errors`` (``cli/cli_errors.py``): wraps ``sys.excepthook`` so that a
-  ``VoteSplatInputError`` ends any ``ns-*`` command with one line instead of a traceback.
-* ``ns-export votesplat-instances`` (``ns/export.py``): a meta-path finder that adds our
+* ``checkpoint safe globals`` (:func:`register_checkpoint_safe_globals`): adds the numpy types that
+  nerfstudio 1.1.5 pickles into checkpoints to torch's ``weights_only`` allow-list (torch >= 2.6
+  refuses them). Also applied on import of the package (``votesplat_ns/__init__.py``).
+* ``one-line input errors`` (``cli/cli_errors.py`` ``install_excepthook``): wraps ``sys.excepthook``
+  so that a ``VoteSplatInputError`` ends any ``ns-*`` command with one line instead of a traceback.
+  Its body stays beside the error type: ``core`` modules import ``cli_errors`` and must not import ``ns``.
+* ``ns-export votesplat-instances`` (:func:`install_ns_export_hook`): a meta-path finder that adds our
   subcommand to ``nerfstudio.scripts.exporter``'s command union while it is imported (nerfstudio
   has no plugin point for exporters).
 
 Scoped, applied where they are needed (listed here so that an upgrade checks them too):
 
-* ``splatfacto rasterization`` (``ns/rasterizer.py``, when the model is built): rebinds
-  ``nerfstudio.models.splatfacto.rasterization`` to our entry point (torch rasteriser on CPU,
-  cameras recorded for the vote pass).
-* ``resume trains`` (``ns/model.py``, ``load_state_dict`` / ``adopt_optimizers``): nerfstudio builds
-  the optimisers before loading a checkpoint and splatfacto replaces the parameters (#3554).
-* ``Tensor.cuda on CPU`` and ``LPIPS offline`` (``ns/compat.py``): context managers around
-  nerfstudio code that calls ``.cuda()`` unconditionally or downloads AlexNet at init.
-* gsplat's private ``cuda._torch_impl`` helpers (``core/rasterize_torch.py``, ``ns/retrofit.py``).
+* ``splatfacto rasterization`` (:func:`install_rasterizer_in_splatfacto`, when the model is built):
+  rebinds ``nerfstudio.models.splatfacto.rasterization`` to ``ns/rasterizer.py`` ``rasterize``
+  (torch rasteriser on CPU, cameras recorded for the vote pass).
+* ``Tensor.cuda on CPU`` (:func:`cuda_calls_stay_on_cpu`) and ``LPIPS offline``
+  (:func:`offline_lpips`): context managers around nerfstudio code that calls ``.cuda()``
+  unconditionally or downloads AlexNet at init.
+* ``resume trains`` (``ns/model.py``, ``load_state_dict`` / ``adopt_optimizers``): overrides in our
+  model subclass, not a patch of upstream objects; nerfstudio builds the optimisers before loading a
+  checkpoint and splatfacto replaces the parameters (#3554).
+* gsplat's private ``cuda._torch_impl`` helpers (``core/rasterize_torch.py``, ``ns/retrofit.py``): used,
+  not patched.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib.abc
+import sys
+import threading
+import types
+import typing
 import warnings
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Callable, Dict, Tuple
+from typing import Callable, Dict, Iterator, Tuple, Union
+
+import numpy as np
+import torch
+from typing_extensions import Annotated
 
 from votesplat_ns.cli.cli_errors import install_excepthook
-from votesplat_ns.ns.compat import register_checkpoint_safe_globals
 
 WRITTEN_FOR: Dict[str, str] = {"nerfstudio": "1.1.5", "gsplat": "1.4.0"}
+
+
+# ----------------------------------------------------------------------------- checkpoint safe globals
+
+
+def register_checkpoint_safe_globals() -> None:
+    """Let ``torch.load(weights_only=True)`` read nerfstudio checkpoints.
+
+    torch >= 2.6 defaults to ``weights_only=True``; nerfstudio 1.1.5 calls ``torch.load``
+    without the argument and its checkpoints hold numpy scalars (step counters, scheduler
+    state), which the restricted unpickler refuses. Allow exactly those numpy types.
+    """
+    add = getattr(torch.serialization, "add_safe_globals", None)
+    if add is None:  # torch < 2.4 loads everything anyway
+        return
+    numpy_types: list = [np.dtype, np.ndarray]
+    try:
+        from numpy.core.multiarray import _reconstruct, scalar  # type: ignore[attr-defined]
+    except ImportError:  # numpy >= 2 keeps them in numpy._core
+        from numpy._core.multiarray import _reconstruct, scalar  # type: ignore[no-redef]
+    numpy_types += [scalar, _reconstruct]
+    # numpy >= 1.25 pickles dtypes as instances of per-dtype classes (np.dtypes.Float64DType ...)
+    dtypes_module = getattr(np, "dtypes", None)
+    if dtypes_module is not None:
+        numpy_types += [getattr(dtypes_module, name) for name in dir(dtypes_module) if name.endswith("DType")]
+    add(numpy_types)
+
+
+# ----------------------------------------------------------------------------- ns-export votesplat-instances
+
+SUBCOMMAND_NAME = "votesplat-instances"
+EXPORTER_MODULE = "nerfstudio.scripts.exporter"
+
+
+def _extend_commands(exporter) -> bool:
+    """Rebind exporter.Commands to nerfstudio's union plus our subcommand. False if not defined yet."""
+    commands = exporter.__dict__.get("Commands")
+    if commands is None:
+        return False
+    if getattr(exporter, "_votesplat_instances_hooked", False):
+        return True
+    import tyro
+
+    # imported here: ns/export.py imports this module (for the hook's names)
+    from votesplat_ns.ns.export import ExportVoteSplatInstances
+
+    markers: tuple = ()
+    inner = commands
+    if typing.get_origin(commands) is Annotated:
+        inner, *rest = typing.get_args(commands)
+        markers = tuple(rest)
+    members = typing.get_args(inner) if typing.get_origin(inner) is Union else (inner,)
+    ours = Annotated[ExportVoteSplatInstances, tyro.conf.subcommand(name=SUBCOMMAND_NAME)]
+    extended = Union[tuple(members) + (ours,)]  # type: ignore[valid-type]
+    exporter.Commands = Annotated[(extended, *markers)] if markers else extended
+    exporter._votesplat_instances_hooked = True
+    return True
+
+
+class _ExporterBeingImported(types.ModuleType):
+    """Module class swapped onto a half-imported exporter: extends Commands on first outside use.
+
+    When the hook runs during nerfstudio's method discovery, ns-export is still executing
+    exporter.py (Commands is defined further down). Module-level assignments go straight to the
+    module dict, so we wait for the first attribute read from outside (the console script's
+    ``from nerfstudio.scripts.exporter import entrypoint``), which happens after the import ends.
+    """
+
+    def __getattribute__(self, name: str):
+        namespace = types.ModuleType.__getattribute__(self, "__dict__")
+        if not name.startswith("__") and "Commands" in namespace:
+            object.__setattr__(self, "__class__", types.ModuleType)
+            _extend_commands(self)
+        return types.ModuleType.__getattribute__(self, name)
+
+
+class _PatchingLoader(importlib.abc.Loader):
+    def __init__(self, inner):
+        self._inner = inner
+
+    def create_module(self, spec):
+        return self._inner.create_module(spec)
+
+    def exec_module(self, module) -> None:
+        self._inner.exec_module(module)
+        _extend_commands(module)
+
+    def __getattr__(self, name: str):
+        return getattr(self._inner, name)
+
+
+class _ExporterFinder(importlib.abc.MetaPathFinder):
+    """Wraps the loader of the exporter module so Commands is extended right after it executes."""
+
+    def __init__(self, module_name: str):
+        self.module_name = module_name
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.module_name:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(fullname, path, target)
+            if spec is not None and spec.loader is not None:
+                spec.loader = _PatchingLoader(spec.loader)
+                return spec
+        return None
+
+
+def install_ns_export_hook(module_name: str = EXPORTER_MODULE) -> None:
+    """Make ``ns-export votesplat-instances`` available (nerfstudio 1.1.5 has no exporter plugins).
+
+    Cheap and idempotent; called by :func:`apply` from the plugin's method entry point module. ns-export
+    imports nerfstudio.scripts.exporter, whose import of eval_utils -> method_configs discovers (imports)
+    every method entry point *before* exporter.py defines Commands, so three cases are handled:
+    exporter fully imported (extend now), half imported (extend on its first use from outside,
+    see ``_ExporterBeingImported``), not imported yet (a meta-path finder extends it right after
+    it executes; nothing heavy is imported here, so ns-train does not pay for open3d).
+    ``module_name`` exists for tests.
+    """
+    exporter = sys.modules.get(module_name)
+    if exporter is not None:
+        if not _extend_commands(exporter) and type(exporter) is types.ModuleType:
+            exporter.__class__ = _ExporterBeingImported
+        return
+    if not any(isinstance(f, _ExporterFinder) and f.module_name == module_name for f in sys.meta_path):
+        sys.meta_path.insert(0, _ExporterFinder(module_name))
+
+
+# ----------------------------------------------------------------------------- splatfacto rasterization
+
+_rasterizer_lock = threading.Lock()
+
+
+def install_rasterizer_in_splatfacto() -> None:
+    """Point ``nerfstudio.models.splatfacto.rasterization`` at ``ns/rasterizer.py`` ``rasterize`` (idempotent).
+
+    splatfacto calls that module-level name; gsplat's own ``rasterization`` JIT-builds CUDA code and
+    cannot run on CPU, and the vote pass needs the cameras splatfacto rendered with (see
+    :func:`votesplat_ns.ns.rasterizer.rasterize`). Rebound once, under a lock, not per call, because
+    the viewer renders from another thread.
+    """
+    import nerfstudio.models.splatfacto as splatfacto_module
+
+    from votesplat_ns.ns.rasterizer import rasterize
+
+    with _rasterizer_lock:
+        if getattr(splatfacto_module, "rasterization", None) is not rasterize:
+            splatfacto_module.rasterization = rasterize
+
+
+# ----------------------------------------------------------------------------- Tensor.cuda on CPU
+
+_cuda_patch_lock = threading.Lock()
+_cuda_patch_depth = 0
+_original_tensor_cuda = torch.Tensor.cuda
+
+
+def _tensor_stays_put(self: torch.Tensor, *args, **kwargs) -> torch.Tensor:
+    return self
+
+
+@contextlib.contextmanager
+def cuda_calls_stay_on_cpu(model_on_cpu: bool = False) -> Iterator[None]:
+    """Make ``Tensor.cuda()`` a no-op inside the block when no CUDA device exists, or always when
+    ``model_on_cpu`` (a model kept on the CPU of a CUDA machine, e.g. ``--machine.device-type cpu``).
+
+    splatfacto hard-codes ``.cuda()`` in ``populate_modules`` and ``get_outputs``; on a CPU-only
+    machine we run its code unchanged (rather than copying it) and keep tensors where they are.
+    Reference-counted under a lock because the viewer renders from another thread while
+    training runs: the real method comes back only when the last block exits.
+    """
+    global _cuda_patch_depth
+    if torch.cuda.is_available() and not model_on_cpu:
+        yield
+        return
+    with _cuda_patch_lock:
+        _cuda_patch_depth += 1
+        torch.Tensor.cuda = _tensor_stays_put  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        with _cuda_patch_lock:
+            _cuda_patch_depth -= 1
+            if _cuda_patch_depth == 0:
+                torch.Tensor.cuda = _original_tensor_cuda  # type: ignore[method-assign]
+
+
+# ----------------------------------------------------------------------------- LPIPS offline
+
+
+@contextlib.contextmanager
+def offline_lpips() -> Iterator[None]:
+    """Within the block, constructing torchmetrics' LPIPS never touches the network.
+
+    splatfacto builds ``LearnedPerceptualImagePatchSimilarity`` in ``populate_modules``, which
+    downloads AlexNet; inside the block the name makes :func:`votesplat_ns.ns.compat.make_lpips_metric`
+    instead (LPIPS from the local cache, or a NaN-reporting stand-in).
+    """
+    import torchmetrics.image.lpip as lpip_module
+
+    from votesplat_ns.ns.compat import make_lpips_metric
+
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+
+    def factory(*args, **kwargs):
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+        try:
+            return make_lpips_metric()
+        finally:
+            lpip_module.LearnedPerceptualImagePatchSimilarity = factory
+
+    lpip_module.LearnedPerceptualImagePatchSimilarity = factory
+    try:
+        yield
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+# ----------------------------------------------------------------------------- the list and apply()
 
 
 @dataclass(frozen=True)
@@ -45,20 +280,13 @@ class Patch:
     install: Callable[[], None]
 
 
-def _install_export_hook() -> None:
-    # imported here: ns/export.py imports nerfstudio's exporter machinery, which the hook patches
-    from votesplat_ns.ns.export import install_ns_export_hook
-
-    install_ns_export_hook()
-
-
 PATCHES: Tuple[Patch, ...] = (
     Patch("checkpoint safe globals", "torch.serialization's weights_only allow-list", register_checkpoint_safe_globals),
     Patch("one-line input errors", "sys.excepthook", install_excepthook),
     Patch(
         "ns-export votesplat-instances",
         "nerfstudio.scripts.exporter's Commands (meta-path finder)",
-        _install_export_hook,
+        install_ns_export_hook,
     ),
 )
 

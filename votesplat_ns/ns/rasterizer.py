@@ -1,24 +1,20 @@
 """One rasterisation entry point for the plugin: gsplat on CUDA, our torch rasteriser on CPU.
 
-splatfacto calls the module-level name ``nerfstudio.models.splatfacto.rasterization``. We
-rebind that name once to :func:`rasterize`, which
+splatfacto calls the module-level name ``nerfstudio.models.splatfacto.rasterization``;
+:func:`votesplat_ns.ns.patches.install_rasterizer_in_splatfacto` rebinds that name once to
+:func:`rasterize`, which
 - sends CPU tensors to :func:`votesplat_ns.core.rasterize_torch.rasterize_torch` (gsplat's own
   ``rasterization`` JIT-builds CUDA code and cannot run on CPU), and
 - records the cameras it was called with in the returned ``info`` (``info["viewmats"]``,
   ``info["Ks"]``) so the vote pass projects votes with exactly the camera splatfacto used
   (camera optimiser, resolution schedule) without repeating splatfacto's camera code.
-The rebinding is done once, not per call, because the viewer renders from another thread.
-It is one of the upstream patches listed in :mod:`votesplat_ns.ns.patches`.
 """
 
 from __future__ import annotations
 
-import threading
 from typing import Any, Dict, Tuple
 
 import torch
-
-_install_lock = threading.Lock()
 
 
 def rasterize(means: torch.Tensor, *args: Any, **kwargs: Any) -> Tuple[torch.Tensor, torch.Tensor, Dict[str, Any]]:
@@ -33,15 +29,6 @@ def rasterize(means: torch.Tensor, *args: Any, **kwargs: Any) -> Tuple[torch.Ten
     info["viewmats"] = kwargs.get("viewmats", args[4] if len(args) > 4 else None)
     info["Ks"] = kwargs.get("Ks", args[5] if len(args) > 5 else None)
     return render, alpha, info
-
-
-def install_in_splatfacto() -> None:
-    """Point splatfacto's ``rasterization`` at :func:`rasterize` (idempotent)."""
-    import nerfstudio.models.splatfacto as splatfacto_module
-
-    with _install_lock:
-        if getattr(splatfacto_module, "rasterization", None) is not rasterize:
-            splatfacto_module.rasterization = rasterize
 
 
 def project_for_votes(

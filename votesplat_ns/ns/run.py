@@ -1,7 +1,8 @@
 """A trained run through nerfstudio: the one checkpoint loader and the one camera-to-view conversion.
 
 :func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (``cli_errors.check_run``)
-and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`. :func:`camera_view` and
+and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`; :func:`latest_checkpoint`
+and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retrofit's source). :func:`camera_view` and
 :func:`dataset_views` turn nerfstudio ``Cameras`` into :class:`~votesplat_ns.core.cameras.PinholeView`s
 (gsplat's conventions). The checkpoint safe-globals are registered when ``votesplat_ns`` is imported.
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 import pickle
 import zipfile
 from pathlib import Path
-from typing import Any, Callable, List, NamedTuple, Optional, Sequence, Union
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -20,6 +21,7 @@ from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoi
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.scene import TrainedScene
 
+SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 DAMAGED_HINT = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
 
 
@@ -57,6 +59,46 @@ def load_run(
             f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {DAMAGED_HINT}"
         ) from error
     return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), int(step))
+
+
+def latest_checkpoint(path: Path) -> Path:
+    """``path`` itself if it is a file, else the newest step-*.ckpt under it (or its nerfstudio_models/)."""
+    path = Path(path)
+    if path.suffix == ".ckpt" and path.is_file():
+        return path
+    if path.name == "config.yml":
+        path = path.parent
+    candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
+    if not candidates:
+        raise VoteSplatInputError(
+            f"no checkpoint found at {path}: give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
+        )
+    return candidates[-1]
+
+
+def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
+    """splatfacto's Gaussian parameters from a nerfstudio checkpoint (splatfacto or votesplat)."""
+    state = torch.load(checkpoint, map_location="cpu")
+    pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
+    missing = [name for name in SPLAT_PARAM_NAMES if f"_model.gauss_params.{name}" not in pipeline_state]
+    if missing:
+        raise VoteSplatInputError(
+            f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
+            "retrofit needs one written by ns-train splatfacto or votesplat"
+        )
+    return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in SPLAT_PARAM_NAMES}
+
+
+def gaussians_from_ply_arrays(arrays: Dict[str, np.ndarray]) -> Dict[str, torch.Tensor]:
+    """``ply_io.read_3dgs_ply`` arrays as splatfacto's Gaussian parameters (opacities [N, 1])."""
+    return {
+        "means": torch.from_numpy(arrays["means"]),
+        "scales": torch.from_numpy(arrays["log_scales"]),
+        "quats": torch.from_numpy(arrays["quats"]),
+        "features_dc": torch.from_numpy(arrays["features_dc"]),
+        "features_rest": torch.from_numpy(arrays["features_rest"]),
+        "opacities": torch.from_numpy(arrays["opacity_logits"])[:, None],
+    }
 
 
 def camera_view(cameras: Any, index: int = 0, name: str = "", dtype: torch.dtype = torch.float32) -> PinholeView:

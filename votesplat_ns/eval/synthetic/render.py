@@ -30,7 +30,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from votesplat_ns.core.ply_io import atomic_write
+from votesplat_ns.core.ply_io import atomic_write, jsonable
 from votesplat_ns.eval.synthetic.scenes import (
     GENERATOR_VERSION,
     Camera,
@@ -506,8 +506,8 @@ def write_dataset(
         "eval_frames": [frame_name(i, settings.image_format) for i in sorted(eval_set)],
         "width": intr.width,
         "height": intr.height,
-        "scene_options": _jsonable(scene.parameters.get("options", {})),
-        "parameters": _jsonable({k: v for k, v in scene.parameters.items() if k != "options"}),
+        "scene_options": jsonable(scene.parameters.get("options", {})),
+        "parameters": jsonable({k: v for k, v in scene.parameters.items() if k != "options"}),
         "world": "metres, z up; instance centres/boxes are in this frame (before nerfstudio's dataparser transform)",
         "depth_encoding": "uint16 PNG, millimetres of camera z (along the optical axis), 0 = no surface",
         "label_encoding": "uint16 PNG; instances 1..K, parts globally unique, 0 = background",
@@ -515,18 +515,6 @@ def write_dataset(
     out = output_dir / "transforms.json"
     write_json(out, meta)
     return out
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return value
 
 
 # --------------------------------------------------------------------------------------------
