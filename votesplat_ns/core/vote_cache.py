@@ -34,7 +34,8 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from votesplat_ns.core.mask_sources import MaskSource, file_digest, read_image_rgb
+from votesplat_ns.core.image_files import file_digest, read_image_rgb
+from votesplat_ns.core.mask_source_base import MaskSource
 from votesplat_ns.core.ply_io import TEMP_MARKER, atomic_write
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps, vote_maps_from_labels
 

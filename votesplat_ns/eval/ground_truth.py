@@ -16,7 +16,7 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from votesplat_ns.core.mask_sources import read_label_png
+from votesplat_ns.core.image_files import read_label_png
 from votesplat_ns.core.ply_io import atomic_write
 from votesplat_ns.eval.evaluation import gaussian_purity, match_instances
 
