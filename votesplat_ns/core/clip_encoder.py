@@ -98,7 +98,8 @@ class ClipEncoder:
     ) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        self.model = model.to(device).eval()
+        # open_clip's CLIP: encode_image, encode_text and logit_scale are not attributes nn.Module declares
+        self.model: Any = model.to(device).eval()
         self.preprocess = preprocess
         self.tokenizer = tokenizer
         self.config = config

@@ -84,7 +84,7 @@ def read_label_png(path: PathLike) -> np.ndarray:
     return labels
 
 
-def check_label_size(label_hw: Tuple[int, int], image_hw: Tuple[int, int], what: str) -> None:
+def check_label_size(label_hw: Tuple[int, ...], image_hw: Tuple[int, ...], what: str) -> None:
     """Accept a label image of the image's size, or a uniformly scaled copy (to within a pixel).
 
     The scaled case covers nerfstudio reading downscaled images (``images_2/``) while the label

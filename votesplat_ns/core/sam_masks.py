@@ -174,6 +174,7 @@ class SamMaskSource(MaskSource):
         from segment_anything import SamAutomaticMaskGenerator, sam_model_registry
 
         if self._sam_model is None:
+            assert self.checkpoint is not None  # __init__ checks one whenever no sam_model is given
             try:
                 # loaded before the model is built, so a wrong file fails fast
                 state_dict = torch.load(self.checkpoint, map_location="cpu", weights_only=True)
@@ -201,13 +202,14 @@ class SamMaskSource(MaskSource):
             self._generator = self._build_generator()
         image = _limit_long_side(image, self.max_long_side)
         predictor: _OneGranularityPredictor = self._generator.predictor
+        height, width = image.shape[:2]
         output_index = {"default": None, "s": 0, "m": 1, "l": 2}
         label_images = []
         try:
             for level in self.levels:
                 predictor.output_index = output_index[level]
                 annotations = self._generator.generate(image)
-                label_images.append(_paint_rles(annotations, image.shape[:2], rle_to_mask))
+                label_images.append(_paint_rles(annotations, (height, width), rle_to_mask))
         finally:
             predictor.output_index = None
             predictor.clear_embeddings()

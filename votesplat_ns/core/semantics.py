@@ -291,7 +291,7 @@ def query_text(
             raise ValueError(
                 "scale=None uses the encoder's logit_scale, which this encoder does not have; pass a number"
             )
-        scale = float(encoder.logit_scale)
+        scale = float(getattr(encoder, "logit_scale"))  # optional, so not part of EncoderProtocol
 
     ids = sorted(int(i) for i in instance_feats)
     matrix = F.normalize(torch.stack([torch.as_tensor(instance_feats[i]).float().cpu() for i in ids]), dim=-1)
