@@ -50,7 +50,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
-from typing import Callable, Dict, Literal, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -77,7 +77,7 @@ class VoteClustering:
     """Labels of one clustering run and every parameter it actually used (for manifests)."""
 
     labels: np.ndarray  # [M] int64, -1 = noise
-    params: Dict[str, object] = field(default_factory=dict)
+    params: Dict[str, Any] = field(default_factory=dict)
 
     @property
     def num_clusters(self) -> int:
@@ -140,7 +140,7 @@ def cluster_votes_detailed(
     n_jobs: threads for the nearest-neighbour label transfer (default: CPU count, at most 4).
     """
     import hdbscan  # heavy import (numba/sklearn), only when clustering
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stubs)
 
     votes = _to_numpy(votes).astype(np.float64, copy=False)
     if votes.ndim != 2 or votes.shape[1] != 3:
@@ -270,7 +270,7 @@ def cluster_votes(
 
 def typical_spacing(points: np.ndarray, neighbours: int = DEFAULT_FILL_NEIGHBOURS) -> float:
     """Median distance of a point to its ``neighbours``-th nearest other point (0 if too few)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stubs)
 
     points = np.asarray(points, dtype=np.float64)
     if points.shape[0] <= neighbours:
@@ -291,7 +291,7 @@ def fill_from_neighbours(
     points [M, 3]: the foreground Gaussians' centres; labels [M] int: clusters 0..K-1, -1 noise.
     Returns new labels renumbered by decreasing size; -1 only where no labelled Gaussian is near.
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stubs)
 
     points = np.asarray(points, dtype=np.float64)
     labels = np.asarray(labels, dtype=np.int64).copy()

@@ -21,7 +21,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -68,8 +68,9 @@ class LevelInstances:
     bbox_min: np.ndarray  # [K, 3] of the member Gaussians' means
     bbox_max: np.ndarray  # [K, 3]
     vote_centres: np.ndarray  # [K, 3] mean vote of the members
-    parents: np.ndarray = None  # [K] int64 id at the parent level, -1 = none (or no parent level)
-    parent_overlap: np.ndarray = None  # [K] fraction of the instance's Gaussians inside its parent
+    # None means "no parent": __post_init__ replaces it with the array, so readers always get one
+    parents: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] int64 id at the parent level, -1 = none (or no parent level)
+    parent_overlap: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] fraction of the instance's Gaussians inside its parent
     clustering: Dict[str, object] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -197,7 +198,8 @@ class InstanceSet:
 
     levels: List[LevelInstances]
     num_gaussians: int
-    parent_levels: Optional[List[Optional[str]]] = None
+    # None means "each level's parent is the level before it": __post_init__ fills the list in
+    parent_levels: List[Optional[str]] = None  # pyright: ignore[reportAssignmentType]
 
     def __post_init__(self) -> None:
         if self.parent_levels is None:
@@ -300,7 +302,10 @@ class InstanceSet:
         levels = []
         for index, entry in enumerate(manifest["levels"]):
             inst = entry["instances"]
-            arr = lambda key, dtype=np.float64: np.array([e[key] for e in inst], dtype=dtype).reshape(len(inst), -1)  # noqa: E731
+
+            def arr(key: str, dtype: Any = np.float64) -> np.ndarray:
+                return np.array([e[key] for e in inst], dtype=dtype).reshape(len(inst), -1)
+
             levels.append(
                 LevelInstances(
                     name=entry["name"],

@@ -30,7 +30,7 @@ import contextlib
 import os
 import secrets
 from pathlib import Path
-from typing import Dict, Iterator, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterator, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -117,7 +117,7 @@ def atomic_write(path: PathLike, mode: str = "wb") -> Iterator:
         raise
 
 
-def jsonable(value):
+def jsonable(value: Any) -> Any:
     """``value`` with what ``json.dumps`` refuses made plain: numpy scalars and arrays, paths, non-string keys."""
     if isinstance(value, dict):
         return {str(k): jsonable(v) for k, v in value.items()}

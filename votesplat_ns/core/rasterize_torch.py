@@ -118,6 +118,7 @@ def project_gaussians_torch(
         camera z. Everything but radii is differentiable.
     """
     covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False)
+    assert covars is not None  # compute_covar=True
     means_c, covars_c = _world_to_cam(means, covars, viewmats)  # [C,N,3], [C,N,3,3]
     depths = means_c[..., 2]
 
@@ -750,7 +751,8 @@ def rasterize_to_pixels_torch(
     if absgrad:
         absgrad_buffer = torch.zeros((2, C * N), dtype=dtype, device=device)
         if means2d.requires_grad:
-            means2d.absgrad = absgrad_buffer.t().view(C, N, 2)  # filled during backward
+            # gsplat's convention: the accumulated |grad| rides on the tensor as .absgrad
+            means2d.absgrad = absgrad_buffer.t().view(C, N, 2)  # pyright: ignore[reportAttributeAccessIssue]
 
     n_pixels = C * height * width
     render_colors = torch.zeros((n_pixels, D), dtype=colors.dtype, device=device)

@@ -30,11 +30,12 @@ import warnings
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import BinaryIO, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from votesplat_ns.core.mask_sources import MaskSource, file_digest, read_image_rgb
+from votesplat_ns.core.image_files import file_digest, read_image_rgb
+from votesplat_ns.core.mask_source_base import MaskSource
 from votesplat_ns.core.ply_io import TEMP_MARKER, atomic_write
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS, VoteMaps, vote_maps_from_labels
 
@@ -59,7 +60,7 @@ def load_image_rgb(path: PathLike) -> np.ndarray:
     return read_image_rgb(path)
 
 
-def atomic_write_bytes(path: Path, writer: Callable[[object], None]) -> None:
+def atomic_write_bytes(path: Path, writer: Callable[[BinaryIO], object]) -> None:
     """Write a file atomically (``ply_io.atomic_write``, honours the umask): ``writer(file)`` fills it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path) as handle:

@@ -48,6 +48,10 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
+# pyright: reportOptionalMemberAccess=false, reportInvalidTypeForm=false
+# (triton is optional: ``tl`` is None without it, and the kernels' ``tl.constexpr`` parameter
+# annotations are Triton's own markers, not Python types; both are only reached with triton.)
+
 try:  # optional: the torch path works without it
     import triton
     import triton.language as tl
@@ -182,7 +186,7 @@ class _VoteSums(torch.autograd.Function):
                     ALPHA_T=alpha_t,
                     DIST=dist,
                     BLOCK=BLOCK,
-                    num_warps=NUM_WARPS,
+                    num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
                 )
         ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum)
         ctx.config = config
@@ -230,7 +234,7 @@ class _VoteSums(torch.autograd.Function):
                 DIST=dist,
                 GEOMETRY_GRAD=geometry_grad,
                 BLOCK=BLOCK,
-                num_warps=NUM_WARPS,
+                num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
             )
         return (
             g_geometry if geometry_grad else None,
@@ -475,7 +479,7 @@ if triton is not None:
                         gap = z_i[:, None] - z_j[None, :]
                         sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
                         sign = tl.where(visible[:, None] & vis_j[None, :], sign, 0.0)
-                        signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)
+                        signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
                 tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask, sem="relaxed")
             if ALPHA_T:
                 t = tl.min(t_after, axis=0)
@@ -495,7 +499,7 @@ if triton is not None:
                 )
                 keep = 1.0 - tl.where(visible, alpha, 0.0)
                 running = tl.cumprod(keep, axis=0)
-                t_start = t_end / tl.min(running, axis=0)
+                t_start = t_end / tl.min(running, axis=0)  # pyright: ignore[reportOperatorIssue]  (triton tensors)
                 t_before = t_start * running / keep
                 w = tl.where(visible, alpha * t_before, 0.0)
                 row_mask = visible[:, None] & value_col[None, :]

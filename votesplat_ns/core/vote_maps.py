@@ -19,7 +19,7 @@ Conventions
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence, Tuple, Union
+from typing import List, Optional, Sequence, Tuple, Union, overload
 
 import numpy as np
 import torch
@@ -154,6 +154,14 @@ def mask_centroids(labels: np.ndarray, border_masks: str = DEFAULT_BORDER_MASKS)
         if border_masks == "mask_only" and touching.size:
             centroids[1 + np.searchsorted(ids, touching)] = np.nan
     return labels_out, centroids
+
+
+@overload
+def to_continuous(centroids_index: np.ndarray) -> np.ndarray: ...
+
+
+@overload
+def to_continuous(centroids_index: torch.Tensor) -> torch.Tensor: ...
 
 
 def to_continuous(centroids_index: Union[np.ndarray, torch.Tensor]) -> Union[np.ndarray, torch.Tensor]:

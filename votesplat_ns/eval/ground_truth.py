@@ -16,7 +16,7 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from votesplat_ns.core.mask_sources import read_label_png
+from votesplat_ns.core.image_files import read_label_png
 from votesplat_ns.core.ply_io import atomic_write
 from votesplat_ns.eval.evaluation import gaussian_purity, match_instances
 
@@ -214,7 +214,7 @@ class GroundTruthDataset:
 
     def scene(self):
         """The generating scene (exact geometry) or None when it cannot be rebuilt."""
-        from votesplat_ns.eval.synthetic.render import scene_from_dataset
+        from votesplat_ns.eval.synthetic.dataset_files import scene_from_dataset
 
         try:
             return scene_from_dataset(self.meta)
@@ -230,7 +230,7 @@ def gaussian_ground_truth(
     surface_tolerance_px: float = 3.0,
 ) -> Tuple[Dict[str, np.ndarray], Dict[str, object]]:
     """GT label per Gaussian for each level (means in the dataset's world frame) and how it was made."""
-    from votesplat_ns.eval.synthetic.render import read_views
+    from votesplat_ns.eval.synthetic.dataset_files import read_views
 
     meta, views = read_views(dataset.root)
     train = set(dataset.train_names())

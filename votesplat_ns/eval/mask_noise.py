@@ -212,7 +212,7 @@ def write_noisy_masks(
     The folder is built beside ``output`` and renamed into place; an existing ``output`` is
     replaced only with ``overwrite`` and only if it holds a previous noisy-mask folder.
     """
-    from votesplat_ns.eval.synthetic.render import write_png
+    from votesplat_ns.eval.synthetic.dataset_files import write_png
 
     dataset = GroundTruthDataset.open(data)
     levels = tuple(levels)

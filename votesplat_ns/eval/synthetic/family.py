@@ -82,7 +82,8 @@ def write_family_set(
     ``settings``: a :class:`~votesplat_ns.eval.synthetic.render.RenderSettings` (default: JPEG images at
     quality 95, 64 samples per pixel). ``progress(scene, scenes, view, views)`` is called per view.
     """
-    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset, write_json
+    from votesplat_ns.eval.synthetic.dataset_files import write_json
+    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset
     from votesplat_ns.eval.synthetic.scenes import make_scene
 
     members = family_set(name)

@@ -9,7 +9,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 from PIL import Image
 
-from votesplat_ns.eval.lerf_ovs import frame_from_masks, write_label_frame
+from votesplat_ns.eval.lerf_labels import frame_from_masks, write_label_frame
 
 
 def write_scene_labels(scene_dir: Path, output_dir: Path, frames: Optional[Sequence[str]] = None) -> List[Path]:

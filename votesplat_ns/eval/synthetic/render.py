@@ -15,22 +15,41 @@ Dataset layout (``transforms.json`` is written last, so a folder without it is a
     images/frame_00001.png (.jpg)  instances/frame_00001.png  parts/frame_00001.png  depth/frame_00001.png
     sparse_pc.ply     surface points seen by >= 2 training views, RGB albedo (SfM stand-in)
 
-The reading helpers at the bottom need only numpy and Pillow, not mitsuba.
+The file writers and readers (numpy and Pillow only, not mitsuba) are in
+:mod:`votesplat_ns.eval.synthetic.dataset_files` and the point cloud in
+:mod:`votesplat_ns.eval.synthetic.point_cloud`; their names are importable from here too.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from votesplat_ns.core.ply_io import atomic_write, jsonable
+from votesplat_ns.core.ply_io import jsonable
+from votesplat_ns.eval.synthetic.dataset_files import (
+    DEPTH_UNIT_METRES as DEPTH_UNIT_METRES,
+    OPENCV_TO_OPENGL as OPENCV_TO_OPENGL,
+    DatasetView as DatasetView,
+    encode_depth_mm as encode_depth_mm,
+    frame_name as frame_name,
+    nerfstudio_to_opencv_c2w as nerfstudio_to_opencv_c2w,
+    opencv_c2w_to_nerfstudio as opencv_c2w_to_nerfstudio,
+    read_depth_png as read_depth_png,
+    read_label_png as read_label_png,
+    read_views as read_views,
+    scene_from_dataset as scene_from_dataset,
+    write_jpeg as write_jpeg,
+    write_json as write_json,
+    write_png as write_png,
+    write_point_ply as write_point_ply,
+)
+from votesplat_ns.eval.synthetic.point_cloud import sparse_point_cloud as sparse_point_cloud
 from votesplat_ns.eval.synthetic.scenes import (
     GENERATOR_VERSION,
     Camera,
@@ -43,8 +62,6 @@ from votesplat_ns.eval.synthetic.scenes import (
 
 MITSUBA_MISSING = "mitsuba not installed (pip install votesplat_ns[synthetic])"
 MITSUBA_VARIANT = "scalar_rgb"
-DEPTH_UNIT_METRES = 1e-3
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 # mitsuba's camera frame has +x to the image's left and +y up (it looks along +z)
 _OPENCV_TO_MITSUBA = np.diag([-1.0, -1.0, 1.0, 1.0])
 _SUBDIRS = ("images", "instances", "parts", "depth")
@@ -70,60 +87,6 @@ def mitsuba_available() -> bool:
     return True
 
 
-# --------------------------------------------------------------------------------------------
-# atomic writers
-
-
-def _atomic_write_bytes(path: Path, write: Callable[[object], None]) -> None:
-    """``write(handle)`` fills a binary file that replaces ``path`` in one rename (``ply_io.atomic_write``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_write(path, "wb") as handle:
-        write(handle)
-
-
-def write_png(path: Path, array: np.ndarray) -> None:
-    """Atomic PNG write: uint8 [H,W,3] RGB, or uint16 [H,W] single channel (16-bit PNG)."""
-    from PIL import Image
-
-    array = np.ascontiguousarray(array)
-    if array.dtype == np.uint16 and array.ndim == 2:
-        image = Image.fromarray(array)
-    elif array.dtype == np.uint8 and array.ndim in (2, 3):
-        image = Image.fromarray(array)
-    else:
-        raise ValueError(f"write_png: expected uint8 [H,W(,3)] or uint16 [H,W], got {array.dtype} {array.shape}")
-    _atomic_write_bytes(path, lambda handle: image.save(handle, format="PNG"))
-
-
-def write_jpeg(path: Path, rgb: np.ndarray, quality: int) -> None:
-    """Atomic JPEG write of uint8 [H,W,3] RGB, without chroma subsampling (object edges keep their colour)."""
-    from PIL import Image
-
-    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"write_jpeg: expected uint8 [H,W,3], got {rgb.dtype} {rgb.shape}")
-    image = Image.fromarray(np.ascontiguousarray(rgb))
-    _atomic_write_bytes(path, lambda handle: image.save(handle, format="JPEG", quality=int(quality), subsampling=0))
-
-
-def write_json(path: Path, data: dict) -> None:
-    text = json.dumps(data, indent=2) + "\n"
-    _atomic_write_bytes(path, lambda handle: handle.write(text.encode("utf-8")))
-
-
-def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -> None:
-    """Binary PLY with float x,y,z and uchar red,green,blue (what nerfstudio's loader, via open3d, reads)."""
-    from plyfile import PlyData, PlyElement
-
-    vertex = np.zeros(
-        len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    )
-    vertex["x"], vertex["y"], vertex["z"] = np.asarray(points, dtype=np.float32).T
-    vertex["red"], vertex["green"], vertex["blue"] = np.asarray(colours_uint8, dtype=np.uint8).T
-    data = PlyData([PlyElement.describe(vertex, "vertex")], text=False)
-    _atomic_write_bytes(path, data.write)
-
-
 def _write_mesh_ply(path: str, mesh) -> None:
     from plyfile import PlyData, PlyElement
 
@@ -139,7 +102,7 @@ def _write_mesh_ply(path: str, mesh) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# camera helpers
+# camera rays
 
 
 def pixel_rays(camera: Camera, intrinsics) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -152,18 +115,6 @@ def pixel_rays(camera: Camera, intrinsics) -> Tuple[np.ndarray, np.ndarray, np.n
     dirs_cam = dirs_cam / norm
     dirs_world = dirs_cam @ camera.c2w[:3, :3].T
     return camera.c2w[:3, 3].copy(), dirs_world, dirs_cam[..., 2]
-
-
-def opencv_c2w_to_nerfstudio(c2w: np.ndarray) -> np.ndarray:
-    """Camera-to-world in OpenCV convention -> nerfstudio/OpenGL convention (x right, y up, looks along -z)."""
-    return np.asarray(c2w, dtype=np.float64) @ OPENCV_TO_OPENGL
-
-
-def nerfstudio_to_opencv_c2w(transform_matrix) -> np.ndarray:
-    m = np.asarray(transform_matrix, dtype=np.float64)
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-    return m @ OPENCV_TO_OPENGL
 
 
 # --------------------------------------------------------------------------------------------
@@ -275,91 +226,6 @@ class SceneRenderer:
 
 
 # --------------------------------------------------------------------------------------------
-# sparse point cloud
-
-
-def _sample_surface(rng, parts: Sequence[Part], textures, count: int) -> Tuple[np.ndarray, np.ndarray]:
-    """``count`` area-uniform points on the parts' meshes with their albedo as sRGB uint8."""
-    meshes = [(part, primitive_mesh(p)) for part in parts for p in part.primitives]
-    areas = []
-    for _, mesh in meshes:
-        tri = mesh.vertices[mesh.faces]
-        areas.append(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1))
-    total = np.concatenate(areas)
-    choice = rng.choice(len(total), size=count, p=total / total.sum())
-    offsets = np.cumsum([0] + [len(a) for a in areas])
-    r1, r2 = rng.random(count), rng.random(count)
-    swap = r1 + r2 > 1.0
-    r1[swap], r2[swap] = 1.0 - r1[swap], 1.0 - r2[swap]
-    points = np.zeros((count, 3))
-    colours = np.zeros((count, 3), dtype=np.uint8)
-    for m, (part, mesh) in enumerate(meshes):
-        sel = np.nonzero((choice >= offsets[m]) & (choice < offsets[m + 1]))[0]
-        if len(sel) == 0:
-            continue
-        faces = mesh.faces[choice[sel] - offsets[m]]
-        a, b, c = (mesh.vertices[faces[:, k]] for k in range(3))
-        points[sel] = a + r1[sel, None] * (b - a) + r2[sel, None] * (c - a)
-        if part.material.texture is None:
-            colours[sel] = part.material.srgb
-        else:
-            ua, ub, uc = (mesh.uvs[faces[:, k]] for k in range(3))
-            uv = ua + r1[sel, None] * (ub - ua) + r2[sel, None] * (uc - ua)
-            tex = textures[part.material.texture]
-            th, tw = tex.shape[:2]
-            # mitsuba samples bitmaps with v = 0 at the first (top) row
-            col = np.floor(np.mod(uv[:, 0], 1.0) * tw).astype(int) % tw
-            row = np.floor(np.mod(uv[:, 1], 1.0) * th).astype(int) % th
-            colours[sel] = linear_to_srgb_uint8(tex[row, col])
-    return points, colours
-
-
-def _visible_count(points: np.ndarray, scene: Scene, depths: Sequence[np.ndarray], views: Sequence[int]) -> np.ndarray:
-    intr = scene.intrinsics
-    counts = np.zeros(len(points), dtype=np.int64)
-    for view in views:
-        viewmat = scene.cameras[view].viewmat
-        cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = intr.fx * cam[:, 0] / z + intr.cx
-            v = intr.fy * cam[:, 1] / z + intr.cy
-        ok = (z > 1e-3) & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
-        x = np.clip(np.floor(np.nan_to_num(u)).astype(int), 0, intr.width - 1)
-        y = np.clip(np.floor(np.nan_to_num(v)).astype(int), 0, intr.height - 1)
-        d = depths[view][y, x]
-        # a point hidden behind a nearer surface reads a smaller depth at its pixel
-        ok &= (d > 0) & (z <= d + np.maximum(0.01, 0.01 * d))
-        counts += ok
-    return counts
-
-
-def sparse_point_cloud(scene: Scene, depths: Sequence[np.ndarray], num_points: int = 4000, seed: int = 0):
-    """SfM stand-in: surface points (half on objects, half on the background) seen by >= 2 training views."""
-    rng = np.random.default_rng([scene.seed, 5, seed])
-    train = [i for i in range(len(scene.cameras)) if i not in set(scene.eval_indices)]
-    min_views = 2 if len(train) >= 2 else 1
-    chosen_pts, chosen_cols = [], []
-    object_parts = [part for _, part in scene.parts]
-    for parts, budget in ((object_parts, num_points // 2), (list(scene.background), num_points - num_points // 2)):
-        if not parts or budget <= 0:
-            continue
-        kept_pts, kept_cols, have = [], [], 0
-        # most of a large background is out of every view: draw bigger batches until the budget is met
-        for round_index in range(8):
-            pts, cols = _sample_surface(rng, parts, scene.textures, budget * 4 * 2**round_index)
-            keep = np.nonzero(_visible_count(pts, scene, depths, train) >= min_views)[0][: budget - have]
-            kept_pts.append(pts[keep])
-            kept_cols.append(cols[keep])
-            have += len(keep)
-            if have >= budget:
-                break
-        chosen_pts += kept_pts
-        chosen_cols += kept_cols
-    return np.concatenate(chosen_pts), np.concatenate(chosen_cols)
-
-
-# --------------------------------------------------------------------------------------------
 # dataset writer
 
 
@@ -373,17 +239,6 @@ class RenderSettings:
     num_points: int = 4000
     image_format: str = "png"  # RGB images: "png" (lossless) or "jpg"; labels and depth are always PNG
     jpeg_quality: int = 95
-
-
-def encode_depth_mm(depth_m: np.ndarray) -> np.ndarray:
-    """Metres -> uint16 millimetres; 0 (invalid) where there is no surface or it is beyond 65.535 m."""
-    mm = np.round(np.asarray(depth_m, dtype=np.float64) / DEPTH_UNIT_METRES)
-    mm[(mm <= 0) | (mm > np.iinfo(np.uint16).max) | ~np.isfinite(mm)] = 0
-    return mm.astype(np.uint16)
-
-
-def frame_name(index: int, extension: str = "png") -> str:
-    return f"frame_{index + 1:05d}.{extension}"
 
 
 def _prepare_output(output_dir: Path, overwrite: bool) -> None:
@@ -515,61 +370,3 @@ def write_dataset(
     out = output_dir / "transforms.json"
     write_json(out, meta)
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# reading (numpy + Pillow only)
-
-
-def read_label_png(path) -> np.ndarray:
-    """A 16-bit (or 8-bit) single-channel label/depth PNG as an integer array [H,W]."""
-    from PIL import Image
-
-    with Image.open(path) as image:
-        if image.mode not in ("I;16", "I;16B", "I", "L"):
-            raise ValueError(f"{path}: expected a single-channel 8/16-bit PNG, got mode {image.mode}")
-        return np.array(image)
-
-
-def read_depth_png(path) -> np.ndarray:
-    """Depth PNG -> metres (float64), 0 where invalid."""
-    return read_label_png(path).astype(np.float64) * DEPTH_UNIT_METRES
-
-
-@dataclass(frozen=True)
-class DatasetView:
-    name: str
-    c2w: np.ndarray  # OpenCV camera-to-world
-    viewmat: np.ndarray  # OpenCV world-to-camera
-    K: np.ndarray
-    is_eval: bool
-
-
-def scene_from_dataset(meta: dict) -> Scene:
-    """Rebuild the generating scene (exact geometry, no rendering) from a dataset's transforms.json."""
-    from votesplat_ns.eval.synthetic.scenes import make_scene
-
-    info = meta.get("votesplat_synthetic")
-    if info is None:
-        raise ValueError("transforms.json has no 'votesplat_synthetic' entry; it was not written by votesplat-synth")
-    if info.get("generator_version") != GENERATOR_VERSION:
-        raise ValueError(
-            f"dataset made by generator version {info.get('generator_version')}, this is {GENERATOR_VERSION}; regenerate it"
-        )
-    return make_scene(info["recipe"], seed=int(info["seed"]), **info["scene_options"])
-
-
-def read_views(dataset_dir) -> Tuple[dict, List[DatasetView]]:
-    """transforms.json and the cameras in OpenCV convention (in the dataset's own world frame)."""
-    dataset_dir = Path(dataset_dir)
-    path = dataset_dir / "transforms.json"
-    if not path.exists():
-        raise ValueError(f"{path} not found; point at a folder written by votesplat-synth")
-    meta = json.loads(path.read_text(encoding="utf-8"))
-    K = np.array([[meta["fl_x"], 0.0, meta["cx"]], [0.0, meta["fl_y"], meta["cy"]], [0.0, 0.0, 1.0]])
-    val = set(meta.get("val_filenames", []))
-    views = []
-    for frame in meta["frames"]:
-        c2w = nerfstudio_to_opencv_c2w(frame["transform_matrix"])
-        views.append(DatasetView(Path(frame["file_path"]).name, c2w, np.linalg.inv(c2w), K, frame["file_path"] in val))
-    return meta, views

@@ -1,0 +1,106 @@
+"""Image and label files as the plugin reads them: decoded in full, with errors that name the file."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Tuple, Union
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from votesplat_ns.cli.cli_errors import VoteSplatInputError
+
+PathLike = Union[str, Path]
+
+
+def file_digest(path: PathLike, chunk_size: int = 1 << 20) -> str:
+    """sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while True:
+            chunk = handle.read(chunk_size)
+            if not chunk:
+                break
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def load_image_file(path: PathLike, what: str = "image") -> Image.Image:
+    """An image file decoded in full by PIL; a missing, truncated or unreadable file raises a
+    :class:`VoteSplatInputError` naming it (``what``: "image", "label image", ...).
+
+    Every image and label file the plugin reads goes through here (nerfstudio's own image loading
+    is checked with it too, see the datamanager), so a broken file is always named.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise VoteSplatInputError(f"{what} {path} does not exist")
+    try:
+        with Image.open(path) as image:
+            image.load()
+    except Exception as error:  # PIL raises OSError, ValueError, SyntaxError, ... for broken files
+        text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if isinstance(error, UnidentifiedImageError):
+            text = "not an image format PIL can read"
+        elif "truncated" in text or isinstance(error, EOFError):
+            text = f"the file is truncated: {text}"
+        raise VoteSplatInputError(f"{what} {path} cannot be read ({text}); replace it with an intact file") from None
+    return image
+
+
+def image_file_size(path: PathLike, what: str = "image") -> Tuple[int, int]:
+    """``(width, height)`` from an image file's header (nothing decoded); an unreadable file raises a named error."""
+    path = Path(path)
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except FileNotFoundError:
+        raise VoteSplatInputError(f"{what} {path} does not exist") from None
+    except Exception:  # not an image, or a header PIL cannot parse: load_image_file says which
+        load_image_file(path, what)
+        raise
+
+
+def read_image_rgb(path: PathLike, what: str = "image") -> np.ndarray:
+    """An image file's pixels as uint8 [H, W, 3] (alpha dropped, grey expanded); errors name the file."""
+    return np.asarray(load_image_file(path, what).convert("RGB"))
+
+
+def read_label_png(path: PathLike) -> np.ndarray:
+    """Read a single-channel 8- or 16-bit label PNG as int32 [H, W]."""
+    path = Path(path)
+    image = load_image_file(path, "label image")
+    mode = image.mode
+    labels = np.array(image)
+    if labels.ndim != 2 or mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
+        raise VoteSplatInputError(
+            f"label image {path} has mode {mode} with shape {labels.shape}; it must be a single-channel "
+            "8- or 16-bit PNG holding mask ids (0 = no mask)"
+        )
+    labels = labels.astype(np.int32)
+    if labels.size and labels.min() < 0:
+        raise VoteSplatInputError(f"label image {path} holds negative ids; use 0 for no mask and 1..K for masks")
+    return labels
+
+
+def check_label_size(label_hw: Tuple[int, ...], image_hw: Tuple[int, ...], what: str) -> None:
+    """Accept a label image of the image's size, or a uniformly scaled copy (to within a pixel).
+
+    The scaled case covers nerfstudio reading downscaled images (``images_2/``) while the label
+    images stay at full resolution.
+    """
+    label_h, label_w = (int(v) for v in label_hw)
+    image_h, image_w = (int(v) for v in image_hw)
+    if (label_h, label_w) == (image_h, image_w):
+        return
+    if min(label_h, label_w, image_h, image_w) > 0:
+        # predicted image height/width if the label image were the image scaled uniformly
+        height_from_width = label_h * image_w / label_w
+        width_from_height = label_w * image_h / label_h
+        if abs(height_from_width - image_h) <= 1.0 and abs(width_from_height - image_w) <= 1.0:
+            return
+    raise VoteSplatInputError(
+        f"{what} is {label_w}x{label_h} but its image is {image_w}x{image_h}; "
+        "label images must have the image's size (or be a uniformly scaled copy of it)"
+    )

@@ -1,0 +1,48 @@
+"""The interface every mask source implements (see :mod:`votesplat_ns.core.mask_sources`)."""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, Dict, List, Sequence, Tuple
+
+import numpy as np
+
+from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.core.image_files import PathLike
+
+
+class MaskSource(abc.ABC):
+    """Makes one label image per level for an image."""
+
+    levels: Tuple[str, ...]
+
+    @abc.abstractmethod
+    def masks_for_image(self, image: np.ndarray, image_path: PathLike, frame_index: int) -> List[np.ndarray]:
+        """Label images (integer [h, w], one per level in ``self.levels``) for one view.
+
+        Args:
+            image: uint8 [H, W, 3], the pixels of ``image_path``.
+            image_path: the image file the pixels came from.
+            frame_index: the view's index in the caller's list of views (informational).
+        """
+
+    @abc.abstractmethod
+    def config_key(self) -> Dict[str, Any]:
+        """JSON-serialisable description of every argument that affects the output."""
+
+    def view_fingerprint(self, image_path: PathLike, frame_index: int) -> str:
+        """Digest of the per-view inputs other than the image pixels (default: none)."""
+        return ""
+
+    @property
+    def name(self) -> str:
+        return str(self.config_key()["type"])
+
+
+def validate_levels(levels: Sequence[str], what: str) -> Tuple[str, ...]:
+    levels = tuple(str(level) for level in levels)
+    if not levels:
+        raise VoteSplatInputError(f"{what}: give at least one mask level")
+    if len(set(levels)) != len(levels):
+        raise VoteSplatInputError(f"{what}: mask levels {levels} contain duplicates")
+    return levels

@@ -1,0 +1,89 @@
+"""What every recipe shares: the generator version, the random streams, backgrounds, lighting and the
+checks of a recipe's arguments."""
+
+from __future__ import annotations
+
+import math
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from votesplat_ns.eval.synthetic.scenes.colours import make_texture
+from votesplat_ns.eval.synthetic.scenes.description import Lighting, Material, Part
+from votesplat_ns.eval.synthetic.scenes.primitives import Quad, Revolved, rot_x, translate
+
+GENERATOR_VERSION = "1"
+
+# the random streams: np.random.default_rng([seed, k]) for each k
+_STREAM_OBJECTS = 1
+_STREAM_CAMERAS = 2
+_STREAM_TEXTURES = 3
+_STREAM_LIGHTS = 4
+
+
+def _room_background(rng_tex, ground_half: float, wall_radius: float, wall_height: float, plain_colours=None):
+    """Table plane and a cylindrical wall: textured, or flat ``(table, wall)`` sRGB colours."""
+    if plain_colours is None:
+        ground_tex = make_texture(rng_tex, (256, 256), (180, 150, 110), (150, 120, 85), checks=8, dots=60)
+        wall_tex = make_texture(rng_tex, (256, 512), (120, 135, 150), (95, 110, 125), checks=6, dots=90)
+        materials, textures = (
+            (Material(texture="table"), Material(texture="wall")),
+            {"table": ground_tex, "wall": wall_tex},
+        )
+    else:
+        materials, textures = (Material(srgb=plain_colours[0]), Material(srgb=plain_colours[1])), {}
+    ground = Part(0, "table", (Quad((ground_half, ground_half), uv_tiles=(ground_half, ground_half)),), materials[0])
+    wall_profile = np.array([[wall_radius, 0.0], [wall_radius, wall_height]])
+    wall = Part(0, "wall", (Revolved((wall_profile,), segments=96),), materials[1])
+    return (ground, wall), textures
+
+
+def _forward_background(rng_tex, plain_colours: Optional[Tuple[Tuple[int, int, int], Tuple[int, int, int]]] = None):
+    """Ground and back wall of a forward-facing capture: textured, or flat ``(ground, wall)`` sRGB colours."""
+    if plain_colours is None:
+        ground_tex = make_texture(rng_tex, (256, 256), (170, 160, 120), (140, 130, 95), checks=8, dots=70)
+        wall_tex = make_texture(rng_tex, (256, 512), (150, 120, 120), (120, 95, 100), checks=6, dots=120)
+        materials, textures = (
+            (Material(texture="ground"), Material(texture="wall")),
+            {"ground": ground_tex, "wall": wall_tex},
+        )
+    else:
+        materials, textures = (Material(srgb=plain_colours[0]), Material(srgb=plain_colours[1])), {}
+    ground = Part(0, "ground", (Quad((4.5, 4.0), pose=translate(0.0, 2.5, 0.0), uv_tiles=(9.0, 8.0)),), materials[0])
+    wall = Part(
+        0,
+        "wall",
+        (Quad((4.5, 1.8), pose=translate(0.0, 5.5, 1.8) @ rot_x(math.pi / 2), uv_tiles=(3.0, 1.2)),),
+        materials[1],
+    )
+    return (ground, wall), textures
+
+
+def _plain_colours(rng_tex) -> Tuple[Tuple[int, int, int], Tuple[int, int, int]]:
+    """Flat (ground, wall) sRGB colours: a light ground and a wall of another hue."""
+    ground = tuple(int(v) for v in rng_tex.uniform(150, 215, size=3))
+    wall = tuple(int(v) for v in rng_tex.uniform(110, 200, size=3))
+    return ground, wall
+
+
+def _lighting(rng_light) -> Lighting:
+    azimuth = rng_light.uniform(0.0, 2.0 * math.pi)
+    elevation = math.radians(rng_light.uniform(50.0, 65.0))
+    toward_sun = np.array(
+        [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
+    )
+    return Lighting(tuple(float(v) for v in -toward_sun), sun_irradiance=1.9, ambient_radiance=0.38)
+
+
+def _check_counts(num_views: int, num_eval_views: int):
+    if num_views < 1:
+        raise ValueError(f"num_views must be at least 1 (got {num_views})")
+    if num_eval_views < 0:
+        raise ValueError(f"num_eval_views must be 0 or more (got {num_eval_views})")
+
+
+def _pick_kinds(rng, count: int, allowed: Sequence[str]) -> List[str]:
+    kinds = list(rng.permutation(allowed))
+    while len(kinds) < count:
+        kinds.append(allowed[int(rng.integers(len(allowed)))])
+    return kinds[:count]
