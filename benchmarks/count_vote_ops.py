@@ -59,6 +59,7 @@ SYNC_OPS = {
 # Tensor methods that read device values without an aten op on CPU.
 SYNC_METHODS = {"tolist", "numpy", "cpu", "__array__"}
 # Phase of an op by the innermost of these core/vote_render.py functions on the stack.
+# ("checks" also holds the lookup of each pixel's tile run, _pixel_runs, which the walk needs.)
 CHECK_FUNCTIONS = {
     "_validate_inputs",
     "_validate_tiles",
@@ -68,10 +69,9 @@ CHECK_FUNCTIONS = {
     "_raise_unless",
     "_pixel_runs",
     "_use_kernel",
-    "_check_inputs",
-    "_check_tiles",
-    "_check_losses",
-    "_input_checks",
+    "_requested_backend",
+    "_check_render_inputs",
+    "_check_loss_inputs",
 }
 WALK_FUNCTIONS = {"_tiled_members", "_run_entries"}
 FINISH_FUNCTIONS = {"_finish"}
