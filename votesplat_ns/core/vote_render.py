@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Dict, NamedTuple, Optional, Tuple
+from typing import Any, Dict, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -283,8 +283,9 @@ def render_votes_tiled(
         chunk: Gaussians gathered per pixel per step of the walk. None (the
             default): about ``AUTO_PAIRS_PER_STEP`` pixel-Gaussian pairs per
             step (``AUTO_PAIRS_PER_STEP_CPU`` on CPU), at least
-            ``AUTO_MIN_CHUNK``. Never wider than the longest run among the
-            pixels' tiles. The Triton kernels (``options.backend``) ignore it.
+            ``AUTO_MIN_CHUNK``. Never wider than ``flatten_ids`` (the longest
+            run is not known before the walk: reading it would cost a host
+            synchronisation). The Triton kernels (``options.backend``) ignore it.
 
     A pixel at continuous position (x, y) reads tile (floor(x / tile_size),
     floor(y / tile_size)); positions outside the tile grid get count 0.
@@ -310,11 +311,15 @@ def render_votes_tiled(
     runs are. Values and gradients match ``render_votes_reference`` whenever
     each tile's run holds every Gaussian whose alpha can reach 1/255 in it.
 
-    Host synchronisations: one read for the input checks and the longest run
-    among the pixels' tiles (which fixes the number of steps), one read per
-    step but the last for the termination test (with the default ``chunk``
-    on a GPU a walk usually takes one step), and one for the table width
-    max |M| (none when a termination read already gave it).
+    Host synchronisations: one per step of the walk: each step's read gives
+    the termination test (no open pixel has entries left) and the table width
+    max |M|, the first also the input checks (finite votes and pixel_xy, ids
+    and offsets in range), so bad inputs still raise before anything is
+    returned. With the default ``chunk`` on a GPU a walk usually takes one
+    step, so the pass (forward and backward) reads the host once. Until that
+    read the walk clamps positions and ids into range, so bad lists cannot
+    make it index out of bounds. (The Triton kernels read once, before their
+    launch: the checks and the longest run.)
     Unused table slots hold real Gaussian ids from the pixel's own run with
     zero weight, so the gathers have fixed shapes (no nonzero) and their
     backward (an atomic index_add) does not pile the padding onto one row.
@@ -323,32 +328,36 @@ def render_votes_tiled(
     n, p, levels = _validate_inputs(means2d, conics, opacities, depths, votes, viewmat, K, pixel_xy)
     offsets, tiles_high, tiles_wide = _validate_tiles(isect_offsets, flatten_ids, tile_size, chunk, votes.device)
     n_isects = flatten_ids.numel()
+    # Device values the input checks need, read with the walk's first host read instead of a read of their own.
+    pending = {"finite": _all_finite(votes, pixel_xy)}
+    if n_isects > 0:
+        pending["ids_low"], pending["ids_high"] = torch.aminmax(flatten_ids)
+    if offsets.numel() > 0:
+        pending["offsets_low"], pending["offsets_high"] = torch.aminmax(offsets)
+    if n == 0 or p == 0 or n_isects == 0 or offsets.numel() == 0:
+        _check_render_inputs(_read_host(pending), n, n_isects, votes, pixel_xy)
+        return _empty_render(p, votes, viewmat, K, options)
     run_start, run_end = _pixel_runs(pixel_xy.detach(), offsets, tiles_high, tiles_wide, tile_size, n_isects)
 
-    checks = _finiteness_checks(votes, pixel_xy)
-    values = {}
-    if n_isects > 0:
-        values["ids_low"], values["ids_high"] = torch.aminmax(flatten_ids)
-    if offsets.numel() > 0:
-        values["offsets_low"], values["offsets_high"] = torch.aminmax(offsets)
-    if p > 0:
-        values["longest"] = (run_end - run_start).max()
-    host = _read_host({**checks, **values})
-    _raise_unless({message: host[message] for message in checks})
-    if n_isects > 0 and (host["ids_low"] < 0 or host["ids_high"] >= n):
-        raise ValueError(
-            f"flatten_ids must index the N = {n} Gaussians of one camera, got ids in "
-            f"[{host['ids_low']}, {host['ids_high']}]; build the lists with C = 1 and packed = False"
-        )
-    if offsets.numel() > 0 and (host["offsets_low"] < 0 or host["offsets_high"] > n_isects):
-        raise ValueError("isect_offsets point outside flatten_ids; pass the offsets and ids of the same camera")
-    longest = host.get("longest", 0)
-    if n == 0 or longest <= 0:
-        return _empty_render(p, votes, viewmat, K, options)
-
-    if _use_kernel(options, votes, pixel_xy):
+    if _requested_backend(options) == "triton":
+        pending["longest"] = (run_end - run_start).max()
+        host = _read_host(pending)
+        _check_render_inputs(host, n, n_isects, votes, pixel_xy)
+        if host["longest"] <= 0:
+            return _empty_render(p, votes, viewmat, K, options)
+        _use_kernel(options, votes, pixel_xy)  # raises where the kernels cannot run
         return _render_with_kernel(
-            means2d, conics, opacities, votes, viewmat, K, pixel_xy, run_start, run_end, flatten_ids, options
+            means2d,
+            conics,
+            opacities,
+            votes,
+            viewmat,
+            K,
+            pixel_xy,
+            run_start.long(),
+            run_end.long(),
+            flatten_ids,
+            options,
         )
     if chunk is None:
         pairs = AUTO_PAIRS_PER_STEP_CPU if votes.device.type == "cpu" else AUTO_PAIRS_PER_STEP
@@ -356,46 +365,71 @@ def render_votes_tiled(
     geometry = _geometry_table(means2d, conics, opacities, options)
     threshold = _vote_threshold(options)
     with torch.no_grad():
+        # No run is longer than the list: walking up to n_isects entries is exact, and the walk stops at
+        # its first read once no open pixel has entries left, so the bound costs no read of its own.
         member_ids, count = _tiled_members(
             geometry.detach(),
             pixel_xy.detach(),
             run_start,
             run_end,
             flatten_ids,
-            min(chunk, longest),
-            longest,
+            min(chunk, n_isects),
+            n_isects,
             threshold,
             options.alpha_max,
+            host=pending,
         )
+    _check_render_inputs(pending, n, n_isects, votes, pixel_xy)
     capacity = member_ids.shape[1]
     if capacity == 0:
         return _empty_render(p, votes, viewmat, K, options)
     viewmat_, K_ = _camera(viewmat, K, options)
     vote_table = _vote_table(votes.reshape(n, levels, 3), viewmat_, K_, options)
-    flat_ids = member_ids.reshape(-1)
-    member_votes = vote_table.index_select(0, flat_ids).view(p, capacity, levels, -1)
+    # indexed with the [P, max |M|] table itself: a flat index would copy the (strided) table first
+    member_votes = vote_table[member_ids]
     filled = torch.arange(capacity, device=count.device) < count[:, None]
+    n_members = count.to(votes.dtype)
     if options.weighting == "alpha_t":
-        rows = geometry.index_select(0, flat_ids).view(p, capacity, -1)
+        rows = geometry[member_ids]
         alpha, _ = _alpha(rows[..., 0:2], rows[..., 2:5], rows[..., 5], pixel_xy[:, None, :], options.alpha_max)
         alpha = torch.where(filled, alpha, 0.0)
         weights = alpha * _transmittance_in_front(alpha)
         weight_sum = weights.sum(dim=1)
     else:
         weights = filled.to(votes.dtype)
-        weight_sum = count.to(votes.dtype)
+        weight_sum = n_members
     value_sum = (weights[:, :, None, None] * member_votes[..., :-1]).sum(dim=1)
-    distortion = _distortion(member_votes[..., -1], filled, count, value_sum, options, K_)
+    distortion = _distortion(member_votes[..., -1], filled, count, value_sum, options, K_, n_members, True)
     return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options, votes.ndim == 2)
 
 
-def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
-    """Whether render_votes_tiled runs the Triton kernels (see VoteRenderOptions.backend)."""
+def _check_render_inputs(host: Dict[str, Any], n: int, n_isects: int, votes: Tensor, pixel_xy: Tensor) -> None:
+    """Raise the input errors of render_votes_tiled from the host values of its pending checks."""
+    if not host["finite"]:
+        # which of the two (more reads, on the error path only)
+        _raise_unless(_read_host(_finiteness_checks(votes, pixel_xy)))
+    if n_isects > 0 and (host["ids_low"] < 0 or host["ids_high"] >= n):
+        raise ValueError(
+            f"flatten_ids must index the N = {n} Gaussians of one camera, got ids in "
+            f"[{host['ids_low']}, {host['ids_high']}]; build the lists with C = 1 and packed = False"
+        )
+    if "offsets_low" in host and (host["offsets_low"] < 0 or host["offsets_high"] > n_isects):
+        raise ValueError("isect_offsets point outside flatten_ids; pass the offsets and ids of the same camera")
+
+
+def _requested_backend(options: VoteRenderOptions) -> str:
+    """options.backend with "auto" resolved through VOTESPLAT_VOTE_BACKEND ("auto" when unset)."""
     backend = options.backend
     if backend == "auto":
         backend = os.environ.get(BACKEND_ENV, "auto") or "auto"
         if backend not in _BACKENDS:
             raise ValueError(f"{BACKEND_ENV} must be one of {_BACKENDS}, got {backend!r}")
+    return backend
+
+
+def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
+    """Whether render_votes_tiled runs the Triton kernels (see VoteRenderOptions.backend)."""
+    backend = _requested_backend(options)
     if backend == "torch":
         return False
     from votesplat_ns.core import vote_kernel
@@ -475,57 +509,83 @@ def _tiled_members(
     threshold: float,
     alpha_max: float,
     early_exit: bool = True,
+    host: Optional[Dict[str, Any]] = None,
 ) -> Tuple[Tensor, Tensor]:
     """Voting sets from the tile lists: ([P, max |M|] Gaussian ids, [P] |M|).
 
     Walks ``width`` entries of every pixel's run per step, at most
-    ceil(longest / width) steps. With ``early_exit`` the walk stops as soon as
-    no open pixel has entries left (one host read per step but the last);
-    without, it always takes every step (no read until the end), which gives
-    the same result. Slots past a pixel's |M| hold ids from its own run.
+    ceil(longest / width) steps (``longest``: a bound on the run lengths).
+    With ``early_exit`` the walk stops as soon as no open pixel has entries
+    left (one host read per step but the last); without, it always takes
+    every step (no read until the end), which gives the same result. Slots
+    past a pixel's |M| hold ids from its own run. ``host``: 0-d device values
+    to read along with the first host read; their entries are replaced by
+    the host values. The lists are not trusted before that read: positions
+    and ids are clamped into range, so bad lists give wrong sets, not a crash,
+    and the caller raises on the values read.
     """
     p, device = pixel_xy.shape[0], pixel_xy.device
     last_entry = flatten_ids.numel() - 1
+    last_id = geometry.shape[0] - 1
     steps = -(-longest // width)
     # Below either transmittance no later Gaussian can join M (T only falls).
     open_above = max(threshold, COLOUR_STOP_T)
-    run_length = run_end - run_start
     first_position = run_start[:, None] + torch.arange(width, device=device)
-    count = torch.zeros(p, dtype=torch.long, device=device)
-    t_front = torch.ones(p, dtype=geometry.dtype, device=device)
+    pending = dict(host) if host else {}
+
+    def read(values: Dict[str, Tensor]) -> Dict[str, int]:
+        """One host read of ``values``, and of the pending ``host`` values the first time."""
+        if not pending:
+            return _read_host(values)
+        both = _read_host({**{("walk", k): v for k, v in values.items()}, **pending})
+        assert host is not None  # pending is a copy of it
+        host.update({k: both[k] for k in pending})
+        pending.clear()
+        return {k: both[("walk", k)] for k in values}
+
+    # table[:, 0] takes the non-members (dropped at the end); table[:, 1 + k] holds member k, or until a
+    # member is written there, entry k of the pixel's run (valid filler)
+    table = None
+    count = t_front = None
     capacity = width
-    table = _run_entries(run_start, flatten_ids, 0, capacity + 1)  # the last column takes non-members
     bound = 0  # an upper bound on max |M|, exact after each read
-    read = False
+    walked = False
     for step in range(steps):
         bound += width
-        if bound > capacity:
+        position = first_position if step == 0 else first_position + step * width
+        ids = flatten_ids[position.clamp(0, last_entry)].clamp(0, last_id)
+        if table is None:
+            table = torch.cat([ids[:, :1], ids], dim=1)
+        elif bound > capacity:
             grown = max(bound, 2 * capacity)
-            table = torch.cat([table[:, :capacity], _run_entries(run_start, flatten_ids, capacity, grown + 1)], dim=1)
+            table = torch.cat([table, _run_entries(run_start, flatten_ids, capacity, grown)], dim=1)
             capacity = grown
-        position = first_position + step * width
-        ids = flatten_ids[position.clamp(max=last_entry)]
         rows = geometry.index_select(0, ids.view(-1)).view(p, width, -1)
         alpha, visible = _alpha(rows[..., 0:2], rows[..., 2:5], rows[..., 5], pixel_xy[:, None, :], alpha_max)
         member, _, t_front = _walk(alpha, visible & (position < run_end[:, None]), t_front, threshold)
-        rank = torch.cumsum(member, dim=1)
-        table.scatter_(1, torch.where(member, rank + (count - 1)[:, None], capacity), ids)
-        count = count + rank[:, -1]
-        read = early_exit and step + 1 < steps
-        if read:
-            open_run = torch.where(t_front > open_above, run_length, 0).max()
-            bound, open_longest = torch.stack([count.max(), open_run]).tolist()
-            if open_longest <= (step + 1) * width:
+        # slot of each member: |M| so far + its rank in this step (1-based, past the non-member column)
+        slot = torch.cumsum(member, dim=1)
+        if count is not None:
+            slot = slot + count[:, None]
+        count = slot[:, -1]
+        table.scatter_(1, slot * member, ids)
+        walked = early_exit and step + 1 < steps
+        if walked:
+            open_run = torch.where(t_front > open_above, run_end - run_start, 0).max()
+            values = read({"bound": count.max(), "open": open_run})
+            bound = values["bound"]
+            if values["open"] <= (step + 1) * width:
                 break
-    if not read:
-        bound = int(count.max())
-    return table[:, :bound], count
+    assert table is not None and count is not None  # steps >= 1: the caller walks non-empty runs only
+    if not walked:
+        bound = read({"bound": count.max()})["bound"]
+    return table[:, 1 : bound + 1], count
 
 
 def _run_entries(run_start: Tensor, flatten_ids: Tensor, begin: int, end: int) -> Tensor:
     """Ids at positions begin..end-1 of each pixel's run (clamped to the list): valid filler for unused slots."""
     position = run_start[:, None] + torch.arange(begin, end, device=run_start.device)
-    return flatten_ids[position.clamp(max=max(flatten_ids.numel() - 1, 0))]
+    return flatten_ids[position.clamp(0, max(flatten_ids.numel() - 1, 0))]
 
 
 def vote_losses(
@@ -533,6 +593,7 @@ def vote_losses(
     target_xy: Tensor,
     valid: Tensor,
     options: Optional[VoteRenderOptions] = None,
+    check_inputs: bool = True,
 ) -> Dict[str, Tensor]:
     """Vote loss (paper Eq. 10) and depth regulariser (Eq. 12), both unweighted.
 
@@ -544,6 +605,11 @@ def vote_losses(
             anything, NaN included.
         valid [P] (or [P,L]) bool: the pixel carries a 2D vote (at that level).
         options: only ``distortion == "none"`` matters here (zero regulariser).
+        check_inputs: raise a ValueError when ``target_xy`` is not finite at a
+            used pixel or the render holds NaN or inf (one host read). A caller
+            whose targets are finite at valid pixels by construction and whose
+            votes ``render_votes_*`` has checked may skip it: the loss is then
+            NaN where these checks would have raised.
 
     Returns {"vote": mean over used pixels of |dx| + |dy| (the l1 norm),
     "distortion": mean of render.distortion over the same pixels}, where the
@@ -572,6 +638,28 @@ def vote_losses(
     distortion = render.distortion.reshape(p, levels)
     used = valid.reshape(p, levels) & (render.count > 0)[:, None]
     target = torch.where(used[..., None], target_xy.reshape(p, levels, 2).to(projected.dtype), 0.0)
+    if check_inputs:
+        _check_loss_inputs(target, projected, distortion)
+    mask = used.to(projected.dtype)
+    denominator = mask.sum(dim=0).clamp_min(1.0)
+    error = (projected - target).abs().sum(dim=2)
+    # Unused entries are finite (targets are masked, the render is finite), so multiplying by the
+    # 0/1 mask gives what selecting them out would, in one op instead of two.
+    vote = (error * mask).sum(dim=0) / denominator
+    if options.distortion == "none":
+        distortion = vote * 0.0
+    else:
+        distortion = (distortion * mask).sum(dim=0) / denominator
+    if single:
+        vote, distortion = vote[0], distortion[0]
+    return {"vote": vote, "distortion": distortion}
+
+
+def _check_loss_inputs(target: Tensor, projected: Tensor, distortion: Tensor) -> None:
+    """vote_losses' input errors, with one host read (the per-input reads only on the error path)."""
+    together = torch.cat([target.reshape(-1), projected.reshape(-1), distortion.reshape(-1)])
+    if _read_host({"finite": _all_finite(together)})["finite"]:
+        return
     _raise_unless(
         _read_host(
             {
@@ -584,16 +672,6 @@ def vote_losses(
             }
         )
     )
-    denominator = used.sum(dim=0).clamp_min(1).to(projected.dtype)
-    error = (projected - target).abs().sum(dim=2)
-    vote = torch.where(used, error, 0.0).sum(dim=0) / denominator
-    if options.distortion == "none":
-        distortion = vote * 0.0
-    else:
-        distortion = torch.where(used, distortion, 0.0).sum(dim=0) / denominator
-    if single:
-        vote, distortion = vote[0], distortion[0]
-    return {"vote": vote, "distortion": distortion}
 
 
 # ---------------------------------------------------------------------------
@@ -658,7 +736,7 @@ def _all_finite(*tensors: Tensor) -> Tensor:
     return total == 0.0
 
 
-def _read_host(values: Dict[str, Tensor]) -> Dict[str, int]:
+def _read_host(values: Dict[Any, Tensor]) -> Dict[Any, int]:
     """Several 0-d device values (bool or int) in one device-to-host copy: each separate read would be a sync."""
     if not values:
         return {}
@@ -688,7 +766,10 @@ def _validate_tiles(
     if int(tile_size) != tile_size or tile_size < 1 or (chunk is not None and (int(chunk) != chunk or chunk < 1)):
         raise ValueError(f"tile_size and chunk must be positive integers, got {tile_size!r} and {chunk!r}")
     tiles_high, tiles_wide = isect_offsets.shape
-    return isect_offsets.reshape(-1).long(), tiles_high, tiles_wide
+    offsets = isect_offsets.reshape(-1)
+    if offsets.dtype not in (torch.int32, torch.int64):  # gsplat's int32 serves as it is: no conversion op
+        offsets = offsets.long()
+    return offsets, tiles_high, tiles_wide
 
 
 def _pixel_runs(
@@ -698,10 +779,16 @@ def _pixel_runs(
     if offsets.numel() == 0:
         empty = torch.zeros(pixel_xy.shape[0], dtype=torch.long, device=pixel_xy.device)
         return empty, empty
-    tile_xy = torch.floor(pixel_xy / tile_size).long()
-    # Compared with Python ints: a tensor built from host values would cost a host-to-device copy and a sync.
-    in_grid = (tile_xy >= 0).all(dim=1) & (tile_xy[:, 0] < tiles_wide) & (tile_xy[:, 1] < tiles_high)
-    tile_id = torch.where(in_grid, tile_xy[:, 1] * tiles_wide + tile_xy[:, 0], 0)
+    tile = torch.floor(pixel_xy / tile_size)  # whole numbers, or NaN / inf
+    tile_x = tile[:, 0]
+    # The tile index in floating point: exact for whole numbers far beyond any tile grid.
+    index = torch.add(tile_x, tile[:, 1], alpha=tiles_wide)
+    # Clamped after the conversion, so any value (NaN, inf, out of the grid) gives a valid tile.
+    tile_id = index.long().clamp(0, tiles_high * tiles_wide - 1)
+    # In the grid: the column is in [0, tiles_wide) and the index in [0, tiles) (so the row is in
+    # [0, tiles_high)). Compared with Python ints: a tensor built from host values would cost a
+    # host-to-device copy and a sync.
+    in_grid = (tile_x.clamp(0, tiles_wide - 1) == tile_x) & (tile_id == index)
     run_start = offsets[tile_id]
     ends = torch.cat([offsets[1:], offsets.new_full((1,), n_isects)])
     return run_start, torch.where(in_grid, ends[tile_id], run_start)
@@ -770,8 +857,8 @@ def _alpha(
     return alpha, visible
 
 
-def _walk(alpha: Tensor, visible: Tensor, t_front: Tensor, threshold: float) -> Tuple[Tensor, Tensor, Tensor]:
-    """Front-to-back walk over a block [p, L] that starts at transmittance t_front [p].
+def _walk(alpha: Tensor, visible: Tensor, t_front: Optional[Tensor], threshold: float) -> Tuple[Tensor, Tensor, Tensor]:
+    """Front-to-back walk over a block [p, L] that starts at transmittance t_front [p] (None: 1).
 
     Returns (member [p,L], T in front of each pair [p,L], T after the block
     [p]). Transmittance never rises, so "composited" and "member" are plain
@@ -781,7 +868,11 @@ def _walk(alpha: Tensor, visible: Tensor, t_front: Tensor, threshold: float) -> 
     is what keeps every later pair out.
     """
     effective = torch.where(visible, alpha, 0.0)
-    t_after = t_front[:, None] * torch.cumprod(1.0 - effective, dim=1)
+    t_after = torch.cumprod(1.0 - effective, dim=1)
+    if t_front is None:  # multiplying by 1 is exact: skip it
+        t_front = torch.ones_like(t_after[:, 0])
+    else:
+        t_after = t_front[:, None] * t_after
     t_before = torch.cat([t_front[:, None], t_after[:, :-1]], dim=1)
     member = visible & (t_after > COLOUR_STOP_T) & (t_before > threshold)
     return member, t_before, t_after[:, -1]
@@ -800,35 +891,56 @@ def _weights(member: Tensor, alpha: Tensor, t_before: Tensor, options: VoteRende
 
 
 def _distortion(
-    z: Tensor, member: Tensor, count: Tensor, value_sum: Tensor, options: VoteRenderOptions, K: Tensor
+    z: Tensor,
+    member: Tensor,
+    count: Tensor,
+    value_sum: Tensor,
+    options: VoteRenderOptions,
+    K: Tensor,
+    n_members: Optional[Tensor] = None,
+    prefix: bool = False,
 ) -> Tensor:
-    """[p, L] spread of the member vote depths z [p, M, L] (member [p, M], count [p] = its row sums)."""
+    """[p, L] spread of the member vote depths z [p, M, L] (member [p, M], count [p] = its row sums).
+
+    n_members: ``count`` in z's dtype, if the caller has it. prefix: the members are the first
+    ``count`` slots of each row (the tiled table), so ``member`` is also the mask of the first
+    ``count`` sorted ranks.
+    """
+    if options.distortion == "none":
+        return value_sum[..., 0] * 0.0
+    if n_members is None:
+        n_members = count.to(z.dtype)
     if options.distortion == "l1":
-        return _pairwise_l1(z, member, count)
+        return _pairwise_l1(z, member, n_members, prefix)
     if options.distortion == "l1_pixels":
-        n = count.to(z.dtype)[:, None]
+        n = n_members[:, None]
         pairs = (n * (n - 1.0) / 2.0).clamp_min(1.0)
         with torch.no_grad():
             mean_z = torch.where(member[..., None], z, 0.0).sum(dim=1) / n.clamp_min(1.0)
             pixels_per_unit = torch.sqrt(K[0, 0] * K[1, 1]) / mean_z.clamp_min(options.vote_near_plane)
-        return _pairwise_l1(z, member, count) / pairs * pixels_per_unit
+        return _pairwise_l1(z, member, n_members, prefix) / pairs * pixels_per_unit
     if options.distortion == "squared":
         # sum over pairs of (z_i - z_j)^2 = n * sum_i (z_i - mean)^2
         mask = member.to(z.dtype)[..., None]
-        n = count.to(z.dtype)[:, None]
+        n = n_members[:, None]
         mean = (mask * z).sum(dim=1) / n.clamp_min(1.0)
         return n * (mask * (z - mean[:, None]) ** 2).sum(dim=1)
     return value_sum[..., 0] * 0.0
 
 
-def _pairwise_l1(z: Tensor, member: Tensor, count: Tensor) -> Tensor:
-    """Exact sum over member pairs i<j of |z_i - z_j| per row and level, via the sorted identity."""
-    ordered, _ = torch.sort(torch.where(member[..., None], z, float("inf")), dim=1)
-    rank = torch.arange(1, z.shape[1] + 1, device=z.device, dtype=z.dtype)
-    m = count.to(z.dtype)[:, None]
-    in_set = rank <= m
-    coefficient = torch.where(in_set, 2.0 * rank - m - 1.0, 0.0)
-    return (torch.where(in_set[..., None], ordered, 0.0) * coefficient[..., None]).sum(dim=1)
+def _pairwise_l1(z: Tensor, member: Tensor, n_members: Tensor, prefix: bool = False) -> Tensor:
+    """Exact sum over member pairs i<j of |z_i - z_j| per row and level, via the sorted identity
+    sum_k z_(k) (2k - m - 1) over the m members sorted (k from 1)."""
+    # Non-members sort last behind the largest finite value (not inf, so that their zero
+    # coefficient zeroes them without a mask: inf * 0 is NaN).
+    big = torch.finfo(z.dtype).max
+    ordered, _ = torch.sort(torch.where(member[..., None], z, big), dim=1)
+    m = n_members[:, None]
+    odd = torch.arange(1, 2 * z.shape[1], 2, device=z.device, dtype=z.dtype)  # 2k - 1
+    gap = odd - m  # 2k - 1 - m: exact small integers
+    in_set = member if prefix else gap < m  # k <= m
+    coefficient = gap * in_set
+    return (ordered * coefficient[..., None]).sum(dim=1)
 
 
 def _finish(
@@ -844,13 +956,18 @@ def _finish(
     """Normalise the [P, L, D] sums; empty pixels sum no weight, so their values and distortion are already 0."""
     has_votes = count > 0
     # Safe denominators: empty pixels divide by 1, so neither value nor gradient is NaN.
-    blended = value_sum / torch.where(has_votes, weight_sum, 1.0)[:, None, None]
+    if options.weighting == "uniform":  # weight_sum is |M|, a whole number: 0 becomes 1, the rest stay
+        denominator = weight_sum.clamp_min(1.0)
+    else:
+        denominator = torch.where(has_votes, weight_sum, 1.0)
+    blended = value_sum / denominator[:, None, None]
     mean_vote = blended[..., :3]
     if options.blend_space == "2d":
         projected = blended[..., 3:5]
     else:
         projected = project_to_pixels(mean_vote, viewmat, K, options.vote_near_plane)
-        projected = torch.where(has_votes[:, None, None], projected, 0.0)
+        # empty pixels project the finite origin: zero them with the mask (one op, no scalar tensor)
+        projected = projected * has_votes[:, None, None]
     if single_level:
         mean_vote, projected, distortion = mean_vote[:, 0], projected[:, 0], distortion[:, 0]
     return VoteRender(mean_vote=mean_vote, projected_vote=projected, count=count, distortion=distortion)

@@ -54,13 +54,16 @@ def _pixels_and_targets(
     pixel_labels = flat_labels[:, pixel_index].long()  # [L, P]
     level_index = torch.arange(flat_labels.shape[0], device=pixel_index.device)[:, None]
     target_xy = (centroids[level_index, pixel_labels] + 0.5) * scale  # [L, P, 2]
-    return pixel_xy, target_xy.transpose(0, 1), torch.isfinite(target_xy[..., 0]).transpose(0, 1)
+    # finite target <=> finite centroid: tested on the [L, K+1] table, then looked up per pixel
+    valid = torch.isfinite(centroids[..., 0])[level_index, pixel_labels]
+    return pixel_xy, target_xy.transpose(0, 1), valid.transpose(0, 1)
 
 
 def pixels_carrying_votes(flat_labels: torch.Tensor, centroids: torch.Tensor) -> torch.Tensor:
     """[H*W] bool: the pixel carries a 2D vote at some level (its mask there has a finite centroid)."""
     level_index = torch.arange(flat_labels.shape[0], device=flat_labels.device)[:, None]
-    return torch.isfinite(centroids[level_index, flat_labels.long(), 0]).any(dim=0)
+    # finiteness tested on the [L, K+1] table, then looked up per pixel (not on [L, H*W] gathered values)
+    return torch.isfinite(centroids[..., 0])[level_index, flat_labels.long()].any(dim=0)
 
 
 def vote_step_due(step: int, start: int, every: int) -> bool:
@@ -322,7 +325,7 @@ class VoteSplatModel(SplatfactoModel):
         scale = self._get_downscale_factor()
         camera.rescale_output_resolution(1 / scale)
         K = camera.get_intrinsics_matrices()[0].to(self.device)
-        width, height = int(camera.width.item()), int(camera.height.item())
+        width, height = torch.cat([camera.width.view(-1), camera.height.view(-1)]).tolist()  # one host read
         camera.rescale_output_resolution(scale)
         viewmat = get_viewmat(camera.camera_to_worlds.to(self.device))[0]
         self.info = project_for_votes(
@@ -376,14 +379,15 @@ class VoteSplatModel(SplatfactoModel):
         scale = 1.0 / self._get_downscale_factor()
         flat_labels = labels.reshape(labels.shape[0], -1)
         carries_vote = pixels_carrying_votes(flat_labels, centroids)
-        if not bool(carries_vote.any()):  # a view with no masks: no vote supervision here
-            # zero but connected to the offsets, so the backward stays valid
-            zero = self.gauss_params["vote_offsets"].sum() * 0.0
-            return zero, zero
-        # one pixel sample and one walk for all levels: membership depends only on geometry
-        pixel_index = torch.multinomial(carries_vote.float(), self.config.vote_pixels_per_step, replacement=True)
+        # One pixel sample and one walk for all levels: membership depends only on geometry. A view
+        # with no masks samples any pixels, none of which is valid: both losses are then 0 and still
+        # connected to the offsets, without reading on the host whether the view has a mask.
+        weights = torch.where(carries_vote.any(), carries_vote.float(), 1.0)
+        pixel_index = torch.multinomial(weights, self.config.vote_pixels_per_step, replacement=True)
         pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, scale)
-        losses = vote_losses(self.render_votes(pixel_xy), target_xy, valid, self.vote_options)
+        # Targets are finite wherever valid (valid is their finiteness) and render_votes_tiled checks the
+        # votes, so vote_losses' own input checks (a host read every step) would never fire.
+        losses = vote_losses(self.render_votes(pixel_xy), target_xy, valid, self.vote_options, check_inputs=False)
         return losses["vote"].sum(), losses["distortion"].sum()
 
     def render_votes(self, pixel_xy: torch.Tensor) -> VoteRender:
@@ -426,8 +430,10 @@ class VoteSplatModel(SplatfactoModel):
         return torch.stack(errors)
 
     def _vote_maps(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
-        labels = batch["vote_labels"].to(self.device)  # [L, H, W] at the datamanager's image resolution
-        centroids = batch["vote_centroids"].to(self.device)  # [L, K+1, 2] pixel-index coordinates
+        # [L, H, W] at the datamanager's image resolution; [L, K+1, 2] pixel-index coordinates.
+        # non_blocking: a copy from pinned host memory then does not wait for the GPU's queue.
+        labels = batch["vote_labels"].to(self.device, non_blocking=True)
+        centroids = batch["vote_centroids"].to(self.device, non_blocking=True)
         if labels.shape[0] != self.num_vote_levels:
             raise ValueError(
                 f"the vote maps have {labels.shape[0]} levels but the model has vote_levels={self.config.vote_levels}; "
