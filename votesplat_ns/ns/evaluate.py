@@ -86,7 +86,7 @@ def render_id_maps(
     Rendering at another size scales the intrinsics, which is exact in the continuous pixel frame.
     """
     keep = scene.finite()
-    means, quats, scales, opacities, _, _ = scene.gaussians(keep)
+    means, quats, scales, opacities = scene.gaussians(keep)[:4]
     ids = torch.as_tensor(np.asarray(gaussian_ids), device=means.device).long()[
         torch.as_tensor(keep, device=means.device)
     ]

@@ -355,7 +355,7 @@ def _write_picture(
 ) -> str:
     device = torch.device(device) if device is not None else torch.device("cpu")
     finite = params.finite()
-    means, quats, scales, opacities, _, _ = params.gaussians(finite, device)
+    means, quats, scales, opacities = params.gaussians(finite, device)[:4]
     instance_ids = torch.as_tensor(ids[finite], device=device)
     advance = task("rendering instance views", total=len(views))
     maps, images = [], []

@@ -82,7 +82,7 @@ class QueryScene:
         self.finite = finite
         self.means, self.quats, self.scales, self.opacities, self.colors, self.sh_degree = params.gaussians(
             finite, self.device
-        )
+        )[:6]
         self.ids = torch.as_tensor(level.ids[finite], dtype=torch.long, device=self.device)
         self._table: Optional[np.ndarray] = None
         self._id_maps: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
