@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from votesplat_ns.core.clustering import cluster_votes_detailed  # noqa: E402
+from votesplat_ns.core.clustering import ClusteringOptions, cluster_votes_detailed  # noqa: E402
 from votesplat_ns.core.ply_io import write_gaussian_ply  # noqa: E402
 from votesplat_ns.ns.export import export_instances  # noqa: E402
 
@@ -120,7 +120,11 @@ def bench_export(size: int, num_instances: int, max_points: int) -> dict:
         ply_mb = (Path(folder) / "scene.ply").stat().st_size / 2**20
         wall, cpu = time.perf_counter(), time.process_time()
         manifest = export_instances(
-            params, Path(folder) / "export", level_names=("instance", "part"), max_points=max_points, progress=False
+            params,
+            Path(folder) / "export",
+            level_names=("instance", "part"),
+            clustering=ClusteringOptions(max_points=max_points),
+            progress=False,
         )
         export_wall, export_cpu = time.perf_counter() - wall, time.process_time() - cpu
     return {

@@ -19,6 +19,7 @@ from test_instances import brute_force_rasterize  # noqa: E402  (tests/ is on sy
 import votesplat_ns.ns.export as export_module
 import votesplat_ns.ns.instance_export as instance_export_module
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.core.clustering import ClusteringOptions
 from votesplat_ns.core.instances import InstanceSet
 from votesplat_ns.core.ply_io import read_gaussian_ply, read_ply_header
 from votesplat_ns.core.scene import TrainedScene
@@ -244,7 +245,7 @@ def splatfacto_params():
             {},
             "no foreground Gaussians at vote level 'instance'",
         ),
-        (lambda: vote_scene()[0], {"min_cluster_size": 5000}, "was labelled noise"),
+        (lambda: vote_scene()[0], {"clustering": ClusteringOptions(min_cluster_size=5000)}, "was labelled noise"),
         (lambda: vote_scene()[0], {"remove": [9]}, r"cannot remove instances \[9\]"),
         (lambda: vote_scene()[0], {"level": "object"}, "unknown vote level 'object'"),
         (lambda: vote_scene()[0], {"level_names": ("instance",)}, "2 vote levels but 1 level names"),
@@ -522,3 +523,18 @@ def test_votesplat_export_console_script():
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert "--load-config" in result.stdout and "--remove" in result.stdout
+
+
+def test_the_export_commands_clustering_flags_reach_cluster_levels():
+    flags = dict(
+        min_cluster_size=7,
+        min_samples=2,
+        max_points=100,
+        noise="drop",
+        noise_radius=0.1,
+        cluster_selection_epsilon=0.2,
+        seed=3,
+    )
+    command = ExportVoteSplatInstances(load_config=Path("config.yml"), output_dir=Path("out"), **flags)
+    assert command.clustering() == ClusteringOptions(**flags)
+    assert command.clustering().kwargs() == dict(flags, coarse_to_fine=True)

@@ -63,7 +63,7 @@ def two_objects():
 
 def pipeline_with_true_masks(scene, truth, cameras):
     """A stand-in for a loaded run's pipeline whose datamanager serves the true masks."""
-    means, quats, scales, opacities, _, _ = scene.gaussians(scene.finite())
+    means, quats, scales, opacities = scene.gaussians(scene.finite())[:4]
     labels = []
     for i in range(VIEWS):
         view = camera_view(cameras, i)

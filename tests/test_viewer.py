@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.instances import InstanceSet, LevelInstances, instance_colors, render_instance_ids
 from votesplat_ns.core.ply_io import read_gaussian_ply
+from votesplat_ns.core.scene import Gaussians
 from votesplat_ns.ns.rasterizer import rasterize
 from votesplat_ns.ns.viewer_render import (
     DISPLAY_ALL,
@@ -30,7 +31,7 @@ from votesplat_ns.ns.viewer_render import (
     UNSELECTED_OPACITY,
     VIEWER_OUTPUTS,
     VOTE_BACKGROUND_GREY,
-    SplatScene,
+    ViewerScene,
     overlay_instances,
     render_rgb,
     render_vote_picture,
@@ -107,25 +108,27 @@ def make_scene(seed: int = 0):
     n = means.shape[0]
     support = torch.cat([torch.full((3 * GROUP_SIZE, 2), 5.0), torch.zeros(NUM_BACKGROUND, 2)])
     scales = torch.cat([torch.full((3 * GROUP_SIZE, 3), 0.12), torch.full((NUM_BACKGROUND, 3), 0.5)])
-    scene = SplatScene(
+    gaussians = Gaussians(
         means=means,
         quats=F.normalize(torch.randn(n, 4, generator=generator), dim=-1),
         scales=scales * (0.8 + 0.4 * torch.rand(n, 3, generator=generator)),
         opacities=0.6 + 0.39 * torch.rand(n, generator=generator),
         colors=torch.cat(colours),
         sh_degree=None,
-        background=torch.tensor([0.05, 0.05, 0.05]),
         vote_offsets=torch.cat(offsets),
         vote_support=support,
     )
+    scene = ViewerScene(gaussians, background=torch.tensor([0.05, 0.05, 0.05]))
     return scene, torch.cat(ids).long(), torch.cat(part_ids).long()
 
 
-def known_instances(scene: SplatScene, ids: torch.Tensor, part_ids: torch.Tensor) -> InstanceSet:
-    votes = (scene.means + scene.vote_offsets[:, 0]).numpy()
+def known_instances(scene: ViewerScene, ids: torch.Tensor, part_ids: torch.Tensor) -> InstanceSet:
+    votes = (scene.gaussians.means + scene.gaussians.vote_offsets[:, 0]).numpy()
     levels = [
-        LevelInstances.from_ids("instance", ids.numpy(), (ids >= 0).numpy(), scene.means.numpy(), votes),
-        LevelInstances.from_ids("part", part_ids.numpy(), (part_ids >= 0).numpy(), scene.means.numpy(), votes),
+        LevelInstances.from_ids("instance", ids.numpy(), (ids >= 0).numpy(), scene.gaussians.means.numpy(), votes),
+        LevelInstances.from_ids(
+            "part", part_ids.numpy(), (part_ids >= 0).numpy(), scene.gaussians.means.numpy(), votes
+        ),
     ]
     return InstanceSet(levels=levels, num_gaussians=scene.num_gaussians)
 
@@ -153,13 +156,13 @@ def palette(instance_map: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(instance_colors(instance_map.numpy())).float() / 255.0
 
 
-def direct_id_map(scene: SplatScene, view: PinholeView, ids: torch.Tensor) -> torch.Tensor:
+def direct_id_map(scene: ViewerScene, view: PinholeView, ids: torch.Tensor) -> torch.Tensor:
     return render_instance_ids(
         rasterize,
-        scene.means,
-        scene.quats,
-        scene.scales,
-        scene.opacities,
+        scene.gaussians.means,
+        scene.gaussians.quats,
+        scene.gaussians.scales,
+        scene.gaussians.opacities,
         ids,
         view.viewmat,
         view.K,
@@ -280,7 +283,7 @@ def test_isolate_and_hide_change_which_gaussians_are_rendered(scene_and_ids, fro
 def test_crop_limits_the_rendered_gaussians(scene_and_ids, front, state):
     scene, ids, _ = scene_and_ids
     view, base, _ = front
-    crop = scene.means[:, 0] < 0.45  # keeps instance 0 and 1, drops instance 2 and part of the wall
+    crop = scene.gaussians.means[:, 0] < 0.45  # keeps instance 0 and 1, drops instance 2 and part of the wall
     state.select(0)
     state.set_display(DISPLAY_HIDE)
     outputs = state.render_outputs(scene, view, base, wanted=set(), crop=crop)
@@ -312,14 +315,16 @@ def test_votes_output_shows_each_instance_in_its_vote_colour(scene_and_ids, fron
     picture = state.render_outputs(scene, view, base, wanted={OUTPUT_VOTES})[OUTPUT_VOTES]
     assert state.cluster_calls == 0  # the votes picture needs no clustering
     assert torch.equal(picture, render_vote_picture(scene, view, 0))
-    colours = vote_colours(scene.means + scene.vote_offsets[:, 0], scene.vote_support[:, 0] > 0)
+    colours = vote_colours(
+        scene.gaussians.means + scene.gaussians.vote_offsets[:, 0], scene.gaussians.vote_support[:, 0] > 0
+    )
     # Where one instance covers a pixel almost alone, the picture shows that instance's vote colour.
     one_hot = F.one_hot(ids.clamp(min=0), 3).float() * (ids >= 0)[:, None]
     weights, _, _ = rasterize(
-        scene.means,
-        scene.quats,
-        scene.scales,
-        scene.opacities,
+        scene.gaussians.means,
+        scene.gaussians.quats,
+        scene.gaussians.scales,
+        scene.gaussians.opacities,
         one_hot,
         view.viewmat[None],
         view.K[None],
@@ -385,7 +390,7 @@ def test_level_switch_uses_that_levels_ids_and_clears_the_selection(scene_and_id
 def test_no_votes_shows_a_status_instead_of_failing(scene_and_ids, front):
     scene, _, _ = scene_and_ids
     view, base, _ = front
-    plain = SplatScene(scene.means, scene.quats, scene.scales, scene.opacities, scene.colors, None, scene.background)
+    plain = ViewerScene(scene.gaussians._replace(vote_offsets=None, vote_support=None), scene.background)
     state = InstanceViewerState(("instance",))
     outputs = state.render_outputs(plain, view, base, wanted={OUTPUT_OVERLAY, OUTPUT_VOTES})
     assert outputs[OUTPUT_OVERLAY] is base["rgb"] and outputs[OUTPUT_VOTES] is base["rgb"]
@@ -458,12 +463,12 @@ def test_export_selected_writes_the_instance_ply(tmp_path, scene_and_ids, front,
     scene, ids, _ = scene_and_ids
     n = scene.num_gaussians
     params = {
-        "means": scene.means,
+        "means": scene.gaussians.means,
         "features_dc": torch.randn(n, 3),
         "features_rest": torch.randn(n, 3, 3),
-        "opacities": torch.logit(scene.opacities)[:, None],
-        "scales": torch.log(scene.scales),
-        "quats": scene.quats,
+        "opacities": torch.logit(scene.gaussians.opacities)[:, None],
+        "scales": torch.log(scene.gaussians.scales),
+        "quats": scene.gaussians.quats,
     }
     with pytest.raises(ValueError, match="nothing selected"):
         state.export_selected(params, tmp_path)
@@ -473,7 +478,7 @@ def test_export_selected_writes_the_instance_ply(tmp_path, scene_and_ids, front,
     state.select(2)
     path = state.export_selected(params, tmp_path / "out")
     written = read_gaussian_ply(path)
-    np.testing.assert_array_equal(written["means"], scene.means[ids == 2].numpy())
+    np.testing.assert_array_equal(written["means"], scene.gaussians.means[ids == 2].numpy())
     np.testing.assert_allclose(written["features_rest"], params["features_rest"][ids == 2].numpy())
     assert not list((tmp_path / "out").glob("*.tmp"))
     with pytest.raises(ValueError, match="Compute instances"):
@@ -548,7 +553,7 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
     )
     scene, ids, part_ids = scene_and_ids
     torch.manual_seed(0)
-    points = scene.means.clone()
+    points = scene.gaussians.means.clone()
     model = VoteSplatModelConfig(sh_degree=1, background_color="black", vote_levels=("instance", "part")).setup(
         scene_box=SceneBox(aabb=torch.tensor([[-4.0, -4.0, 0.0], [4.0, 4.0, 8.0]])),
         num_train_data=2,
@@ -556,8 +561,8 @@ def test_glue_on_a_votesplat_model(scene_and_ids, monkeypatch):
     )
     model.eval()
     with torch.no_grad():
-        model.gauss_params["vote_offsets"].copy_(scene.vote_offsets)
-        model.gauss_params["vote_support"].copy_(scene.vote_support)
+        model.gauss_params["vote_offsets"].copy_(scene.gaussians.vote_offsets)
+        model.gauss_params["vote_support"].copy_(scene.gaussians.vote_support)
         model.gauss_params["opacities"].fill_(1.0)
     viewer_state = VoteSplatViewerState(model)
     model.viewer_state = viewer_state

@@ -244,28 +244,12 @@ def cluster_votes_detailed(
     return VoteClustering(labels=labels, params=params)
 
 
-def cluster_votes(
-    votes,
-    min_cluster_size: Optional[int] = None,
-    min_samples: Optional[int] = None,
-    max_points: int = DEFAULT_MAX_POINTS,
-    seed: int = 0,
-    noise: NoiseRule = "nearest",
-    **kwargs,
-) -> np.ndarray:
+def cluster_votes(votes, **options: Any) -> np.ndarray:
     """Cluster 3D votes [M, 3]; returns labels [M] int64 (0..K-1 by decreasing size, -1 noise).
 
-    See ``cluster_votes_detailed`` for the parameters and the module docstring for the rules.
+    ``options`` are those of ``cluster_votes_detailed`` (the parameters; the module docstring has the rules).
     """
-    return cluster_votes_detailed(
-        votes,
-        min_cluster_size=min_cluster_size,
-        min_samples=min_samples,
-        max_points=max_points,
-        seed=seed,
-        noise=noise,
-        **kwargs,
-    ).labels
+    return cluster_votes_detailed(votes, **options).labels
 
 
 def typical_spacing(points: np.ndarray, neighbours: int = DEFAULT_FILL_NEIGHBOURS) -> float:
@@ -382,6 +366,29 @@ def background_mask(vote_support, level: int) -> np.ndarray:
     if not np.isfinite(column).all():
         raise ValueError("vote_support contains NaN/Inf; the checkpoint is corrupt, re-export from a finite model")
     return ~(column > 0)
+
+
+@dataclass(frozen=True)
+class ClusteringOptions:
+    """The HDBSCAN settings a command sets for :func:`cluster_levels` (export, query, click); the defaults are its own.
+
+    ``min_cluster_size`` and ``min_samples`` are in votes (None: scaled defaults), ``max_points`` the
+    most votes HDBSCAN clusters, ``seed`` its subsample, ``noise``/``noise_radius`` the noise rule,
+    ``cluster_selection_epsilon`` HDBSCAN's merge distance; see :func:`cluster_votes_detailed`.
+    """
+
+    min_cluster_size: Optional[int] = None
+    min_samples: Optional[int] = None
+    max_points: int = DEFAULT_MAX_POINTS
+    seed: int = 0
+    noise: NoiseRule = "nearest"
+    noise_radius: Optional[float] = None
+    cluster_selection_epsilon: float = 0.0
+    coarse_to_fine: bool = True
+
+    def kwargs(self) -> Dict[str, Any]:
+        """The settings as :func:`cluster_levels` keyword arguments."""
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
 
 
 def cluster_levels(

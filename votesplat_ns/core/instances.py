@@ -21,12 +21,16 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
 
 from votesplat_ns.core.ply_io import atomic_write, jsonable
+
+if TYPE_CHECKING:
+    from votesplat_ns.core.cameras import PinholeView
+    from votesplat_ns.core.scene import TrainedScene
 
 MANIFEST_NAME = "instances.json"
 IDS_NAME = "instance_ids.npz"
@@ -395,6 +399,52 @@ def render_instance_ids(
         best_weight = torch.where(better, weight, best_weight)
         best_id = torch.where(better, unique[start + channel], best_id)
     return torch.where(best_weight >= min_weight, best_id, torch.full_like(best_id, -1))
+
+
+def render_id_maps(
+    scene: "TrainedScene",
+    gaussian_ids,
+    views: Sequence["PinholeView"],
+    rasterize_fn: RasterizeFn,
+    out_sizes: Optional[Sequence[Tuple[int, int]]] = None,
+    min_weight: float = 0.5,
+    device: Union[str, torch.device, None] = None,
+    on_view: Optional[Callable[[], Any]] = None,
+) -> List[np.ndarray]:
+    """Instance-id map per view (int64, -1 = none) of a scene's finite Gaussians, rendered at ``out_sizes`` (H, W) if given.
+
+    ``gaussian_ids`` [N] per Gaussian of ``scene``; ``device`` defaults to the scene's; ``on_view`` is
+    called after each view (progress). Rendering at another size scales the intrinsics, which is
+    exact in the continuous pixel frame.
+    """
+    keep = scene.finite()
+    means, quats, scales, opacities = scene.gaussians(keep, device)[:4]
+    ids = torch.as_tensor(np.asarray(gaussian_ids), device=means.device).long()[
+        torch.as_tensor(keep, device=means.device)
+    ]
+    maps = []
+    for index, view in enumerate(views):
+        height, width = out_sizes[index] if out_sizes is not None else (view.height, view.width)
+        K = view.K.clone().float()
+        K[0] *= width / view.width
+        K[1] *= height / view.height
+        id_map = render_instance_ids(
+            rasterize_fn,
+            means,
+            quats,
+            scales,
+            opacities,
+            ids,
+            view.viewmat.float().to(means.device),
+            K.to(means.device),
+            int(width),
+            int(height),
+            min_weight=min_weight,
+        )
+        maps.append(id_map.cpu().numpy())
+        if on_view is not None:
+            on_view()
+    return maps
 
 
 def instance_picture(id_maps: Sequence, images: Optional[Sequence] = None, gap: int = 4) -> np.ndarray:

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
 
-from votesplat_ns.core.ply_io import SH_C0, gaussian_vertex_table
+from votesplat_ns.core.ply_io import SH_C0, PathLike, gaussian_vertex_table, read_3dgs_ply
 
 VOTE_OFFSETS_KEY = "vote_offsets"
 VOTE_SUPPORT_KEY = "vote_support"
@@ -28,14 +28,43 @@ def to_numpy(value: Any) -> np.ndarray:
 
 
 class Gaussians(NamedTuple):
-    """Activated Gaussians as a rasteriser takes them (only the finite ones, see ``TrainedScene.finite``)."""
+    """Activated Gaussians as a rasteriser takes them, on one device, with their votes when asked for.
+
+    :meth:`TrainedScene.gaussians` makes them from the record (only the finite ones, see
+    ``TrainedScene.finite``); the viewer makes them from the live model each frame, as splatfacto's
+    eval render sees it (``sh_degree`` None: ``colors`` are RGB [M, 3], splatfacto's degree-0 colours).
+    """
 
     means: torch.Tensor  # [M, 3]
     quats: torch.Tensor  # [M, 4]
     scales: torch.Tensor  # [M, 3], exp of the log-scales
     opacities: torch.Tensor  # [M], sigmoid of the logits
-    colors: torch.Tensor  # [M, K, 3] SH coefficients of degree sqrt(K) - 1
-    sh_degree: int
+    colors: torch.Tensor  # [M, K, 3] SH coefficients of degree sqrt(K) - 1 (or RGB [M, 3], see sh_degree)
+    sh_degree: Optional[int]
+    vote_offsets: Optional[torch.Tensor] = None  # [M, L, 3] Δp_i (§3.3); None: not asked for, or no votes
+    vote_support: Optional[torch.Tensor] = None  # [M, L]; None with offsets: every Gaussian counts as supervised
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    def to(self, device: Union[str, torch.device]) -> "Gaussians":
+        return self._map(lambda tensor: tensor.to(device))
+
+    def subset(self, keep: Optional[torch.Tensor]) -> "Gaussians":
+        """The Gaussians in ``keep`` ([M] bool or indices; None: all of them)."""
+        return self if keep is None else self._map(lambda tensor: tensor[keep])
+
+    def _map(self, change: Callable[[torch.Tensor], torch.Tensor]) -> "Gaussians":
+        return self._replace(
+            means=change(self.means),
+            quats=change(self.quats),
+            scales=change(self.scales),
+            opacities=change(self.opacities),
+            colors=change(self.colors),
+            vote_offsets=None if self.vote_offsets is None else change(self.vote_offsets),
+            vote_support=None if self.vote_support is None else change(self.vote_support),
+        )
 
 
 @dataclass
@@ -130,6 +159,33 @@ class TrainedScene:
             sh_degree=int(round(math.sqrt(rest.shape[1] + 1))) - 1 if rest is not None else 0,
         )
 
+    @classmethod
+    def from_ply(cls, path: PathLike, level_names: Sequence[str] = ()) -> "TrainedScene":
+        """A standard 3DGS PLY (any writer) as a scene without votes.
+
+        Read and checked by :func:`~votesplat_ns.core.ply_io.read_3dgs_ply`: bad input raises its
+        one-line :class:`~votesplat_ns.core.ply_io.GaussianPlyError`. A PLY's f_dc are SH DC
+        coefficients at every degree, so they are stored as they are (``sh_rest`` None for degree 0).
+        A PLY holds no votes: ``vote_offsets`` [N, L, 3] and ``vote_support`` [N, L] are zeros for the
+        L ``level_names`` (default none, L = 0), the state of a model's vote parameters before any vote
+        step (support 0: no level has supervised the Gaussian yet).
+        """
+        arrays, sh_degree = read_3dgs_ply(path)
+        n, levels = arrays["means"].shape[0], len(level_names)
+        rest = arrays["features_rest"]
+        return cls(
+            means=arrays["means"],
+            log_scales=arrays["log_scales"],
+            quats=arrays["quats"],
+            opacity_logits=arrays["opacity_logits"],
+            sh_dc=arrays["features_dc"],
+            sh_rest=rest if sh_degree > 0 else None,
+            vote_offsets=np.zeros((n, levels, 3), dtype=np.float32),
+            vote_support=np.zeros((n, levels), dtype=np.float32),
+            level_names=tuple(str(name) for name in level_names),
+            sh_degree=sh_degree,
+        )
+
     # ------------------------------------------------------------------ views of the record
     def finite(self, colours: bool = False) -> np.ndarray:
         """[N] bool: mean, scale, rotation and opacity (and with ``colours`` the SH) are finite.
@@ -144,8 +200,10 @@ class TrainedScene:
                 ok &= np.isfinite(self.sh_rest).reshape(self.num_gaussians, -1).all(1)
         return ok
 
-    def gaussians(self, keep: Optional[np.ndarray] = None, device: Union[str, torch.device, None] = None) -> Gaussians:
-        """Activated float32 tensors of the Gaussians in ``keep`` ([N] bool, default all) on ``device``."""
+    def gaussians(
+        self, keep: Optional[np.ndarray] = None, device: Union[str, torch.device, None] = None, votes: bool = False
+    ) -> Gaussians:
+        """Activated float32 tensors of the Gaussians in ``keep`` ([N] bool, default all) on ``device``, their votes with ``votes``."""
         device = torch.device(device if device is not None else self.device)
         select = (lambda a: a) if keep is None else (lambda a: a[keep])  # noqa: E731
         tensor = lambda a: torch.as_tensor(np.ascontiguousarray(select(a)), dtype=torch.float32, device=device)  # noqa: E731
@@ -158,6 +216,8 @@ class TrainedScene:
             opacities=torch.sigmoid(tensor(self.opacity_logits)),
             colors=colors,
             sh_degree=int(round(math.sqrt(colors.shape[1]))) - 1,
+            vote_offsets=tensor(self.vote_offsets) if votes else None,
+            vote_support=tensor(self.vote_support) if votes else None,
         )
 
     def vertex_table(self) -> np.ndarray:

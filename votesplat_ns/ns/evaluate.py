@@ -42,7 +42,7 @@ import torch
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
-from votesplat_ns.core.instances import render_instance_ids
+from votesplat_ns.core.instances import render_id_maps  # noqa: F401 (re-exported: evaluation renders its id maps with it)
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.eval.evaluation import (
     DEFAULT_MAX_PSNR_DROP_DB,
@@ -71,46 +71,6 @@ ViewSplit = Literal["eval", "train", "all"]
 
 
 # ----------------------------------------------------------------------------- rendering
-
-
-def render_id_maps(
-    scene: TrainedScene,
-    gaussian_ids,
-    views: Sequence[PinholeView],
-    rasterize_fn: Callable[..., tuple],
-    out_sizes: Optional[Sequence[Tuple[int, int]]] = None,
-    min_weight: float = 0.5,
-) -> List[np.ndarray]:
-    """Instance-id map per view (int64, -1 = none), rendered at ``out_sizes`` (H, W) if given.
-
-    Rendering at another size scales the intrinsics, which is exact in the continuous pixel frame.
-    """
-    keep = scene.finite()
-    means, quats, scales, opacities, _, _ = scene.gaussians(keep)
-    ids = torch.as_tensor(np.asarray(gaussian_ids), device=means.device).long()[
-        torch.as_tensor(keep, device=means.device)
-    ]
-    maps = []
-    for index, view in enumerate(views):
-        height, width = out_sizes[index] if out_sizes is not None else (view.height, view.width)
-        K = view.K.clone().float()
-        K[0] *= width / view.width
-        K[1] *= height / view.height
-        id_map = render_instance_ids(
-            rasterize_fn,
-            means,
-            quats,
-            scales,
-            opacities,
-            ids,
-            view.viewmat.float().to(means.device),
-            K.to(means.device),
-            int(width),
-            int(height),
-            min_weight=min_weight,
-        )
-        maps.append(id_map.cpu().numpy())
-    return maps
 
 
 def render_rgb_psnr(model, dataset, index: int) -> Tuple[float, float]:

@@ -19,7 +19,7 @@ import torch
 
 from votesplat_ns.cli.cli_errors import one_line_errors, writing_into
 from votesplat_ns.core.cameras import PinholeView
-from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS
+from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, ClusteringOptions
 from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY  # noqa: F401 (keys re-exported)
 from votesplat_ns.ns.instance_export import EXPORT_FILE_PATTERNS, check_output_dir, export_instances  # noqa: F401 (re-exported: the export's public names)
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
@@ -100,6 +100,12 @@ class ExportVoteSplatInstances:
     mask_check_views: int = DEFAULT_MASK_VIEWS
     """Training views the mask check looks through (evenly spaced)."""
 
+    def clustering(self) -> ClusteringOptions:
+        """The HDBSCAN flags as :func:`cluster_levels` settings."""
+        return ClusteringOptions(
+            **{name: getattr(self, name) for name in ClusteringOptions.__dataclass_fields__ if hasattr(self, name)}
+        )
+
     def main(self) -> None:
         from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -143,13 +149,7 @@ class ExportVoteSplatInstances:
                 remove=list(self.remove),
                 views=views,
                 rasterize_fn=rasterize_fn,
-                min_cluster_size=self.min_cluster_size,
-                min_samples=self.min_samples,
-                max_points=self.max_points,
-                noise=self.noise,
-                noise_radius=self.noise_radius,
-                cluster_selection_epsilon=self.cluster_selection_epsilon,
-                seed=self.seed,
+                clustering=self.clustering(),
                 render_device=device,
                 source=str(self.load_config),
                 output_flag="--output-dir",

@@ -31,19 +31,19 @@ import os
 import shutil
 import warnings
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Literal, Mapping, Optional, Sequence, Union
+from typing import Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import torch
 
 from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_writable_folder
 from votesplat_ns.core.cameras import PinholeView
-from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
+from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import (
     IDS_NAME,
     MANIFEST_NAME,
     InstanceSet,
-    render_instance_ids,
+    render_id_maps,
     save_instance_picture,
     vote_level_index,
 )
@@ -177,14 +177,7 @@ def export_instances(
     rasterize_fn: Optional[Callable[..., tuple]] = None,
     level_names: Optional[Sequence[str]] = None,
     sh_degree: Optional[int] = None,
-    min_cluster_size: Optional[int] = None,
-    min_samples: Optional[int] = None,
-    max_points: int = DEFAULT_MAX_POINTS,
-    noise: Literal["nearest", "drop"] = "nearest",
-    noise_radius: Optional[float] = None,
-    cluster_selection_epsilon: float = 0.0,
-    seed: int = 0,
-    coarse_to_fine: bool = True,
+    clustering: ClusteringOptions = ClusteringOptions(),
     render_device: Union[str, torch.device, None] = None,
     progress: bool = True,
     source: Optional[str] = None,
@@ -199,7 +192,7 @@ def export_instances(
     selects whose instances get their own PLY; ``remove`` lists instance ids of that level to cut
     out of the scene. ``views`` and ``rasterize_fn`` (gsplat ``rasterization`` signature) draw
     instances.png. ``output_flag`` names ``output_dir`` in error messages (the CLI's --output-dir).
-    ``refine`` is passed to :func:`cluster_levels` (the training-mask check).
+    ``clustering`` (HDBSCAN settings) and ``refine`` (the training-mask check) are passed to :func:`cluster_levels`.
     Returns the manifest written to instances.json; its ``export.nonfinite_votes`` counts, per
     level, the supervised Gaussians whose vote is NaN/Inf and so became background.
     """
@@ -229,14 +222,7 @@ def export_instances(
             params.vote_offsets,
             params.vote_support,
             names,
-            min_cluster_size=min_cluster_size,
-            min_samples=min_samples,
-            max_points=max_points,
-            seed=seed,
-            noise=noise,
-            noise_radius=noise_radius,
-            coarse_to_fine=coarse_to_fine,
-            cluster_selection_epsilon=cluster_selection_epsilon,
+            **clustering.kwargs(),
             on_level=lambda index, name: advance(1) if index > 0 else None,
             refine=refine,
         )
@@ -354,27 +340,9 @@ def _write_picture(
     params: TrainedScene, ids: np.ndarray, views: Sequence[PinholeView], rasterize_fn, device, path: Path, task
 ) -> str:
     device = torch.device(device) if device is not None else torch.device("cpu")
-    finite = params.finite()
-    means, quats, scales, opacities, _, _ = params.gaussians(finite, device)
-    instance_ids = torch.as_tensor(ids[finite], device=device)
     advance = task("rendering instance views", total=len(views))
-    maps, images = [], []
-    for view in views:
-        id_map = render_instance_ids(
-            rasterize_fn,
-            means,
-            quats,
-            scales,
-            opacities,
-            instance_ids,
-            view.viewmat.to(device),
-            view.K.to(device),
-            int(view.width),
-            int(view.height),
-        )
-        maps.append(id_map.cpu().numpy())
-        images.append(view.image)
-        advance(1)
+    maps = render_id_maps(params, ids, views, rasterize_fn, device=device, on_view=lambda: advance(1))
+    images = [view.image for view in views]
     have_images = all(image is not None for image in images)
     save_instance_picture(path, maps, images if have_images else None)
     return path.name

@@ -73,7 +73,7 @@ def mask_check(
     """
     views, masks = training_mask_views(pipeline, scene.level_names, max_views, max_width)
     finite = scene.finite()
-    means, quats, scales, opacities, _, _ = scene.gaussians(finite)
+    means, quats, scales, opacities = scene.gaussians(finite)[:4]
     if evidence == "blend":
         tables = {}
         for name in scene.level_names:

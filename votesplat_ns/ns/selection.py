@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple, Union
 
@@ -18,7 +17,7 @@ import numpy as np
 import torch
 
 from votesplat_ns.core.cameras import PinholeView, scaled_view
-from votesplat_ns.core.clustering import cluster_levels
+from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.core.semantics import click_select, isolate
@@ -27,15 +26,6 @@ from votesplat_ns.ns.run import dataset_views, load_run
 
 # Rendered instance id maps a QueryScene keeps (repeated clicks and feature rebuilds reuse them).
 ID_MAPS_KEPT = 8
-
-
-@dataclass
-class ClusteringOptions:
-    """The HDBSCAN settings the query commands expose; the rest keep ``cluster_levels``' defaults (votesplat-export's)."""
-
-    min_cluster_size: Optional[int] = None
-    min_samples: Optional[int] = None
-    seed: int = 0
 
 
 def _sha256(*arrays: np.ndarray) -> str:
@@ -82,7 +72,7 @@ class QueryScene:
         self.finite = finite
         self.means, self.quats, self.scales, self.opacities, self.colors, self.sh_degree = params.gaussians(
             finite, self.device
-        )
+        )[:6]
         self.ids = torch.as_tensor(level.ids[finite], dtype=torch.long, device=self.device)
         self._table: Optional[np.ndarray] = None
         self._id_maps: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
@@ -264,9 +254,7 @@ def instances_of_level(
             params.vote_offsets[:, index : index + 1],
             params.vote_support[:, index : index + 1],
             (names[index],),
-            min_cluster_size=clustering.min_cluster_size,
-            min_samples=clustering.min_samples,
-            seed=clustering.seed,
+            **clustering.kwargs(),
         ).levels[0]
         source = "clustered"
     if chosen.num_instances == 0:

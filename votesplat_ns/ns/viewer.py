@@ -6,13 +6,13 @@ Three modules, one role each:
 1. :mod:`votesplat_ns.ns.viewer_render`: pure image work on tensors (no nerfstudio import):
    :func:`overlay_instances`, :func:`instance_colour_image`, :func:`vote_colours`,
    :func:`display_keep_mask`, :func:`screen_to_pixel`, and the renders :func:`render_rgb`,
-   :func:`render_instance_map`, :func:`render_vote_picture` of a :class:`SplatScene`.
+   :func:`render_instance_map`, :func:`render_vote_picture` of a :class:`ViewerScene`.
 2. :mod:`votesplat_ns.ns.viewer_state`: :class:`InstanceViewerState`, what the person chose plus
    the cached instances and CLIP features; its work happens in ``render_outputs``.
 3. This module, :class:`VoteSplatViewerState`: the thin nerfstudio glue. It puts the GUI elements on
    the model (nerfstudio's viewer finds ``ViewerElement``/``ViewerControl`` objects only by walking
    the attributes of the pipeline and of its ``nn.Module`` children) and turns a model and a
-   ``Cameras`` into a :class:`SplatScene` and a :class:`PinholeView`.
+   ``Cameras`` into a :class:`ViewerScene` and a :class:`PinholeView`.
 
 The names of the other two modules are re-exported here, where tests and callers import them.
 """
@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.core.scene import Gaussians
 from votesplat_ns.ns.run import camera_view, evenly_spaced
 from votesplat_ns.ns.viewer_render import (  # noqa: F401 (re-exported)
     DISPLAY_ALL,
@@ -46,7 +47,7 @@ from votesplat_ns.ns.viewer_render import (  # noqa: F401 (re-exported)
     VOTE_BACKGROUND_GREY,
     VOTE_COLOUR_QUANTILES,
     RasterizeFn,
-    SplatScene,
+    ViewerScene,
     display_keep_mask,
     instance_colour_image,
     overlay_instances,
@@ -76,26 +77,29 @@ MAX_FEATURE_VIEW_SIDE = 512
 EXPORT_FOLDER_NAME = "votesplat_selections"
 
 
-def scene_from_model(model: Any) -> SplatScene:
-    """A splatfacto-style model's Gaussians as :class:`SplatScene` (as its eval render sees them)."""
+def scene_from_model(model: Any) -> ViewerScene:
+    """A splatfacto-style model's Gaussians as :class:`ViewerScene` (as its eval render sees them).
+
+    Built from the live tensors each frame rather than through ``TrainedScene.from_model``, which
+    copies every parameter to numpy on the CPU and stores degree-0 colours as SH.
+    """
     features = torch.cat((model.features_dc[:, None, :], model.features_rest), dim=1)
     if model.config.sh_degree > 0:
         colors, sh_degree = features, min(model.step // model.config.sh_degree_interval, model.config.sh_degree)
     else:
         colors, sh_degree = torch.sigmoid(features).squeeze(1), None
     params = model.gauss_params
-    return SplatScene(
+    gaussians = Gaussians(
         means=model.means.detach(),
         quats=model.quats.detach(),
         scales=torch.exp(model.scales).detach(),
         opacities=torch.sigmoid(model.opacities).squeeze(-1).detach(),
         colors=colors.detach(),
         sh_degree=sh_degree,
-        background=model._get_background_color().detach(),
         vote_offsets=params["vote_offsets"].detach() if "vote_offsets" in params else None,
         vote_support=params["vote_support"].detach() if "vote_support" in params else None,
-        rasterize_mode=model.config.rasterize_mode,
     )
+    return ViewerScene(gaussians, model._get_background_color().detach(), model.config.rasterize_mode)
 
 
 def _viewer_control_class() -> type:
@@ -297,7 +301,7 @@ class VoteSplatViewerState:
             with torch.no_grad():
                 scene = scene_from_model(model)
                 crop = (
-                    model.crop_box.within(scene.means).reshape(-1)
+                    model.crop_box.within(scene.gaussians.means).reshape(-1)
                     if getattr(model, "crop_box", None) is not None
                     else None
                 )

@@ -1,5 +1,5 @@
 """What the viewer draws, as pure tensor work (no nerfstudio import): instance colours and overlay,
-the votes picture, isolate/hide masks, click positions, and the renders of a :class:`SplatScene`
+the votes picture, isolate/hide masks, click positions, and the renders of a :class:`ViewerScene`
 seen by a :class:`~votesplat_ns.core.cameras.PinholeView`.
 
 Colours come from :func:`votesplat_ns.core.instances.instance_colors`, a pure function of the instance
@@ -17,6 +17,7 @@ from torch import Tensor
 
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.instances import instance_colors, render_instance_ids
+from votesplat_ns.core.scene import Gaussians
 
 OUTPUT_OVERLAY = "instance_overlay"
 OUTPUT_INSTANCES = "instances"
@@ -153,57 +154,25 @@ def _check_instance_map(instance_map: Tensor) -> None:
 
 
 @dataclass
-class SplatScene:
-    """Gaussians ready to rasterise, as splatfacto renders them.
-
-    scales are exp'd, opacities sigmoid'd [N]; ``colors`` are SH coefficients [N, K, 3] with
-    ``sh_degree``, or RGB [N, 3] with ``sh_degree=None``; ``background`` [3]. ``vote_offsets``
-    [N, L, 3] and ``vote_support`` [N, L] are the model's vote parameters (None if absent).
+class ViewerScene:
+    """What the viewer draws: the scene's activated :class:`~votesplat_ns.core.scene.Gaussians`
+    (votes included, as the live model holds them) plus how splatfacto draws them, which no scene
+    record holds: the ``background`` colour [3] and its ``rasterize_mode``.
     """
 
-    means: Tensor
-    quats: Tensor
-    scales: Tensor
-    opacities: Tensor
-    colors: Tensor
-    sh_degree: Optional[int]
+    gaussians: Gaussians
     background: Tensor
-    vote_offsets: Optional[Tensor] = None
-    vote_support: Optional[Tensor] = None
     rasterize_mode: str = "classic"
 
     @property
     def num_gaussians(self) -> int:
-        return int(self.means.shape[0])
+        return self.gaussians.num_gaussians
 
-    def to(self, device: Union[str, torch.device]) -> "SplatScene":
-        move = lambda tensor: None if tensor is None else tensor.to(device)  # noqa: E731
-        return replace(
-            self,
-            means=move(self.means),
-            quats=move(self.quats),
-            scales=move(self.scales),
-            opacities=move(self.opacities),
-            colors=move(self.colors),
-            background=move(self.background),
-            vote_offsets=move(self.vote_offsets),
-            vote_support=move(self.vote_support),
-        )
+    def to(self, device: Union[str, torch.device]) -> "ViewerScene":
+        return replace(self, gaussians=self.gaussians.to(device), background=self.background.to(device))
 
-    def subset(self, keep: Optional[Tensor]) -> "SplatScene":
-        if keep is None:
-            return self
-        pick = lambda tensor: None if tensor is None else tensor[keep]  # noqa: E731
-        return replace(
-            self,
-            means=self.means[keep],
-            quats=self.quats[keep],
-            scales=self.scales[keep],
-            opacities=self.opacities[keep],
-            colors=self.colors[keep],
-            vote_offsets=pick(self.vote_offsets),
-            vote_support=pick(self.vote_support),
-        )
+    def subset(self, keep: Optional[Tensor]) -> "ViewerScene":
+        return self if keep is None else replace(self, gaussians=self.gaussians.subset(keep))
 
 
 RasterizeFn = Callable[..., Tuple[Tensor, Tensor, Dict[str, Any]]]
@@ -215,12 +184,12 @@ def _default_rasterize() -> RasterizeFn:
     return rasterize
 
 
-def _background_image(scene: SplatScene, view: PinholeView) -> Tensor:
-    return scene.background.reshape(1, 1, 3).expand(view.height, view.width, 3).to(scene.means.dtype).clone()
+def _background_image(scene: ViewerScene, view: PinholeView) -> Tensor:
+    return scene.background.reshape(1, 1, 3).expand(view.height, view.width, 3).to(scene.gaussians.means.dtype).clone()
 
 
 def _rasterize(
-    scene: SplatScene,
+    scene: ViewerScene,
     view: PinholeView,
     colors: Tensor,
     sh_degree: Optional[int],
@@ -228,13 +197,13 @@ def _rasterize(
     rasterize_fn: RasterizeFn,
 ) -> Tuple[Tensor, Tensor]:
     render, alpha, _ = rasterize_fn(
-        scene.means,
-        scene.quats,
-        scene.scales,
-        scene.opacities,
+        scene.gaussians.means,
+        scene.gaussians.quats,
+        scene.gaussians.scales,
+        scene.gaussians.opacities,
         colors,
-        viewmats=view.viewmat.reshape(1, 4, 4).to(scene.means),
-        Ks=view.K.reshape(1, 3, 3).to(scene.means),
+        viewmats=view.viewmat.reshape(1, 4, 4).to(scene.gaussians.means),
+        Ks=view.K.reshape(1, 3, 3).to(scene.gaussians.means),
         width=int(view.width),
         height=int(view.height),
         packed=False,
@@ -250,16 +219,16 @@ def _rasterize(
 
 
 @torch.no_grad()
-def render_rgb(scene: SplatScene, view: PinholeView, rasterize_fn: Optional[RasterizeFn] = None) -> Dict[str, Tensor]:
+def render_rgb(scene: ViewerScene, view: PinholeView, rasterize_fn: Optional[RasterizeFn] = None) -> Dict[str, Tensor]:
     """rgb [H, W, 3], depth [H, W, 1] and accumulation [H, W, 1], exactly as splatfacto's eval render."""
     if scene.num_gaussians == 0:
         return {
             "rgb": _background_image(scene, view).clamp(0.0, 1.0),
-            "depth": scene.means.new_zeros(view.height, view.width, 1),
-            "accumulation": scene.means.new_zeros(view.height, view.width, 1),
+            "depth": scene.gaussians.means.new_zeros(view.height, view.width, 1),
+            "accumulation": scene.gaussians.means.new_zeros(view.height, view.width, 1),
         }
     render, alpha = _rasterize(
-        scene, view, scene.colors, scene.sh_degree, "RGB+ED", rasterize_fn or _default_rasterize()
+        scene, view, scene.gaussians.colors, scene.gaussians.sh_degree, "RGB+ED", rasterize_fn or _default_rasterize()
     )
     rgb = torch.clamp(render[..., :3] + (1 - alpha) * scene.background.to(render), 0.0, 1.0)
     depth = torch.where(alpha > 0, render[..., 3:4], render[..., 3:4].max())
@@ -268,17 +237,17 @@ def render_rgb(scene: SplatScene, view: PinholeView, rasterize_fn: Optional[Rast
 
 @torch.no_grad()
 def render_instance_map(
-    scene: SplatScene, view: PinholeView, instance_ids: Tensor, rasterize_fn: Optional[RasterizeFn] = None
+    scene: ViewerScene, view: PinholeView, instance_ids: Tensor, rasterize_fn: Optional[RasterizeFn] = None
 ) -> Tensor:
     """Instance id [H, W] (-1 none) per pixel, by :func:`votesplat_ns.core.instances.render_instance_ids`."""
     if instance_ids.shape != (scene.num_gaussians,):
         raise ValueError(f"instance_ids must be [N] = [{scene.num_gaussians}], got {tuple(instance_ids.shape)}")
     return render_instance_ids(
         rasterize_fn or _default_rasterize(),
-        scene.means,
-        scene.quats,
-        scene.scales,
-        scene.opacities,
+        scene.gaussians.means,
+        scene.gaussians.quats,
+        scene.gaussians.scales,
+        scene.gaussians.opacities,
         instance_ids,
         view.viewmat,
         view.K,
@@ -290,16 +259,18 @@ def render_instance_map(
 
 @torch.no_grad()
 def render_vote_picture(
-    scene: SplatScene, view: PinholeView, level: int, rasterize_fn: Optional[RasterizeFn] = None
+    scene: ViewerScene, view: PinholeView, level: int, rasterize_fn: Optional[RasterizeFn] = None
 ) -> Tensor:
     """The "votes" output [H, W, 3]: :func:`vote_colours` of ``level`` rasterised over the background."""
-    if scene.vote_offsets is None:
+    if scene.gaussians.vote_offsets is None:
         raise ValueError("this model has no vote offsets (gauss_params['vote_offsets']); load a votesplat checkpoint")
-    if not 0 <= level < scene.vote_offsets.shape[1]:
-        raise ValueError(f"vote level index {level} out of range for {scene.vote_offsets.shape[1]} levels")
+    if not 0 <= level < scene.gaussians.vote_offsets.shape[1]:
+        raise ValueError(f"vote level index {level} out of range for {scene.gaussians.vote_offsets.shape[1]} levels")
     if scene.num_gaussians == 0:
         return _background_image(scene, view).clamp(0.0, 1.0)
-    foreground = None if scene.vote_support is None else scene.vote_support[:, level] > 0
-    colours = vote_colours(scene.means + scene.vote_offsets[:, level], foreground).to(scene.means)
+    foreground = None if scene.gaussians.vote_support is None else scene.gaussians.vote_support[:, level] > 0
+    colours = vote_colours(scene.gaussians.means + scene.gaussians.vote_offsets[:, level], foreground).to(
+        scene.gaussians.means
+    )
     render, alpha = _rasterize(scene, view, colours, None, "RGB", rasterize_fn or _default_rasterize())
     return torch.clamp(render + (1 - alpha) * scene.background.to(render), 0.0, 1.0)

@@ -29,7 +29,7 @@ from votesplat_ns.ns.viewer_render import (
     OUTPUT_VOTES,
     VIEWER_OUTPUTS,
     RasterizeFn,
-    SplatScene,
+    ViewerScene,
     display_keep_mask,
     instance_colour_image,
     overlay_instances,
@@ -57,21 +57,21 @@ def _uninterruptible() -> Iterator[None]:
         sys.settrace(previous)
 
 
-ClusterFn = Callable[[SplatScene, Sequence[str]], InstanceSet]
+ClusterFn = Callable[[ViewerScene, Sequence[str]], InstanceSet]
 EncoderFactory = Callable[[], Any]
 FeatureViewsFn = Callable[[], Sequence[Tuple[PinholeView, np.ndarray]]]
 
 
-def cluster_scene(scene: SplatScene, level_names: Sequence[str]) -> InstanceSet:
+def cluster_scene(scene: ViewerScene, level_names: Sequence[str]) -> InstanceSet:
     """Instances of every level from the scene's votes (:func:`votesplat_ns.core.clustering.cluster_levels`)."""
     from votesplat_ns.core.clustering import cluster_levels
 
-    if scene.vote_offsets is None:
+    if scene.gaussians.vote_offsets is None:
         raise ValueError("this model has no vote offsets (gauss_params['vote_offsets']); load a votesplat checkpoint")
-    support = scene.vote_support
+    support = scene.gaussians.vote_support
     if support is None:
-        support = torch.ones(scene.vote_offsets.shape[:2])
-    return cluster_levels(scene.means, scene.vote_offsets, support, level_names)
+        support = torch.ones(scene.gaussians.vote_offsets.shape[:2])
+    return cluster_levels(scene.gaussians.means, scene.gaussians.vote_offsets, support, level_names)
 
 
 class InstanceViewerState:
@@ -155,7 +155,7 @@ class InstanceViewerState:
         return self.encoder_factory is not None
 
     # -------------------------------------------------------------- cached results
-    def instances_for(self, scene: SplatScene) -> InstanceSet:
+    def instances_for(self, scene: ViewerScene) -> InstanceSet:
         """The instances of ``scene`` (the full model, not a crop), clustering if needed."""
         stale = self.instances is None or self._instances_for_n != scene.num_gaussians
         if stale or self._instances_requested:
@@ -181,20 +181,20 @@ class InstanceViewerState:
         assert self.instances is not None
         return self.instances
 
-    def instance_ids(self, scene: SplatScene) -> Tensor:
+    def instance_ids(self, scene: ViewerScene) -> Tensor:
         """Per-Gaussian ids [N] (-1 none) of the current level, on the scene's device."""
         instances = self.instances_for(scene)
-        key = (self.level, str(scene.means.device))
+        key = (self.level, str(scene.gaussians.means.device))
         if key not in self._ids_cache:
             self._ids_cache[key] = torch.from_numpy(np.asarray(instances.level(self.level).ids, dtype=np.int64)).to(
-                scene.means.device
+                scene.gaussians.means.device
             )
         return self._ids_cache[key]
 
     def num_instances(self) -> int:
         return 0 if self.instances is None else self.instances.level(self.level).num_instances
 
-    def _instance_features(self, scene: SplatScene) -> Any:
+    def _instance_features(self, scene: ViewerScene) -> Any:
         from votesplat_ns.core.semantics import instance_features
 
         if self.level in self._features:
@@ -231,7 +231,7 @@ class InstanceViewerState:
 
     def render_outputs(
         self,
-        scene: SplatScene,
+        scene: ViewerScene,
         view: PinholeView,
         base_outputs: Mapping[str, Tensor],
         wanted: Iterable[str] = VIEWER_OUTPUTS,
@@ -318,7 +318,7 @@ class InstanceViewerState:
         else:
             self.status = self._selection_status()
 
-    def _resolve_query(self, scene: SplatScene) -> None:
+    def _resolve_query(self, scene: ViewerScene) -> None:
         from votesplat_ns.core.semantics import query_text, select_instances
 
         text, self._pending_query = self._pending_query, None

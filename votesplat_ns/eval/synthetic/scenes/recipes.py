@@ -4,7 +4,7 @@ fruit) and ``forward`` (a forward-facing capture)."""
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -40,6 +40,16 @@ from votesplat_ns.eval.synthetic.scenes.primitives import rot_z, translate
 from votesplat_ns.eval.synthetic.scenes.templates import TABLETOP_KINDS, _bowl
 
 
+def _pick_objects(rng, num_objects: Optional[int], default_range: Tuple[int, int]) -> Tuple[int, List[str], List[str]]:
+    """How many tabletop objects (``num_objects``, or drawn from ``default_range``), their kinds and distinct colours."""
+    count = int(rng.integers(*default_range)) if num_objects is None else int(num_objects)
+    if not 1 <= count <= len(PALETTE):
+        raise ValueError(f"num_objects must be between 1 and {len(PALETTE)} (got {count})")
+    kinds = _pick_kinds(rng, count, list(TABLETOP_KINDS))
+    colours = [str(c) for c in rng.permutation(list(PALETTE))[:count]]
+    return count, kinds, colours
+
+
 def tabletop360(
     seed: int = 0,
     num_views: int = 48,
@@ -52,11 +62,7 @@ def tabletop360(
     """6-12 objects (or ``num_objects``) on a textured table, some touching; cameras all around them."""
     _check_counts(num_views, num_eval_views)
     rng = np.random.default_rng([seed, _STREAM_OBJECTS])
-    count = int(rng.integers(6, 13)) if num_objects is None else int(num_objects)
-    if not 1 <= count <= len(PALETTE):
-        raise ValueError(f"num_objects must be between 1 and {len(PALETTE)} (got {count})")
-    kinds = _pick_kinds(rng, count, list(TABLETOP_KINDS))
-    colours = [str(c) for c in rng.permutation(list(PALETTE))[:count]]
+    count, kinds, colours = _pick_objects(rng, num_objects, (6, 13))
     sizes = rng.uniform(1.1, 1.6, size=count)
     table_radius = 0.32 + 0.025 * count
 
@@ -165,11 +171,7 @@ def forward(
     """Forward-facing capture: cameras on a small vertical plane all looking +y, objects 1.2-4 m away."""
     _check_counts(num_views, num_eval_views)
     rng = np.random.default_rng([seed, _STREAM_OBJECTS])
-    count = int(rng.integers(6, 10)) if num_objects is None else int(num_objects)
-    if not 1 <= count <= len(PALETTE):
-        raise ValueError(f"num_objects must be between 1 and {len(PALETTE)} (got {count})")
-    kinds = _pick_kinds(rng, count, list(TABLETOP_KINDS))
-    colours = [str(c) for c in rng.permutation(list(PALETTE))[:count]]
+    count, kinds, colours = _pick_objects(rng, num_objects, (6, 10))
     sizes = rng.uniform(2.0, 3.2, size=count)
     near, far = 1.3, 4.0
     half_tan = 0.8 * math.tan(math.radians(fov_x_degrees) / 2.0)
