@@ -462,3 +462,20 @@ def test_ns_train_with_a_ply_of_another_sh_degree_is_one_line(trained_demo, tmp_
     assert last.startswith("ns-train votesplat: error: --pipeline.model.retrofit-from "), last
     assert "has SH degree 1 (9 f_rest properties)" in last and "pass --pipeline.model.sh-degree 1" in last, last
     assert not list((tmp_path / "runs").rglob("*.ckpt"))
+
+
+def test_degree_0_ply_colours_become_splatfacto_logits():
+    # nerfstudio's exporter writes f_dc = RGB2SH(sigmoid(features_dc)) for a degree-0 splatfacto
+    # (SplatfactoModel.shs_0); reading it back must give the same features_dc, so the retrofitted
+    # model shows the same colours (splatfacto renders sigmoid(features_dc) at degree 0)
+    from nerfstudio.models.splatfacto import RGB2SH
+
+    from votesplat_ns.ns.run import splatfacto_dc_from_ply
+
+    logits = torch.randn(200, 3, generator=torch.Generator().manual_seed(0)) * 2.0
+    exported = RGB2SH(torch.sigmoid(logits))
+    torch.testing.assert_close(splatfacto_dc_from_ply(exported, 0), logits, rtol=1e-4, atol=1e-4)
+    # from degree 1 on both keep SH coefficients
+    assert splatfacto_dc_from_ply(exported, 3) is exported
+    # a writer's colour outside [0, 1] is clamped, not NaN
+    assert torch.isfinite(splatfacto_dc_from_ply(torch.full((1, 3), 10.0), 0)).all()

@@ -33,7 +33,13 @@ from votesplat_ns.ns.model_config import VoteSplatModelConfig
 from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
-from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, gaussians_from_ply_arrays, latest_checkpoint, load_gaussians  # noqa: F401 (re-exported: tests and benchmarks import them from here)
+from votesplat_ns.ns.run import (  # noqa: F401 (re-exported: tests and benchmarks import them from here)
+    SPLAT_PARAM_NAMES,
+    gaussians_from_ply_arrays,
+    latest_checkpoint,
+    load_gaussians,
+    splatfacto_dc_from_ply,
+)
 from votesplat_ns.ns.viewer import VoteSplatViewerState
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
@@ -156,6 +162,7 @@ class VoteSplatModel(SplatfactoModel):
             gaussians, reference, self.config.retrofit_frame, source, rasterize, sh_degree
         )
         self.retrofit_source_frame = frame
+        moved["features_dc"] = splatfacto_dc_from_ply(moved["features_dc"], sh_degree)
         fit = next(f for f in fits if frame == f.name or frame in f.same_as)
         CONSOLE.log(
             f"Retrofit from {source}: {moved['means'].shape[0]} Gaussians in frame '{frame}' "

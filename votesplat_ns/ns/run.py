@@ -19,6 +19,7 @@ import torch
 
 from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoint_problem
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
+from votesplat_ns.core.ply_io import SH_C0
 from votesplat_ns.core.scene import TrainedScene
 
 SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
@@ -99,6 +100,20 @@ def gaussians_from_ply_arrays(arrays: Dict[str, np.ndarray]) -> Dict[str, torch.
         "features_rest": torch.from_numpy(arrays["features_rest"]),
         "opacities": torch.from_numpy(arrays["opacity_logits"])[:, None],
     }
+
+
+def splatfacto_dc_from_ply(features_dc: torch.Tensor, sh_degree: int) -> torch.Tensor:
+    """A PLY's ``f_dc`` [N, 3] as splatfacto's ``features_dc`` for a model of ``sh_degree``.
+
+    A PLY always stores SH DC coefficients (colour = 0.5 + C0 * f_dc); splatfacto keeps them as such
+    from degree 1 on, but at degree 0 it keeps RGB logits (colour = sigmoid(features_dc)), and
+    nerfstudio's exporter writes f_dc = RGB2SH(sigmoid(features_dc)) there. So degree 0 takes the
+    logit of the PLY's colour (clamped into (0, 1): other writers may store colours outside it).
+    """
+    if sh_degree > 0:
+        return features_dc
+    colour = (features_dc * SH_C0 + 0.5).clamp(1e-6, 1.0 - 1e-6)
+    return torch.logit(colour)
 
 
 def camera_view(cameras: Any, index: int = 0, name: str = "", dtype: torch.dtype = torch.float32) -> PinholeView:
