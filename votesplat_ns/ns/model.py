@@ -35,6 +35,7 @@ from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
 from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, gaussians_from_ply_arrays, latest_checkpoint, load_gaussians  # noqa: F401 (re-exported: tests and benchmarks import them from here)
 from votesplat_ns.ns.viewer import VoteSplatViewerState
+from votesplat_ns.ns.vote_init import start_offsets_lifted
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
 
@@ -176,6 +177,14 @@ class VoteSplatModel(SplatfactoModel):
         callbacks = super().get_training_callbacks(training_callback_attributes)
         trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
+        if (
+            self.vote_only
+            and self.config.retrofit_init == "lifted"
+            and trainer is not None
+            and trainer._start_step == 0  # a resumed retrofit (--load-dir) keeps its trained offsets
+            and hasattr(datamanager, "vote_maps_for_train_view")
+        ):
+            start_offsets_lifted(self, datamanager, log=CONSOLE.log)
         if (
             self.config.foreground_min_masked_share is not None
             and trainer is not None
