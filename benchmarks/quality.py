@@ -333,6 +333,13 @@ def parse_args(argv: Optional[List[str]] = None):
     )
     parser.add_argument("--base-steps", type=int, default=1500, help="training steps of that scene (with --retrofit)")
     parser.add_argument(
+        "--retrofit-init",
+        nargs="+",
+        choices=["zero", "lifted"],
+        default=["zero"],
+        help="start of the offsets (with --retrofit), a run each: zero, or lifted mask centroids (retrofit_init)",
+    )
+    parser.add_argument(
         "--summarize",
         nargs="+",
         type=Path,
@@ -416,6 +423,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     args.work_dir.mkdir(parents=True, exist_ok=True)
     rows: List[dict] = []
     first_columns = ["scene", "variant"] if args.ablation else ["scene", "masks"]
+    if args.retrofit and args.retrofit_init != ["zero"]:
+        first_columns.append("init")
     suffix = "ablation" if args.ablation else "quality"
 
     def record(row: dict) -> None:
@@ -485,9 +494,16 @@ def main(argv: Optional[List[str]] = None) -> int:
                 jobs.append(({"scene": name, "masks": masks}, args.work_dir / name / masks, folder, dict(base)))
         if args.retrofit:
             base_config = train_base_scene(scene, args)
+            named = args.retrofit_init != ["zero"]  # the default keeps the run folders and labels of earlier runs
             jobs = [
-                (labels, run_dir, folder, {**overrides, "retrofit_from": base_config})
+                (
+                    {**labels, **({"init": init} if named else {})},
+                    run_dir.with_name(f"{run_dir.name}_{init}") if named else run_dir,
+                    folder,
+                    {**overrides, "retrofit_from": base_config, "retrofit_init": init},
+                )
                 for labels, run_dir, folder, overrides in jobs
+                for init in args.retrofit_init
             ]
         for seed in args.seeds:
             for labels, run_dir, folder, overrides in jobs:

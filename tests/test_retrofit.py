@@ -8,6 +8,7 @@ from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from nerfstudio.utils.eval_utils import eval_setup
 
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
+from votesplat_ns.ns.vote_init import lifted_offsets
 
 
 @pytest.fixture(scope="module")
@@ -36,6 +37,34 @@ def test_retrofit_trains_only_the_offsets(splatfacto_checkpoint, tmp_path):
         assert offsets[support[:, level] > 0, level].abs().sum() > 0
         assert offsets[support[:, level] == 0, level].abs().max() == 0
 
+    assert_offsets_beat_zero(pipeline)
+
+
+def test_retrofit_can_start_from_the_lifted_mask_centroids(splatfacto_checkpoint, tmp_path):
+    # vote losses weighted 0: the steps leave the offsets where the lifted start put them
+    config_path = train_votesplat(
+        DEMO_SCENE,
+        tmp_path,
+        steps=2,
+        vote_start=0,
+        retrofit_from=splatfacto_checkpoint,
+        retrofit_init="lifted",
+        vote_loss_weight=0.0,
+        distortion_loss_weight=0.0,
+        vote_pixels_per_step=256,
+    )
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="val")
+    model = pipeline.model
+    offsets = model.gauss_params["vote_offsets"].data
+    support = model.gauss_params["vote_support"].data
+    expected = lifted_offsets(model, pipeline.datamanager)
+    assert torch.allclose(offsets, expected.offsets.to(offsets.device), atol=1e-6)
+    seen = expected.views > 0
+    assert seen.any(dim=0).all(), "every level must have Gaussians seen in a mask"
+    assert (offsets.norm(dim=-1)[seen] > 0).float().mean() > 0.99 and (offsets[~seen] == 0).all()
+    # a Gaussian given a lifted vote counts as supervised (before the end-of-training mask share)
+    assert torch.equal(support.abs(), expected.views.to(support.dtype))
+    # the start alone already renders better votes than zero offsets
     assert_offsets_beat_zero(pipeline)
 
 

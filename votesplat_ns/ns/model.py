@@ -41,6 +41,7 @@ from votesplat_ns.ns.run import (  # noqa: F401 (re-exported: tests and benchmar
     splatfacto_dc_from_ply,
 )
 from votesplat_ns.ns.viewer import VoteSplatViewerState
+from votesplat_ns.ns.vote_init import start_offsets_lifted
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
 
@@ -183,6 +184,14 @@ class VoteSplatModel(SplatfactoModel):
         callbacks = super().get_training_callbacks(training_callback_attributes)
         trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
+        if (
+            self.vote_only
+            and self.config.retrofit_init == "lifted"
+            and trainer is not None
+            and trainer._start_step == 0  # a resumed retrofit (--load-dir) keeps its trained offsets
+            and hasattr(datamanager, "vote_maps_for_train_view")
+        ):
+            start_offsets_lifted(self, datamanager, log=CONSOLE.log)
         if (
             self.config.foreground_min_masked_share is not None
             and trainer is not None

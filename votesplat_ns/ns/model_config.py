@@ -57,6 +57,8 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
     retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
     """Frame of a --pipeline.model.retrofit-from .ply: dataparser, dataset, colmap, or auto (README: retrofit frames)."""
+    retrofit_init: Literal["zero", "lifted"] = "zero"
+    """Start of a retrofit's offsets: zero, or lifted (each Gaussian's mask centroids lifted to 3D at its depth, mean over the training views)."""
     foreground_min_masked_share: Optional[float] = DEFAULT_MIN_MASKED_SHARE
     """After training, a Gaussian stays foreground at a level only if more than this share of its weight is in masks (None: all)."""
     clip_model_name: str = "ViT-B-16"
