@@ -16,6 +16,7 @@ from votesplat_ns.core.mask_consensus import (
     seen_pixels,
 )
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.core.vote_maps import VoteMaps
 from votesplat_ns.ns.run import camera_view, evenly_spaced
 
 # Every training view up to 64: on the tuning scenes (48 training views) all of them gave the
@@ -25,11 +26,23 @@ DEFAULT_MASK_VIEWS = 64
 DEFAULT_MASK_VIEW_WIDTH = 320
 
 
+def training_vote_views(
+    datamanager, max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH
+) -> Tuple[List[PinholeView], List[VoteMaps]]:
+    """Up to ``max_views`` evenly spaced training views of the vote ``datamanager``, at most
+    ``max_width`` wide, and their vote maps (every level) at that size."""
+    cameras = datamanager.train_dataset.cameras
+    indices = evenly_spaced(len(cameras), max_views)
+    views = [scaled_view(camera_view(cameras, i), max_width=max_width) for i in indices]
+    maps = [datamanager.vote_maps_for_train_view(i, v.height, v.width) for i, v in zip(indices, views)]
+    return views, maps
+
+
 def training_mask_views(
     pipeline, level_names: Sequence[str], max_views: int = DEFAULT_MASK_VIEWS, max_width: int = DEFAULT_MASK_VIEW_WIDTH
 ) -> Tuple[List[PinholeView], Dict[str, List[np.ndarray]]]:
-    """Up to ``max_views`` evenly spaced training views, at most ``max_width`` wide, and for each
-    level in ``level_names`` (names of the datamanager's vote levels) their mask labels [H, W]."""
+    """The views of :func:`training_vote_views` and, for each level in ``level_names`` (names of the
+    datamanager's vote levels), their mask labels [H, W]."""
     datamanager = pipeline.datamanager
     if not hasattr(datamanager, "vote_levels"):
         raise ValueError("the run's datamanager has no training masks (not the votesplat vote datamanager)")
@@ -37,15 +50,8 @@ def training_mask_views(
     missing = [name for name in level_names if name not in known]
     if missing:
         raise ValueError(f"the run's masks have levels {known}; no masks for {missing}")
-    cameras = datamanager.train_dataset.cameras
-    views: List[PinholeView] = []
-    masks: Dict[str, List[np.ndarray]] = {name: [] for name in level_names}
-    for index in evenly_spaced(len(cameras), max_views):
-        view = scaled_view(camera_view(cameras, index), max_width=max_width)
-        labels = np.asarray(datamanager.vote_maps_for_train_view(index, view.height, view.width).labels)
-        views.append(view)
-        for name in level_names:
-            masks[name].append(labels[known.index(name)].astype(np.int64))
+    views, maps = training_vote_views(datamanager, max_views, max_width)
+    masks = {name: [np.asarray(m.labels)[known.index(name)].astype(np.int64) for m in maps] for name in level_names}
     return views, masks
 
 
@@ -71,30 +77,27 @@ def mask_check(
     and 32 masks). On the tuning scenes the two were within 0.005 instance mIoU and ``centre`` kept
     more part mIoU at half the cost (BENCHMARKS.md "Training-mask check").
     """
+    if evidence not in ("centre", "blend"):
+        raise ValueError(f"evidence must be 'centre' or 'blend' (got {evidence!r})")
     views, masks = training_mask_views(pipeline, scene.level_names, max_views, max_width)
     finite = scene.finite()
     means, quats, scales, opacities = scene.gaussians(finite)[:4]
+    tables: Dict[str, np.ndarray] = {}
     if evidence == "blend":
-        tables = {}
         for name in scene.level_names:
-            table = np.full((len(views), finite.shape[0]), -1, dtype=np.int32)
+            tables[name] = np.full((len(views), finite.shape[0]), -1, dtype=np.int32)
             for v, view in enumerate(views):
-                table[v, finite] = drawn_masks(rasterize_fn, means, quats, scales, opacities, view, masks[name][v])
-            tables[name] = table
-
-        def refine_blend(index: int, name: str, ids: np.ndarray):
-            return regroup_with_masks(ids, scene.means, tables[name], **options)
-
-        return refine_blend
-    if evidence != "centre":
-        raise ValueError(f"evidence must be 'centre' or 'blend' (got {evidence!r})")
-    pixels = []
-    for view in views:
-        seen = np.full(finite.shape[0], -1, dtype=np.int64)  # non-finite Gaussians are never seen
-        seen[finite] = seen_pixels(rasterize_fn, means, quats, scales, opacities, view, depth_tolerance)
-        pixels.append(seen)
+                drawn = drawn_masks(rasterize_fn, means, quats, scales, opacities, view, masks[name][v])
+                tables[name][v, finite] = drawn
+    else:
+        pixels = []
+        for view in views:
+            seen = np.full(finite.shape[0], -1, dtype=np.int64)  # non-finite Gaussians are never seen
+            seen[finite] = seen_pixels(rasterize_fn, means, quats, scales, opacities, view, depth_tolerance)
+            pixels.append(seen)
+        tables = {name: seen_mask_table(pixels, masks[name]) for name in scene.level_names}
 
     def refine(index: int, name: str, ids: np.ndarray):
-        return regroup_with_masks(ids, scene.means, seen_mask_table(pixels, masks[name]), **options)
+        return regroup_with_masks(ids, scene.means, tables[name], **options)
 
     return refine

@@ -4,16 +4,12 @@ vote datamanager's training views and vote maps."""
 from __future__ import annotations
 
 import time
-from typing import List
 
 import torch
 
-from votesplat_ns.core.cameras import PinholeView, scaled_view
 from votesplat_ns.core.vote_init import LiftedVotes, lifted_votes
-from votesplat_ns.core.vote_maps import VoteMaps
-from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEW_WIDTH, DEFAULT_MASK_VIEWS
+from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEW_WIDTH, DEFAULT_MASK_VIEWS, training_vote_views
 from votesplat_ns.ns.rasterizer import rasterize
-from votesplat_ns.ns.run import camera_view, evenly_spaced
 
 
 def lifted_offsets(
@@ -21,13 +17,7 @@ def lifted_offsets(
 ) -> LiftedVotes:
     """Lifted offsets [N, L, 3] of ``model``'s Gaussians from up to ``max_views`` evenly spaced training
     views at most ``max_width`` wide (the views and size of the mask check: one render per view)."""
-    cameras = datamanager.train_dataset.cameras
-    views: List[PinholeView] = []
-    maps: List[VoteMaps] = []
-    for index in evenly_spaced(len(cameras), max_views):
-        view = scaled_view(camera_view(cameras, index), max_width=max_width)
-        views.append(view)
-        maps.append(datamanager.vote_maps_for_train_view(index, view.height, view.width))
+    views, maps = training_vote_views(datamanager, max_views, max_width)
     return lifted_votes(rasterize, model.means, model.quats, model.scales.exp(), model.opacities.sigmoid(), views, maps)
 
 
