@@ -88,6 +88,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile each timed vote step (torch.profiler, 5 steps): GPU kernel time and launches per step "
+        "against the wall time, and the kernels that take the most GPU time",
+    )
+    parser.add_argument(
         "--device", choices=["cuda", "cpu"], default="cuda", help="cpu: pure-torch rasteriser, for checking the script"
     )
     return parser.parse_args(argv)
@@ -237,6 +243,7 @@ def _run(args: argparse.Namespace) -> int:
     offsets = torch.zeros(args.num_gaussians, max_levels, 3, device=device, requires_grad=True)
     rows = []
     compile_rows = []
+    profiles = []
     cache_dir = os.environ.get("TRITON_CACHE_DIR")
     cache_was_empty = cache_dir is not None and not any(Path(cache_dir).iterdir())
     for pixels in args.pixels:
@@ -326,6 +333,8 @@ def _run(args: argparse.Namespace) -> int:
                         torch.cuda.synchronize()
                         compile_rows.append((backend_label, levels, pixels, time.perf_counter() - start_s))
                     ms, mib = measure(step, args.warmup, args.repeats, device)
+                    if args.profile:
+                        profiles.append((f"{backend_label}: {label}", levels, pixels, ms, profile_step(step, device)))
                     with CallCounter() as counter:
                         step()
                     counts = (counter.host_reads, counter.calls)
@@ -363,7 +372,37 @@ def _run(args: argparse.Namespace) -> int:
             f"| {label} | {levels} | {pixels} | {'auto' if chunk is None else chunk} | {ms:.2f} | {ms / rgb_ms:.2f} "
             f"| {_mib(mib)} | {memory_ratio} | {reads} | {calls} | {mean_count:.1f} | {max_count} |"
         )
+    for label, levels, pixels, ms, (kernel_ms, launches, top) in profiles:
+        print(
+            f"\nprofile of {label}, {levels} levels, {pixels} px: wall {ms:.2f} ms, GPU kernels {kernel_ms:.2f} ms "
+            f"({100 * kernel_ms / ms:.0f}% busy), {launches:.0f} launches per step; top kernels (ms per step):"
+        )
+        for name, kms, calls in top:
+            print(f"  {kms:7.3f} ms  {calls:5.1f}x  {name[:110]}")
     return 0
+
+
+def profile_step(step: Callable[[], None], device: torch.device, steps: int = 5):
+    """(GPU kernel ms per step, kernel launches per step, top 10 kernels as (name, ms, calls) per step)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    step()
+    with profile(activities=activities) as prof:
+        for _ in range(steps):
+            step()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+    kernels = {}
+    for event in prof.events():
+        if device.type == "cuda" and getattr(event, "device_type", None) != torch.autograd.DeviceType.CUDA:
+            continue
+        total, calls = kernels.get(event.name, (0.0, 0))
+        kernels[event.name] = (total + event.device_time / 1e3, calls + 1)
+    total_ms = sum(t for t, _ in kernels.values()) / steps
+    launches = sum(c for _, c in kernels.values()) / steps
+    top = sorted(kernels.items(), key=lambda kv: -kv[1][0])[:10]
+    return total_ms, launches, [(name, t / steps, c / steps) for name, (t, c) in top]
 
 
 def _mib(value: Optional[float]) -> str:

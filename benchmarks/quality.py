@@ -213,6 +213,23 @@ def train_base_scene(scene: Path, args) -> Path:
     )
 
 
+def write_base_ply(base_config: Path) -> Path:
+    """The base run's Gaussians as a standard 3DGS PLY beside its config (the retrofit-from-PLY source)."""
+    import torch
+
+    from votesplat_ns.core.ply_io import write_gaussian_table
+    from votesplat_ns.core.scene import TrainedScene
+    from votesplat_ns.ns.run import latest_checkpoint
+
+    path = base_config.parent / "scene.ply"
+    if not path.exists():
+        state = torch.load(latest_checkpoint(base_config), map_location="cpu")["pipeline"]
+        prefix = "_model.gauss_params."
+        params = {key[len(prefix) :]: value for key, value in state.items() if key.startswith(prefix)}
+        write_gaussian_table(path, TrainedScene.from_params(params).vertex_table())
+    return path
+
+
 def level_row(metrics: dict, level: str) -> dict:
     """The table's numbers for one level of a votesplat-eval metrics.json: mIoU, precision and recall over the
     valid views where it reports them (``*_valid_views``), else over all held-out views."""
@@ -340,6 +357,14 @@ def parse_args(argv: Optional[List[str]] = None):
         help="start of the offsets (with --retrofit), a run each: zero, or lifted mask centroids (retrofit_init)",
     )
     parser.add_argument(
+        "--retrofit-source",
+        nargs="+",
+        choices=["checkpoint", "ply"],
+        default=["checkpoint"],
+        help="what a retrofit reads (with --retrofit), a run each: the base run's checkpoint, or its Gaussians "
+        "written as a standard 3DGS PLY (the layout of ns-export gaussian-splat, in the same frame)",
+    )
+    parser.add_argument(
         "--summarize",
         nargs="+",
         type=Path,
@@ -423,8 +448,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     args.work_dir.mkdir(parents=True, exist_ok=True)
     rows: List[dict] = []
     first_columns = ["scene", "variant"] if args.ablation else ["scene", "masks"]
-    if args.retrofit and args.retrofit_init != ["zero"]:
-        first_columns.append("init")
+    if args.retrofit and (args.retrofit_init != ["zero"] or args.retrofit_source != ["checkpoint"]):
+        first_columns += ["init", "source"]
     suffix = "ablation" if args.ablation else "quality"
 
     def record(row: dict) -> None:
@@ -494,16 +519,21 @@ def main(argv: Optional[List[str]] = None) -> int:
                 jobs.append(({"scene": name, "masks": masks}, args.work_dir / name / masks, folder, dict(base)))
         if args.retrofit:
             base_config = train_base_scene(scene, args)
-            named = args.retrofit_init != ["zero"]  # the default keeps the run folders and labels of earlier runs
+            sources = {"checkpoint": base_config}
+            if "ply" in args.retrofit_source:
+                sources["ply"] = write_base_ply(base_config)
+            # the defaults keep the run folders and labels of earlier runs
+            named = args.retrofit_init != ["zero"] or args.retrofit_source != ["checkpoint"]
             jobs = [
                 (
-                    {**labels, **({"init": init} if named else {})},
-                    run_dir.with_name(f"{run_dir.name}_{init}") if named else run_dir,
+                    {**labels, **({"init": init, "source": source} if named else {})},
+                    run_dir.with_name(f"{run_dir.name}_{init}_{source}") if named else run_dir,
                     folder,
-                    {**overrides, "retrofit_from": base_config, "retrofit_init": init},
+                    {**overrides, "retrofit_from": sources[source], "retrofit_init": init},
                 )
                 for labels, run_dir, folder, overrides in jobs
                 for init in args.retrofit_init
+                for source in args.retrofit_source
             ]
         for seed in args.seeds:
             for labels, run_dir, folder, overrides in jobs:
