@@ -196,7 +196,10 @@ def parse_args(argv: Optional[List[str]] = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="votesplat-synth scene folders")
     parser.add_argument(
-        "--family", choices=["tuning", "test"], default=None, help="every scene of this family set instead"
+        "--family",
+        choices=["tuning", "tuning-extra", "test"],
+        default=None,
+        help="every scene of this family set instead",
     )
     parser.add_argument(
         "--family-dir", type=Path, default=None, help="where the set was written (default build/family_<set>)"

@@ -14,7 +14,15 @@ import pytest
 from PIL import Image
 
 import votesplat_ns
-from votesplat_ns.eval.synthetic.family import TEST_SEEDS, TUNING_SEEDS, covering_block, covers, family_set
+from votesplat_ns.eval.synthetic.family import (
+    TEST_SEEDS,
+    TEST_START,
+    TUNING_EXTRA_SEEDS,
+    TUNING_SEEDS,
+    covering_block,
+    covers,
+    family_set,
+)
 from votesplat_ns.eval.synthetic.render import (
     MITSUBA_MISSING,
     mitsuba_available,
@@ -223,6 +231,10 @@ def test_family_sets_are_disjoint_and_cover_every_property():
         assert kinds == set(FAMILY_PROPERTY_KINDS), (name, set(FAMILY_PROPERTY_KINDS) - kinds)
     # the seeds follow from the documented rule, not from anybody's choice
     assert covering_block(1000) == TUNING_SEEDS and covering_block(2000) == TEST_SEEDS
+    first_extra = covering_block(TUNING_SEEDS[-1] + 1)
+    assert first_extra + covering_block(first_extra[-1] + 1) == TUNING_EXTRA_SEEDS
+    assert set(TUNING_EXTRA_SEEDS).isdisjoint(TUNING_SEEDS) and set(TUNING_EXTRA_SEEDS).isdisjoint(TEST_SEEDS)
+    assert max(TUNING_EXTRA_SEEDS) < TEST_START
     assert not covers(range(TEST_SEEDS[0] - 6, TEST_SEEDS[0]))
     with pytest.raises(ValueError, match="unknown family set"):
         family_set("validation")
