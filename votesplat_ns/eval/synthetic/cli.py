@@ -41,16 +41,17 @@ def build_parser(prog: str = "votesplat synth") -> argparse.ArgumentParser:
         "--objects", type=int, default=None, help="number of objects (default: the recipe's random count)"
     )
     parser.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees")
-    parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
-    parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
-    parser.add_argument("--points", type=int, default=4000, help="points in sparse_pc.ply")
-    _add_image_arguments(parser, "png")
+    _add_render_arguments(parser, "png", "points in sparse_pc.ply")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in --output-dir")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
 
 
-def _add_image_arguments(parser: argparse.ArgumentParser, default_format: str) -> None:
+def _add_render_arguments(parser: argparse.ArgumentParser, default_format: str, points_help: str) -> None:
+    """The options of :func:`_render_settings`."""
+    parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
+    parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
+    parser.add_argument("--points", type=int, default=4000, help=points_help)
     parser.add_argument(
         "--image-format",
         choices=["png", "jpg"],
@@ -73,10 +74,7 @@ def build_family_set_parser(prog: str = "votesplat synth") -> argparse.ArgumentP
     )
     parser.add_argument("--set", required=True, choices=sorted(FAMILY_SETS), help="tuning or test seeds")
     parser.add_argument("--output-dir", required=True, help="folder for the set's scene folders")
-    parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
-    parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
-    parser.add_argument("--points", type=int, default=4000, help="points in each sparse_pc.ply")
-    _add_image_arguments(parser, "jpg")
+    _add_render_arguments(parser, "jpg", "points in each sparse_pc.ply")
     parser.add_argument("--overwrite", action="store_true", help="replace a set already in --output-dir")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
