@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from votesplat_ns.core.clustering import ClusteringOptions, cluster_votes_detailed  # noqa: E402
-from votesplat_ns.core.ply_io import write_gaussian_ply  # noqa: E402
+from votesplat_ns.core.ply_io import gaussian_vertex_table, write_gaussian_table  # noqa: E402
 from votesplat_ns.ns.export import export_instances  # noqa: E402
 
 
@@ -107,8 +107,7 @@ def bench_export(size: int, num_instances: int, max_points: int) -> dict:
     }
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as folder:
         wall = time.perf_counter()
-        write_gaussian_ply(
-            Path(folder) / "scene.ply",
+        table = gaussian_vertex_table(
             params["means"],
             params["features_dc"],
             params["features_rest"],
@@ -116,6 +115,7 @@ def bench_export(size: int, num_instances: int, max_points: int) -> dict:
             params["scales"],
             params["quats"],
         )
+        write_gaussian_table(Path(folder) / "scene.ply", table)
         ply_wall = time.perf_counter() - wall
         ply_mb = (Path(folder) / "scene.ply").stat().st_size / 2**20
         wall, cpu = time.perf_counter(), time.process_time()

@@ -10,10 +10,11 @@ from plyfile import PlyData
 from votesplat_ns.core.ply_io import (
     MIN_OPACITY_LOGIT,
     gaussian_property_names,
+    gaussian_vertex_table,
     read_gaussian_ply,
     read_ply_header,
     read_vertex_ply,
-    write_gaussian_ply,
+    write_gaussian_table,
     write_instance_id_file,
     write_vertex_ply,
 )
@@ -32,16 +33,10 @@ def random_params(n=50, k=15, seed=0):
 
 
 def write(path, p, **kwargs):
-    return write_gaussian_ply(
-        path,
-        p["means"],
-        p["features_dc"],
-        p["features_rest"],
-        p["opacity_logits"],
-        p["log_scales"],
-        p["quats"],
-        **kwargs,
+    table = gaussian_vertex_table(
+        p["means"], p["features_dc"], p["features_rest"], p["opacity_logits"], p["log_scales"], p["quats"]
     )
+    return write_gaussian_table(path, table, **kwargs)
 
 
 def test_round_trip_every_field_with_plyfile(tmp_path):

@@ -20,8 +20,9 @@ from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.ply_io import (
     MIN_OPACITY_LOGIT,
     GaussianPlyError,
+    gaussian_vertex_table,
     read_3dgs_ply,
-    write_gaussian_ply,
+    write_gaussian_table,
     write_vertex_ply,
 )
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
@@ -57,17 +58,10 @@ def random_gaussians(n=40, sh_degree=3, seed=0):
 
 
 def write_ply(path, g, select=None):
-    return write_gaussian_ply(
-        path,
-        g["means"],
-        g["features_dc"],
-        g["features_rest"],
-        g["opacities"],
-        g["scales"],
-        g["quats"],
-        select=select,
-        filter_invalid=False,
+    table = gaussian_vertex_table(
+        g["means"], g["features_dc"], g["features_rest"], g["opacities"], g["scales"], g["quats"]
     )
+    return write_gaussian_table(path, table, select=select, filter_invalid=False)
 
 
 def random_rotation(seed=1):

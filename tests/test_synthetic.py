@@ -4,6 +4,8 @@ Tests marked ``needs_mitsuba`` render; the demo-scene tests read the committed f
 numpy, Pillow and nerfstudio.
 """
 
+import dataclasses
+import hashlib
 import json
 import sys
 import types
@@ -15,6 +17,7 @@ from PIL import Image
 
 import votesplat_ns
 from votesplat_ns.eval.synthetic.family import (
+    SET_OPTIONS,
     TEST_SEEDS,
     TEST_START,
     TUNING_EXTRA_SEEDS,
@@ -320,6 +323,81 @@ def test_family_cut_object_leaves_the_frame_in_most_views(seed):
         inside = (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
         overflowing += inside.any() and not inside.all()
     assert overflowing >= 0.7 * len(scene.cameras)
+
+
+# --------------------------------------------------------------------------------------------
+# the benchmark scenes are pinned: a refactor of the recipes must not change them
+
+
+def _digest(value) -> str:
+    """8 hex digits of a scene component: its structure, names and numbers (rounded to 1e-6, so a last-bit
+    difference of a platform's maths does not count)."""
+    sha = hashlib.sha256()
+
+    def feed(x):
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            sha.update(type(x).__name__.encode())
+            for f in dataclasses.fields(x):
+                sha.update(f.name.encode())
+                feed(getattr(x, f.name))
+        elif isinstance(x, dict):
+            sha.update(b"{%d" % len(x))
+            for key in sorted(x):
+                sha.update(str(key).encode())
+                feed(x[key])
+        elif isinstance(x, (list, tuple)):
+            sha.update(b"[%d" % len(x))
+            for item in x:
+                feed(item)
+        elif isinstance(x, (str, bool, int, np.integer, type(None))):
+            sha.update(repr(x if not isinstance(x, np.integer) else int(x)).encode())
+        else:  # floats and arrays; + 0.0 turns -0.0 into 0.0
+            array = np.asarray(x)
+            sha.update(str(array.shape).encode())
+            if array.dtype.kind in "iub":
+                sha.update(array.astype(np.int64).tobytes())
+            else:
+                sha.update((np.round(array.astype(np.float64), 6) + 0.0).tobytes())
+
+    feed(value)
+    return sha.hexdigest()[:8]
+
+
+def scene_digest(scene) -> str:
+    """objects:cameras:background:layout digests of a scene (no rendering)."""
+    return ":".join(
+        _digest(part)
+        for part in (
+            scene.objects,
+            ([camera.c2w for camera in scene.cameras], scene.intrinsics, scene.eval_indices),
+            (scene.background, scene.textures, scene.lighting),
+            (scene.touching, scene.parameters),
+        )
+    )
+
+
+# family_<seed> at SET_OPTIONS, as written by `votesplat-synth family-set`; a change here changes the benchmark
+# (BENCHMARKS.md numbers no longer apply): bump GENERATOR_VERSION and re-render the sets instead of editing these
+PINNED_FAMILY_SCENES = {
+    1006: "6447b3af:ed23ae87:e7385255:6b4e7975",
+    1007: "e8f50ef8:85d49608:f0dceba3:a482e342",
+    1008: "e13d5648:e9d8937b:1c745baf:ba7f3e25",
+    1009: "713b2a79:33ba5c5e:0c063a8a:41e4e5cf",
+    1010: "06a92919:bc14b6d0:5c1e39c9:a5bfa35e",
+    1011: "154e0b1a:be65a811:f7f66909:3e35a343",
+    2054: "131e8d53:c6f2f2cf:edb93fd6:323f1afb",
+    2055: "cc7fe500:fc3e6d5f:b720cdd6:e043986b",
+    2056: "df0d900a:afb77a3d:d2c38edf:354ec157",
+    2057: "2ec832d7:32fc7c9a:53e33c45:c48fdaa3",
+    2058: "eb53ac56:6e0076dd:ef0840f2:38494a6f",
+    2059: "9615a2f6:9e9e69e3:4995e15f:0eb44aad",
+}
+
+
+def test_benchmark_scenes_are_pinned():
+    assert sorted(PINNED_FAMILY_SCENES) == sorted(TUNING_SEEDS + TEST_SEEDS)
+    digests = {seed: scene_digest(make_scene("family", seed=seed, **SET_OPTIONS)) for seed in PINNED_FAMILY_SCENES}
+    assert digests == PINNED_FAMILY_SCENES
 
 
 def test_family_refuses_an_object_count():

@@ -238,12 +238,15 @@ def checkpoint_problem(checkpoint: Path) -> Optional[str]:
     return None
 
 
-def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:
-    """The checkpoint ``ns/run.load_run`` will load for a run's config.yml, checked before any model is built.
+def _not_a_run_config(load_config: Path, flag: str, error: Exception) -> VoteSplatInputError:
+    return VoteSplatInputError(
+        f"{flag} {load_config}: not a nerfstudio run config ({type(error).__name__}); pass the config.yml that ns-train wrote"
+    )
 
-    A missing config file, a run without checkpoints or a checkpoint that is truncated or damaged
-    raise :class:`VoteSplatInputError` naming the file.
-    """
+
+def read_run_config(load_config: Union[str, Path], flag: str = "--load-config"):
+    """A run's config.yml as nerfstudio wrote it (its TrainerConfig); a missing or unreadable file raises
+    :class:`VoteSplatInputError` naming ``flag`` and the file."""
     import yaml
 
     load_config = Path(load_config)
@@ -252,12 +255,23 @@ def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Pat
             f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)"
         )
     try:
-        config = yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
+        return yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
+    except Exception as error:  # not YAML, or a YAML of classes that are not importable here
+        raise _not_a_run_config(load_config, flag, error) from None
+
+
+def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:
+    """The checkpoint ``ns/run.load_run`` will load for a run's config.yml, checked before any model is built.
+
+    A missing config file, a run without checkpoints or a checkpoint that is truncated or damaged
+    raise :class:`VoteSplatInputError` naming the file.
+    """
+    load_config = Path(load_config)
+    config = read_run_config(load_config, flag)
+    try:
         checkpoint = _latest_checkpoint(config) if hasattr(config, "get_checkpoint_dir") else None
-    except Exception as error:  # a config.yml that is not a nerfstudio run config
-        raise VoteSplatInputError(
-            f"{flag} {load_config}: not a nerfstudio run config ({type(error).__name__}); pass the config.yml that ns-train wrote"
-        ) from None
+    except Exception as error:  # a YAML file that is not a nerfstudio run config
+        raise _not_a_run_config(load_config, flag, error) from None
     if checkpoint is None or not checkpoint.is_file():
         folder = checkpoint.parent if checkpoint is not None else "its nerfstudio_models/ folder"
         raise VoteSplatInputError(

@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Literal, Optional, Tuple
 
@@ -113,15 +113,8 @@ class WriteNoisyMasks:
     """Replace a previous noisy-mask folder at --output."""
 
     def noise(self) -> MaskNoise:
-        return MaskNoise(
-            split_rate=self.split_rate,
-            merge_rate=self.merge_rate,
-            jitter_rate=self.jitter_rate,
-            drop_rate=self.drop_rate,
-            max_jitter_px=self.max_jitter_px,
-            merge_max_gap_px=self.merge_max_gap_px,
-            seed=self.seed,
-        )
+        """The options of the same name as a :class:`MaskNoise` (the CLI's own defaults and help)."""
+        return MaskNoise(**{f.name: getattr(self, f.name) for f in fields(MaskNoise)})
 
     def main(self) -> None:
         out = write_noisy_masks(self.data, self.output, self.noise(), self.levels, self.overwrite)

@@ -396,19 +396,13 @@ def cluster_levels(
     offsets,
     support,
     level_names: Sequence[str],
-    min_cluster_size: Optional[int] = None,
-    min_samples: Optional[int] = None,
-    max_points: int = DEFAULT_MAX_POINTS,
-    seed: int = 0,
-    noise: NoiseRule = "nearest",
-    noise_radius: Optional[float] = None,
     coarse_to_fine: bool = True,
     on_level: Optional[Callable[[int, str], None]] = None,
     fill: bool = True,
     min_instance_fraction: float = DEFAULT_MIN_INSTANCE_FRACTION,
     merge_separation: Optional[float] = None,
     refine: Optional[Callable[[int, str, np.ndarray], Tuple[np.ndarray, Dict[str, int]]]] = None,
-    **cluster_kwargs,
+    **cluster_kwargs: Any,
 ) -> InstanceSet:
     """Instances of every vote level, linked parent -> child between consecutive levels.
 
@@ -424,7 +418,9 @@ def cluster_levels(
     clusters of spread votes (:func:`merge_spread_clusters`). ``refine(index, name, ids)`` (ids [N],
     -1 outside every instance) returns new ids and a dict of counts stored with the level's
     clustering parameters; the exporter passes the training-mask check
-    (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`) here.
+    (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`) here. ``cluster_kwargs`` are the
+    HDBSCAN settings of :func:`cluster_votes_detailed` (``min_cluster_size``, ``min_samples``,
+    ``max_points``, ``seed``, ``noise``, ...), the same for every level.
     """
     means = _to_numpy(means)
     offsets = _to_numpy(offsets)
@@ -455,16 +451,7 @@ def cluster_levels(
         votes = means[fg_index].astype(np.float64) + offsets[fg_index, index].astype(np.float64)
         ids = np.full(n, -1, dtype=np.int64)
         if fg_index.size:
-            result = cluster_votes_detailed(
-                votes,
-                min_cluster_size=min_cluster_size,
-                min_samples=min_samples,
-                max_points=max_points,
-                seed=seed,
-                noise=noise,
-                noise_radius=noise_radius,
-                **cluster_kwargs,
-            )
+            result = cluster_votes_detailed(votes, **cluster_kwargs)
             labels = result.labels
             params = dict(result.params)
             if merge_separation is not None:

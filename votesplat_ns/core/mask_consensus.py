@@ -67,6 +67,33 @@ DEFAULT_DEPTH_TOLERANCE = 0.05
 DEFAULT_MIN_WEIGHT = 0.5
 
 
+def _view_matrices(view: PinholeView, like: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``view``'s world-to-camera [4, 4] and intrinsics [3, 3] on ``like``'s device and dtype."""
+    return view.viewmat.to(device=like.device, dtype=like.dtype), view.K.to(device=like.device, dtype=like.dtype)
+
+
+def _render(
+    rasterize_fn: Callable[..., tuple], gaussians: Sequence[torch.Tensor], colours: torch.Tensor, view: PinholeView
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Render [H, W, D] and alpha [H, W] of one view of ``gaussians`` (means, quats, scales linear, opacities in
+    [0, 1]) with per-Gaussian ``colours`` [N, D]."""
+    means, quats, scales, opacities = gaussians
+    viewmat, K = _view_matrices(view, means)
+    rendered, alpha, _ = rasterize_fn(
+        means,
+        quats,
+        scales,
+        opacities.reshape(-1),
+        colours,
+        viewmat[None],
+        K[None],
+        view.width,
+        view.height,
+        sh_degree=None,
+    )
+    return rendered[0], alpha[0, ..., 0]
+
+
 def seen_pixels(
     rasterize_fn: Callable[..., tuple],
     means: torch.Tensor,
@@ -83,25 +110,11 @@ def seen_pixels(
     covers (alpha >= ``min_alpha``) and not behind the rendered (expected) depth there by more than
     ``depth_tolerance`` of that depth. scales linear, opacities in [0, 1] ([N] or [N, 1]).
     """
-    device = means.device
-    viewmat = view.viewmat.to(device=device, dtype=means.dtype)
-    K = view.K.to(device=device, dtype=means.dtype)
+    viewmat, K = _view_matrices(view, means)
     z = means @ viewmat[2, :3] + viewmat[2, 3]
     with torch.no_grad():
-        rendered, alpha, _ = rasterize_fn(
-            means,
-            quats,
-            scales,
-            opacities.reshape(-1),
-            z[:, None],
-            viewmat[None],
-            K[None],
-            view.width,
-            view.height,
-            sh_degree=None,
-        )
-    alpha = alpha[0, ..., 0]
-    depth = rendered[0, ..., 0] / alpha.clamp_min(1e-6)
+        rendered, alpha = _render(rasterize_fn, (means, quats, scales, opacities), z[:, None], view)
+    depth = rendered[..., 0] / alpha.clamp_min(1e-6)
     u, v = torch.floor(project_to_pixels(means, viewmat, K, near_plane=1e-6)).long().unbind(-1)
     inside = (z > 1e-6) & (u >= 0) & (u < view.width) & (v >= 0) & (v < view.height)
     flat = torch.where(inside, v * view.width + u, torch.zeros_like(u))
@@ -136,8 +149,7 @@ def drawn_masks(
     colour channel k (the composite is linear in the colours), ``chunk`` masks per render.
     """
     device = means.device
-    viewmat = view.viewmat.to(device=device, dtype=means.dtype)
-    K = view.K.to(device=device, dtype=means.dtype)
+    gaussians = (means.detach(), quats.detach(), scales.detach(), opacities.detach())
     flat = torch.as_tensor(np.asarray(labels, dtype=np.int64), device=device)
     ids = torch.unique(flat)
     n = means.shape[0]
@@ -148,20 +160,9 @@ def drawn_masks(
         part = ids[start : start + chunk]
         colours = torch.zeros(n, int(part.numel()), device=device, dtype=means.dtype, requires_grad=True)
         with torch.enable_grad():
-            rendered, _, _ = rasterize_fn(
-                means.detach(),
-                quats.detach(),
-                scales.detach(),
-                opacities.detach().reshape(-1),
-                colours,
-                viewmat[None],
-                K[None],
-                view.width,
-                view.height,
-                sh_degree=None,
-            )
+            rendered, _ = _render(rasterize_fn, gaussians, colours, view)
             target = (flat[..., None] == part).to(rendered.dtype)
-            (weights,) = torch.autograd.grad((rendered[0] * target).sum(), colours)
+            (weights,) = torch.autograd.grad((rendered * target).sum(), colours)
         total += weights.sum(dim=1)
         top, arg = weights.max(dim=1)
         better = top > best

@@ -803,6 +803,10 @@ def rasterize_to_pixels_torch(
 # ----------------------------------------------------------------------------------------
 
 
+# the tensor arguments of rasterize_torch, in the order their values are checked
+_INPUT_NAMES = ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")
+
+
 def _check_finite(name: str, tensor: Tensor) -> None:
     if not bool(torch.isfinite(tensor).all()):
         raise ValueError(f"{name} contains NaN or inf; fix the upstream parameters before rendering")
@@ -819,22 +823,8 @@ def _check_gsplat_extras(extras: Dict[str, Any]) -> None:
             raise ValueError("rasterize_torch takes quats and scales, not covars; pass covars=None")
 
 
-def _validate(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    sh_degree: Optional[int],
-    tile_size: int,
-    backgrounds: Optional[Tensor],
-    render_mode: str,
-    rasterize_mode: str,
-    packed: bool,
+def _validate_options(
+    width: int, height: int, tile_size: int, render_mode: str, rasterize_mode: str, packed: bool
 ) -> None:
     if packed:
         raise ValueError("rasterize_torch renders unpacked only; pass packed=False")
@@ -844,6 +834,11 @@ def _validate(
         raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     if int(width) <= 0 or int(height) <= 0 or int(tile_size) <= 0:
         raise ValueError(f"width, height and tile_size must be positive, got {width}, {height}, {tile_size}")
+
+
+def _validate_shapes(gaussians: Tuple[Tensor, Tensor, Tensor, Tensor], viewmats: Tensor, Ks: Tensor) -> Tuple[int, int]:
+    """(N, C) after checking ``gaussians`` = (means, quats, scales, opacities) and the cameras."""
+    means, quats, scales, opacities = gaussians
     if means.dim() != 2 or means.shape[1] != 3:
         raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}")
     N = means.shape[0]
@@ -858,6 +853,10 @@ def _validate(
     C = viewmats.shape[0]
     if Ks.shape != (C, 3, 3):
         raise ValueError(f"Ks must be [C, 3, 3] = {(C, 3, 3)}, got {tuple(Ks.shape)}")
+    return N, C
+
+
+def _validate_colors(colors: Tensor, sh_degree: Optional[int], backgrounds: Optional[Tensor], N: int, C: int) -> None:
     if sh_degree is None:
         if not ((colors.dim() == 2 and colors.shape[0] == N) or (colors.dim() == 3 and colors.shape[:2] == (C, N))):
             raise ValueError(
@@ -881,16 +880,6 @@ def _validate(
         D = 3 if sh_degree is not None else colors.shape[-1]
         if backgrounds.shape != (C, D):
             raise ValueError(f"backgrounds must be [C, D] = {(C, D)}, got {tuple(backgrounds.shape)}")
-    for name, tensor in (
-        ("means", means),
-        ("quats", quats),
-        ("scales", scales),
-        ("opacities", opacities),
-        ("colors", colors),
-        ("viewmats", viewmats),
-        ("Ks", Ks),
-    ):
-        _check_finite(name, tensor)
 
 
 def rasterize_torch(
@@ -935,25 +924,13 @@ def rasterize_torch(
     ``alpha_max`` (gsplat: 0.999) and ``chunk_elements`` (memory bound) are extras.
     """
     _check_gsplat_extras(ignored)
-    _validate(
-        means,
-        quats,
-        scales,
-        opacities,
-        colors,
-        viewmats,
-        Ks,
-        width,
-        height,
-        sh_degree,
-        tile_size,
-        backgrounds,
-        render_mode,
-        rasterize_mode,
-        packed,
-    )
+    _validate_options(width, height, tile_size, render_mode, rasterize_mode, packed)
+    gaussians = (means, quats, scales, opacities)
+    N, C = _validate_shapes(gaussians, viewmats, Ks)
+    _validate_colors(colors, sh_degree, backgrounds, N, C)
+    for name, tensor in zip(_INPUT_NAMES, (*gaussians, colors, viewmats, Ks)):
+        _check_finite(name, tensor)
     width, height, tile_size = int(width), int(height), int(tile_size)
-    C = viewmats.shape[0]
 
     radii, means2d, depths, conics, compensations = project_gaussians_torch(
         means,

@@ -39,7 +39,7 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple, Uni
 import numpy as np
 import torch
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, read_run_config
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.core.instances import render_id_maps  # noqa: F401 (re-exported: evaluation renders its id maps with it)
@@ -95,17 +95,8 @@ def render_rgb_psnr(model, dataset, index: int) -> Tuple[float, float]:
 
 def load_votesplat_config(config_path: Union[str, Path]):
     """The run's TrainerConfig; a clear error for a missing file, another method or no checkpoint."""
-    import yaml
-
     config_path = Path(config_path)
-    if not config_path.is_file():
-        raise ValueError(
-            f"{config_path} not found; pass the config.yml of a votesplat run (outputs/<name>/votesplat/<time>/config.yml)"
-        )
-    try:
-        config = yaml.load(config_path.read_text(encoding="utf-8"), Loader=yaml.Loader)
-    except Exception as err:
-        raise ValueError(f"{config_path} is not a nerfstudio config.yml ({type(err).__name__}: {err})") from None
+    config = read_run_config(config_path)
     method = getattr(config, "method_name", None)
     if method is None:
         raise ValueError(f"{config_path} is not a nerfstudio config.yml (no method_name)")

@@ -109,11 +109,14 @@ def setup_trainer_in_process(
     load_dir: Optional[Path] = None,
     **model_overrides,
 ):
-    """A set-up (not yet trained) nerfstudio Trainer for ``train_in_process``; same arguments.
+    """A set-up (not yet trained) nerfstudio Trainer of ``steps`` steps, votes from ``vote_start`` on.
 
-    ``datamanager_overrides`` set datamanager config fields (e.g. ``border_masks``).
-    ``load_dir``: a run's nerfstudio_models/ folder to resume from, as ``ns-train --load-dir``
-    (the ``steps`` more steps continue from its latest checkpoint).
+    No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
+    ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields,
+    ``datamanager_overrides`` datamanager config fields (e.g. ``border_masks``). ``seed`` seeds
+    Python, NumPy and torch as ns-train does (``--machine.seed``). ``load_dir``: a run's
+    nerfstudio_models/ folder to resume from, as ``ns-train --load-dir`` (the ``steps`` more steps
+    continue from its latest checkpoint).
     """
     import random
 
@@ -162,42 +165,15 @@ def setup_trainer_in_process(
     return trainer
 
 
-def train_in_process(
-    data: Path,
-    output_dir: Path,
-    steps: int,
-    vote_start: int,
-    device: str = "cpu",
-    timestamp: str = "run",
-    mask_folder: Optional[Path] = None,
-    seed: int = 42,
-    load_dir: Optional[Path] = None,
-    datamanager_overrides: Optional[Dict[str, Any]] = None,
-    **model_overrides,
-) -> Path:
+def train_in_process(*args: Any, **kwargs: Any) -> Path:
     """Train votesplat in this process (tests, benchmarks/quality.py); returns the run's config.yml.
 
-    No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
-    ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields.
-    ``seed`` seeds Python, NumPy and torch as ns-train does (``--machine.seed``). ``load_dir``
-    resumes a run from its nerfstudio_models/ folder, as ``ns-train --load-dir``.
-    ``datamanager_overrides`` set datamanager config fields (e.g. ``border_masks``).
+    The arguments are :func:`setup_trainer_in_process`'s.
     """
     import torch
 
-    trainer = setup_trainer_in_process(
-        data,
-        output_dir,
-        steps,
-        vote_start,
-        device,
-        timestamp,
-        mask_folder,
-        seed,
-        datamanager_overrides=datamanager_overrides,
-        load_dir=load_dir,
-        **model_overrides,
-    )
+    trainer = setup_trainer_in_process(*args, **kwargs)
+    device = trainer.config.machine.device_type
     config_path = trainer.config.get_base_dir() / "config.yml"
     trainer.train()
     del trainer

@@ -344,7 +344,7 @@ class InstanceViewerState:
         ``gauss_params`` holds splatfacto's raw parameters (means, features_dc, features_rest,
         opacities as logits, scales as logs, quats) of the scene the instances were computed for.
         """
-        from votesplat_ns.core.ply_io import write_gaussian_ply
+        from votesplat_ns.core.ply_io import gaussian_vertex_table, write_gaussian_table
 
         if self.instances is None or self.selected is None:
             raise ValueError("nothing selected: compute instances and click an instance (or type a query) first")
@@ -360,16 +360,15 @@ class InstanceViewerState:
             raise ValueError(f"export folder {folder} is a file; remove it or choose another folder")
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / f"{self.level}_instance_{self.selected:03d}.ply"
-        written = write_gaussian_ply(
-            path,
+        table = gaussian_vertex_table(
             gauss_params["means"],
             gauss_params["features_dc"],
             gauss_params.get("features_rest"),
             gauss_params["opacities"],
             gauss_params["scales"],
             gauss_params["quats"],
-            select=indices,
         )
+        written = write_gaussian_table(path, table, select=indices)
         self.status = f"wrote {path} ({len(written)} Gaussians)"
         return path
 

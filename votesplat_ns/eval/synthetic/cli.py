@@ -16,7 +16,7 @@ import argparse
 import contextlib
 import sys
 import time
-from typing import Iterator, List, Optional
+from typing import Callable, Iterator, List, Optional
 
 from votesplat_ns.eval.synthetic.scenes import RECIPES
 
@@ -41,16 +41,17 @@ def build_parser(prog: str = "votesplat synth") -> argparse.ArgumentParser:
         "--objects", type=int, default=None, help="number of objects (default: the recipe's random count)"
     )
     parser.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees")
-    parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
-    parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
-    parser.add_argument("--points", type=int, default=4000, help="points in sparse_pc.ply")
-    _add_image_arguments(parser, "png")
+    _add_render_arguments(parser, "png", "points in sparse_pc.ply")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in --output-dir")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
 
 
-def _add_image_arguments(parser: argparse.ArgumentParser, default_format: str) -> None:
+def _add_render_arguments(parser: argparse.ArgumentParser, default_format: str, points_help: str) -> None:
+    """The options of :func:`_render_settings`."""
+    parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
+    parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
+    parser.add_argument("--points", type=int, default=4000, help=points_help)
     parser.add_argument(
         "--image-format",
         choices=["png", "jpg"],
@@ -73,10 +74,7 @@ def build_family_set_parser(prog: str = "votesplat synth") -> argparse.ArgumentP
     )
     parser.add_argument("--set", required=True, choices=sorted(FAMILY_SETS), help="tuning or test seeds")
     parser.add_argument("--output-dir", required=True, help="folder for the set's scene folders")
-    parser.add_argument("--spp", type=int, default=64, help="path-tracer samples per pixel for the RGB images")
-    parser.add_argument("--max-depth", type=int, default=4, help="path-tracer maximum path length")
-    parser.add_argument("--points", type=int, default=4000, help="points in each sparse_pc.ply")
-    _add_image_arguments(parser, "jpg")
+    _add_render_arguments(parser, "jpg", "points in each sparse_pc.ply")
     parser.add_argument("--overwrite", action="store_true", help="replace a set already in --output-dir")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     return parser
@@ -86,20 +84,13 @@ def family_set_main(argv: List[str], prog: str = "votesplat synth") -> int:
     """Bad input raises ValueError (``votesplat synth`` prints it as one line)."""
     args = build_family_set_parser(prog).parse_args(argv)
     from votesplat_ns.eval.synthetic.family import write_family_set
-    from votesplat_ns.eval.synthetic.render import RenderSettings
 
-    start = time.time()
+    show = _progress_line(args.quiet)
 
     def progress(scene: int, scenes: int, done: int, total: int) -> None:
-        if not args.quiet:
-            print(
-                f"\rscene {scene + 1}/{scenes}: rendered {done}/{total} views ({time.time() - start:.0f} s)",
-                end="",
-                file=sys.stderr,
-                flush=True,
-            )
+        show(f"scene {scene + 1}/{scenes}: rendered {done}/{total} views")
 
-    settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
+    settings = _render_settings(args)
     with _end_progress_line(args.quiet):
         manifest = write_family_set(args.set, args.output_dir, settings, overwrite=args.overwrite, progress=progress)
     if not args.quiet:
@@ -112,6 +103,23 @@ def family_set_main(argv: List[str], prog: str = "votesplat synth") -> int:
             file=sys.stderr,
         )
     return 0
+
+
+def _render_settings(args: argparse.Namespace):
+    from votesplat_ns.eval.synthetic.render import RenderSettings
+
+    return RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
+
+
+def _progress_line(quiet: bool) -> Callable[[str], None]:
+    """Rewrites one stderr line with a text and the seconds since this call (nothing when ``quiet``)."""
+    start = time.time()
+
+    def show(text: str) -> None:
+        if not quiet:
+            print(f"\r{text} ({time.time() - start:.0f} s)", end="", file=sys.stderr, flush=True)
+
+    return show
 
 
 @contextlib.contextmanager
@@ -131,7 +139,7 @@ def main(argv: Optional[List[str]] = None, prog: str = "votesplat synth") -> int
     if argv[:1] == [FAMILY_SET_COMMAND]:
         return family_set_main(argv[1:], prog)
     args = build_parser(prog).parse_args(argv)
-    from votesplat_ns.eval.synthetic.render import RenderSettings, write_dataset
+    from votesplat_ns.eval.synthetic.render import write_dataset
     from votesplat_ns.eval.synthetic.scenes import make_scene
 
     options = dict(width=args.width, height=args.height)
@@ -142,21 +150,14 @@ def main(argv: Optional[List[str]] = None, prog: str = "votesplat synth") -> int
         options["num_objects"] = args.objects
     if args.fov is not None:
         options["fov_x_degrees"] = args.fov
-    start = time.time()
+    show = _progress_line(args.quiet)
     with _end_progress_line(args.quiet):
         scene = make_scene(args.recipe, seed=args.seed, **options)
 
         def progress(done: int, total: int) -> None:
-            if not args.quiet:
-                print(
-                    f"\rrendered {done}/{total} views ({time.time() - start:.0f} s)",
-                    end="",
-                    file=sys.stderr,
-                    flush=True,
-                )
+            show(f"rendered {done}/{total} views")
 
-        settings = RenderSettings(args.spp, args.max_depth, args.points, args.image_format, args.jpeg_quality)
-        out = write_dataset(scene, args.output_dir, settings, overwrite=args.overwrite, progress=progress)
+        out = write_dataset(scene, args.output_dir, _render_settings(args), overwrite=args.overwrite, progress=progress)
     if not args.quiet:
         names = ", ".join(obj.name for obj in scene.objects)
         print(f"\nwrote {out} ({len(scene.cameras)} views, {len(scene.objects)} objects: {names})", file=sys.stderr)

@@ -36,6 +36,21 @@ def _interleaved_eval(total: int, num_eval: int) -> Tuple[int, ...]:
     return tuple(int(i) for i in np.round((np.arange(num_eval) + 0.5) * total / num_eval - 0.5).astype(int))
 
 
+def _orbit_camera(rng, target, distance: float, azimuth: float, elevation: float, jitter: float) -> Camera:
+    """A view of ``target`` from ``distance`` (jittered by up to ``jitter`` of it) at ``azimuth`` and ``elevation``
+    (radians), aimed within 1.5 cm of the target."""
+    dist = distance * (1.0 + rng.uniform(-jitter, jitter))
+    eye = np.array(
+        [
+            dist * math.cos(elevation) * math.cos(azimuth),
+            dist * math.cos(elevation) * math.sin(azimuth),
+            dist * math.sin(elevation),
+        ]
+    ) + np.asarray(target)
+    aim = np.asarray(target) + rng.uniform(-0.015, 0.015, size=3)
+    return Camera(look_at(eye, aim))
+
+
 def _ring_cameras(rng, total, radius, elevation_range, target, jitter=0.03) -> List[Camera]:
     """Views around the scene: golden-angle azimuths over an elevation band, so any subset is spread out."""
     golden = math.pi * (3.0 - math.sqrt(5.0))
@@ -45,16 +60,7 @@ def _ring_cameras(rng, total, radius, elevation_range, target, jitter=0.03) -> L
         azimuth = i * golden + rng.uniform(-0.05, 0.05)
         frac = (i + 0.5) / total
         elevation = math.radians(lo + (hi - lo) * (0.5 + 0.5 * math.sin(2.0 * math.pi * 3.0 * frac)))
-        dist = radius * (1.0 + rng.uniform(-jitter, jitter))
-        eye = np.array(
-            [
-                dist * math.cos(elevation) * math.cos(azimuth),
-                dist * math.cos(elevation) * math.sin(azimuth),
-                dist * math.sin(elevation),
-            ]
-        ) + np.asarray(target)
-        aim = np.asarray(target) + rng.uniform(-0.015, 0.015, size=3)
-        cams.append(Camera(look_at(eye, aim)))
+        cams.append(_orbit_camera(rng, target, radius, azimuth, elevation, jitter))
     return cams
 
 
@@ -108,16 +114,7 @@ def _rings_cameras(rng, total: int, distance: float, elevations: Sequence[float]
         k = i - (-(-ring * total // n))  # index within the ring
         azimuth = start + 0.9 * ring + k * golden + rng.uniform(-0.05, 0.05)
         elevation = math.radians(elevations[ring] + rng.uniform(-1.5, 1.5))
-        dist = distance * (1.0 + rng.uniform(-jitter, jitter))
-        eye = np.array(
-            [
-                dist * math.cos(elevation) * math.cos(azimuth),
-                dist * math.cos(elevation) * math.sin(azimuth),
-                dist * math.sin(elevation),
-            ]
-        ) + np.asarray(target)
-        aim = np.asarray(target) + rng.uniform(-0.015, 0.015, size=3)
-        cams.append(Camera(look_at(eye, aim)))
+        cams.append(_orbit_camera(rng, target, distance, azimuth, elevation, jitter))
         rings.append(ring)
     return cams, rings
 

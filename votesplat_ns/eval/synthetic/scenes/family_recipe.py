@@ -13,7 +13,6 @@ from votesplat_ns.eval.synthetic.scenes.cameras import (
     _camera_clear,
     _forward_cameras,
     _framing,
-    _interleaved_eval,
     _intrinsics,
     _rings_cameras,
     cut_view_share,
@@ -23,19 +22,19 @@ from votesplat_ns.eval.synthetic.scenes.cameras import (
 from votesplat_ns.eval.synthetic.scenes.colours import PALETTE
 from votesplat_ns.eval.synthetic.scenes.common import (
     _STREAM_CAMERAS,
-    _STREAM_LIGHTS,
     _STREAM_OBJECTS,
     _STREAM_TEXTURES,
     _check_counts,
     _forward_background,
-    _lighting,
     _pick_kinds,
     _plain_colours,
     _room_background,
+    _scene,
 )
 from votesplat_ns.eval.synthetic.scenes.description import Intrinsics, Scene, _object_box
 from votesplat_ns.eval.synthetic.scenes.placement import (
     _build_objects,
+    _disc,
     _fill_bowl,
     _place_objects,
     _place_on_top,
@@ -205,14 +204,7 @@ def _family_360(seed: int, props: FamilyProperties, total: int, intrinsics: Intr
         nominal += [item.template.footprint_radius**2 for item in existing]
         radius = grow * max(0.3, math.sqrt(sum(nominal) / 0.5))
 
-        def inside(xy, r):
-            return np.linalg.norm(xy) + r <= radius
-
-        def sample_xy(index=0):
-            rho = radius * math.sqrt(rng.random())
-            phi = rng.uniform(0.0, 2.0 * math.pi)
-            return np.array([rho * math.cos(phi), rho * math.sin(phi)])
-
+        inside, sample_xy = _disc(rng, radius)
         kinds, sizes, colours = (list(v) for v in zip(*(large + rest))) if large + rest else ([], [], [])
         placed, touching = _place_objects(
             rng, kinds, sizes, colours, inside, sample_xy, 0.35, 1, builders=FAMILY_KINDS, existing=existing
@@ -350,11 +342,9 @@ def family(
     rng_tex = np.random.default_rng([seed, _STREAM_TEXTURES])
     plain = _plain_colours(rng_tex) if props.background == "plain" else None
     if room is None:
-        background, textures = _forward_background(rng_tex, plain)
+        backdrop = _forward_background(rng_tex, plain)
     else:
-        background, textures = _room_background(
-            rng_tex, room["ground_half"], room["wall_radius"], room["wall_height"], plain
-        )
+        backdrop = _room_background(rng_tex, room["ground_half"], room["wall_radius"], room["wall_height"], plain)
     large = [o.id for o in objects if o.kind in ("monitor", "table", "board", "carton")]
     parameters.update(
         properties=asdict(props),
@@ -363,16 +353,7 @@ def family(
         large_instances=large,
         cut_instance=objects[0].id if props.cut_object is not None else None,
     )
-    return Scene(
-        recipe="family",
-        seed=seed,
-        objects=objects,
-        background=background,
-        textures=textures,
-        cameras=tuple(cameras),
-        eval_indices=_interleaved_eval(total, num_eval_views),
-        intrinsics=intrinsics,
-        lighting=_lighting(np.random.default_rng([seed, _STREAM_LIGHTS])),
-        touching=tuple(sorted((min(a, b) + 1, max(a, b) + 1) for a, b in touching)),
-        parameters=parameters,
-    )
+    # each pair in ascending order (a ball rests on a base placed after it); the other recipes keep their pairs as
+    # placed, so that their scenes of a seed stay the same
+    pairs = [(min(a, b), max(a, b)) for a, b in touching]
+    return _scene("family", seed, objects, backdrop, cameras, intrinsics, num_eval_views, pairs, parameters)

@@ -101,6 +101,21 @@ def _touching_pose(rng, anchor: _Placed, template: Template) -> Optional[np.ndar
     return pose
 
 
+def _disc(rng: np.random.Generator, radius: float):
+    """``inside`` and ``sample_xy`` of :func:`_place_objects` for a round table of ``radius`` centred at the origin
+    (area-uniform samples)."""
+
+    def inside(xy, r):
+        return np.linalg.norm(xy) + r <= radius
+
+    def sample_xy(index=0):
+        rho = radius * math.sqrt(rng.random())
+        phi = rng.uniform(0.0, 2.0 * math.pi)
+        return np.array([rho * math.cos(phi), rho * math.sin(phi)])
+
+    return inside, sample_xy
+
+
 def _place_objects(
     rng: np.random.Generator,
     kinds: Sequence[str],

@@ -8,28 +8,22 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from votesplat_ns.eval.synthetic.scenes.cameras import (
-    _forward_cameras,
-    _framing,
-    _interleaved_eval,
-    _intrinsics,
-    _ring_cameras,
-)
+from votesplat_ns.eval.synthetic.scenes.cameras import _forward_cameras, _framing, _intrinsics, _ring_cameras
 from votesplat_ns.eval.synthetic.scenes.colours import PALETTE
 from votesplat_ns.eval.synthetic.scenes.common import (
     _STREAM_CAMERAS,
-    _STREAM_LIGHTS,
     _STREAM_OBJECTS,
     _STREAM_TEXTURES,
     _check_counts,
     _forward_background,
-    _lighting,
     _pick_kinds,
     _room_background,
+    _scene,
 )
 from votesplat_ns.eval.synthetic.scenes.description import Scene
 from votesplat_ns.eval.synthetic.scenes.placement import (
     _build_objects,
+    _disc,
     _fill_bowl,
     _place_objects,
     _place_objects_after,
@@ -50,6 +44,18 @@ def _pick_objects(rng, num_objects: Optional[int], default_range: Tuple[int, int
     return count, kinds, colours
 
 
+def _room(seed: int):
+    """The textured room of the table recipes (tabletop360, nested)."""
+    return _room_background(np.random.default_rng([seed, _STREAM_TEXTURES]), 3.0, 2.8, 1.8)
+
+
+def _table_views(seed: int, objects, total: int, intrinsics, elevation_range: Tuple[float, float]):
+    """``total`` ring cameras over ``elevation_range`` (degrees) that frame every object: (cameras, target, distance)."""
+    target, distance = _framing(objects, intrinsics)
+    cameras = _ring_cameras(np.random.default_rng([seed, _STREAM_CAMERAS]), total, distance, elevation_range, target)
+    return cameras, target, distance
+
+
 def tabletop360(
     seed: int = 0,
     num_views: int = 48,
@@ -65,38 +71,16 @@ def tabletop360(
     count, kinds, colours = _pick_objects(rng, num_objects, (6, 13))
     sizes = rng.uniform(1.1, 1.6, size=count)
     table_radius = 0.32 + 0.025 * count
-
-    def inside(xy, r):
-        return np.linalg.norm(xy) + r <= table_radius
-
-    def sample_xy(index=0):
-        rho = table_radius * math.sqrt(rng.random())
-        phi = rng.uniform(0.0, 2.0 * math.pi)
-        return np.array([rho * math.cos(phi), rho * math.sin(phi)])
-
+    inside, sample_xy = _disc(rng, table_radius)
     placed, touching = _place_objects(rng, kinds, sizes, colours, inside, sample_xy, 0.35, min(1, count - 1))
     touching = _rest_balls_on_tops(rng, placed, touching)
     objects = _build_objects(placed)
-    background, textures = _room_background(np.random.default_rng([seed, _STREAM_TEXTURES]), 3.0, 2.8, 1.8)
-    total = num_views + num_eval_views
     intrinsics = _intrinsics(width, height, fov_x_degrees)
-    target, distance = _framing(objects, intrinsics)
-    cameras = _ring_cameras(np.random.default_rng([seed, _STREAM_CAMERAS]), total, distance, (22.0, 50.0), target)
-    return Scene(
-        recipe="tabletop360",
-        seed=seed,
-        objects=objects,
-        background=background,
-        textures=textures,
-        cameras=tuple(cameras),
-        eval_indices=_interleaved_eval(total, num_eval_views),
-        intrinsics=intrinsics,
-        lighting=_lighting(np.random.default_rng([seed, _STREAM_LIGHTS])),
-        touching=tuple(sorted((a + 1, b + 1) for a, b in touching)),
-        parameters=dict(
-            num_objects=count, table_radius=table_radius, camera_distance=distance, camera_target=target.tolist()
-        ),
+    cameras, target, distance = _table_views(seed, objects, num_views + num_eval_views, intrinsics, (22.0, 50.0))
+    parameters = dict(
+        num_objects=count, table_radius=table_radius, camera_distance=distance, camera_target=target.tolist()
     )
+    return _scene("tabletop360", seed, objects, _room(seed), cameras, intrinsics, num_eval_views, touching, parameters)
 
 
 def nested(
@@ -123,15 +107,7 @@ def nested(
     kinds = _pick_kinds(rng, extra, others)
     colours = [str(c) for c in rng.permutation([c for c in PALETTE if c not in used_colours])[:extra]]
     table_radius = 0.5
-
-    def inside(xy, r):
-        return np.linalg.norm(xy) + r <= table_radius
-
-    def sample_xy(index=0):
-        rho = table_radius * math.sqrt(rng.random())
-        phi = rng.uniform(0.0, 2.0 * math.pi)
-        return np.array([rho * math.cos(phi), rho * math.sin(phi)])
-
+    inside, sample_xy = _disc(rng, table_radius)
     placed = [bowl] + fruits
     rest, rest_touching = _place_objects_after(
         rng, placed, kinds, rng.uniform(1.1, 1.4, size=extra), colours, inside, sample_xy
@@ -139,24 +115,10 @@ def nested(
     all_placed = placed + rest
     touching = [(0, 1 + i) for i in range(len(fruits))] + rest_touching
     objects = _build_objects(all_placed)
-    background, textures = _room_background(np.random.default_rng([seed, _STREAM_TEXTURES]), 3.0, 2.8, 1.8)
-    total = num_views + num_eval_views
     intrinsics = _intrinsics(width, height, fov_x_degrees)
-    target, distance = _framing(objects, intrinsics)
-    cameras = _ring_cameras(np.random.default_rng([seed, _STREAM_CAMERAS]), total, distance, (32.0, 62.0), target)
-    return Scene(
-        recipe="nested",
-        seed=seed,
-        objects=objects,
-        background=background,
-        textures=textures,
-        cameras=tuple(cameras),
-        eval_indices=_interleaved_eval(total, num_eval_views),
-        intrinsics=intrinsics,
-        lighting=_lighting(np.random.default_rng([seed, _STREAM_LIGHTS])),
-        touching=tuple(sorted((a + 1, b + 1) for a, b in touching)),
-        parameters=dict(num_objects=len(objects), bowl_instance=1, fruit_instances=[2 + i for i in range(len(fruits))]),
-    )
+    cameras, _, _ = _table_views(seed, objects, num_views + num_eval_views, intrinsics, (32.0, 62.0))
+    parameters = dict(num_objects=len(objects), bowl_instance=1, fruit_instances=[2 + i for i in range(len(fruits))])
+    return _scene("nested", seed, objects, _room(seed), cameras, intrinsics, num_eval_views, touching, parameters)
 
 
 def forward(
@@ -189,19 +151,8 @@ def forward(
 
     placed, touching = _place_objects(rng, kinds, sizes, colours, inside, sample_xy, 0.2, min(1, count - 1), gap=0.03)
     objects = _build_objects(placed)
-    background, textures = _forward_background(np.random.default_rng([seed, _STREAM_TEXTURES]))
-    total = num_views + num_eval_views
-    cameras = _forward_cameras(np.random.default_rng([seed, _STREAM_CAMERAS]), total)
-    return Scene(
-        recipe="forward",
-        seed=seed,
-        objects=objects,
-        background=background,
-        textures=textures,
-        cameras=tuple(cameras),
-        eval_indices=_interleaved_eval(total, num_eval_views),
-        intrinsics=_intrinsics(width, height, fov_x_degrees),
-        lighting=_lighting(np.random.default_rng([seed, _STREAM_LIGHTS])),
-        touching=tuple(sorted((a + 1, b + 1) for a, b in touching)),
-        parameters=dict(num_objects=count, depth_range=[near, far]),
-    )
+    room = _forward_background(np.random.default_rng([seed, _STREAM_TEXTURES]))
+    cameras = _forward_cameras(np.random.default_rng([seed, _STREAM_CAMERAS]), num_views + num_eval_views)
+    intrinsics = _intrinsics(width, height, fov_x_degrees)
+    parameters = dict(num_objects=count, depth_range=[near, far])
+    return _scene("forward", seed, objects, room, cameras, intrinsics, num_eval_views, touching, parameters)
