@@ -159,6 +159,11 @@ def _on(device: torch.device):
     return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
 
 
+def _launch(kernel, grid, *args, **kwargs) -> None:
+    """One kernel launch: every launch of the vote kernels goes through here, so it can be counted."""
+    kernel[grid](*args, **kwargs)
+
+
 def _pow2(x: int) -> int:
     return 1 << max(0, (int(x) - 1).bit_length())
 
@@ -179,7 +184,9 @@ class _VoteSums(torch.autograd.Function):
         depths = torch.empty(p, levels, CAP, dtype=dtype, device=device) if dist else spread
         if p > 0:
             with _on(device):
-                _vote_fwd_kernel[(p,)](
+                _launch(
+                    _vote_fwd_kernel,
+                    (p,),
                     geometry,
                     table,
                     pixel_xy,
@@ -229,7 +236,9 @@ class _VoteSums(torch.autograd.Function):
         g_table = torch.zeros_like(table)
         g_geometry = torch.zeros_like(geometry) if geometry_grad else g_table  # a dummy pointer when unused
         with _on(table.device):
-            _vote_bwd_kernel[(p,)](
+            _launch(
+                _vote_bwd_kernel,
+                (p,),
                 geometry,
                 table,
                 pixel_xy,
