@@ -10,7 +10,9 @@ Times, on random Gaussians seen by one camera:
     (one walk, every level blended over it) and, for comparison, as L
     separate single-level calls; with each backend of ``--backends``: the
     torch code and the fused Triton kernels (``votesplat_ns.core.vote_kernel``),
-    the latter once per ``--kernel-configs`` block width x warps.
+    the latter once per ``--kernel-configs`` block width x warps; and "triton-fused":
+    ``votesplat_ns.core.vote_fused.vote_losses_tiled``, the render and the losses in three Triton
+    launches (what the model runs with the Triton backend and its default switches).
 Prints a markdown table of median milliseconds, peak extra GPU memory, both
 also as a ratio to the RGB pass, and per step the host reads
 (device-to-host syncs) and torch calls made from Python in the forward pass
@@ -66,9 +68,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--backends",
         nargs="+",
-        choices=["torch", "triton"],
-        default=["torch", "triton"],
-        help="vote pass implementations to time (VoteRenderOptions.backend); triton needs CUDA",
+        choices=["torch", "triton", "triton-fused"],
+        default=["torch", "triton", "triton-fused"],
+        help="vote pass implementations to time (VoteRenderOptions.backend; triton-fused: vote_fused."
+        "vote_losses_tiled, render and losses fused); the triton ones need CUDA",
     )
     parser.add_argument(
         "--kernel-configs",
@@ -87,6 +90,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile each timed vote step (torch.profiler, 5 steps): GPU kernel time and launches per step "
+        "against the wall time, and the kernels that take the most GPU time",
+    )
     parser.add_argument(
         "--device", choices=["cuda", "cpu"], default="cuda", help="cpu: pure-torch rasteriser, for checking the script"
     )
@@ -162,7 +171,8 @@ class CallCounter(TorchFunctionMode):
 def main(argv=None) -> int:
     args = parse_args(argv)
     cache = None
-    if args.device == "cuda" and "triton" in args.backends and "TRITON_CACHE_DIR" not in os.environ:
+    triton_backends = {"triton", "triton-fused"}.intersection(args.backends)
+    if args.device == "cuda" and triton_backends and "TRITON_CACHE_DIR" not in os.environ:
         # an empty Triton cache, so the first call's time is the kernels' full JIT build
         from votesplat_ns.core.ply_io import make_temp_dir
 
@@ -189,20 +199,24 @@ def _run(args: argparse.Namespace) -> int:
         from votesplat_ns.core.rasterize_torch import rasterize_torch as rasterization
 
     from votesplat_ns.core import vote_kernel
+    from votesplat_ns.core.vote_fused import vote_losses_tiled
     from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
 
     backends = list(args.backends)
-    if "triton" in backends and vote_kernel.unavailable_reason(device) is not None:
-        print(f"skipping the triton backend: {vote_kernel.unavailable_reason(device)}")
-        backends.remove("triton")
+    for backend in ("triton", "triton-fused"):
+        if backend in backends and vote_kernel.unavailable_reason(device) is not None:
+            print(f"skipping the {backend} backend: {vote_kernel.unavailable_reason(device)}")
+            backends.remove(backend)
     variants = [("torch", None)] if "torch" in backends else []
-    if "triton" in backends:
+    for backend in ("triton", "triton-fused"):
+        if backend not in backends:
+            continue
         for config in args.kernel_configs:
             try:
                 block, warps = (int(x) for x in config.lower().split("x"))
             except ValueError:
                 sys.exit(f"--kernel-configs: {config!r} is not BLOCKxWARPS (e.g. 32x2)")
-            variants.append(("triton", (block, warps)))
+            variants.append((backend, (block, warps)))
 
     scene = random_gaussians(args.num_gaussians, args.width, args.height, args.sh_degree, device, args.seed)
     params = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
@@ -237,6 +251,7 @@ def _run(args: argparse.Namespace) -> int:
     offsets = torch.zeros(args.num_gaussians, max_levels, 3, device=device, requires_grad=True)
     rows = []
     compile_rows = []
+    profiles = []
     cache_dir = os.environ.get("TRITON_CACHE_DIR")
     cache_was_empty = cache_dir is not None and not any(Path(cache_dir).iterdir())
     for pixels in args.pixels:
@@ -252,10 +267,11 @@ def _run(args: argparse.Namespace) -> int:
             for chunk in (args.chunks if backend == "torch" else ["-"])
         ]
         for backend, config, chunk in runs:
-            options = VoteRenderOptions(distortion=args.distortion, backend=backend)
+            fused = backend == "triton-fused"
+            options = VoteRenderOptions(distortion=args.distortion, backend="triton" if fused else backend)
             if config is not None:
                 vote_kernel.BLOCK, vote_kernel.NUM_WARPS = config
-            backend_label = backend if config is None else f"triton {config[0]}x{config[1]}"
+            backend_label = backend if config is None else f"{backend} {config[0]}x{config[1]}"
             with torch.no_grad():
                 count = render_votes_tiled(
                     info["means2d"][0],
@@ -298,7 +314,24 @@ def _run(args: argparse.Namespace) -> int:
                     else:
                         votes = params["means"].detach()[:, None, :] + offsets[:, :levels]
                         target, mask = target_xy[:, :levels], valid[:, :levels]
-                    losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
+                    if fused:
+                        losses = vote_losses_tiled(
+                            info["means2d"][0],
+                            info["conics"][0],
+                            info["opacities"][0],
+                            votes,
+                            viewmat,
+                            K,
+                            pixel_xy,
+                            target,
+                            mask,
+                            info["isect_offsets"][0],
+                            info["flatten_ids"],
+                            info["tile_size"],
+                            options,
+                        )
+                    else:
+                        losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
                     (losses["vote"].sum() + 0.1 * losses["distortion"].sum()).backward()
 
                 def separate_calls_step(levels=levels):
@@ -318,7 +351,7 @@ def _run(args: argparse.Namespace) -> int:
                     if backend == "torch":
                         steps.append(("votes [N,3], one call per level", separate_calls_step))
                 for label, step in steps:
-                    if backend == "triton" and device.type == "cuda":
+                    if backend != "torch" and device.type == "cuda":
                         # the first call of a new (levels, switches, block) combination JIT-compiles
                         torch.cuda.synchronize()
                         start_s = time.perf_counter()
@@ -326,6 +359,8 @@ def _run(args: argparse.Namespace) -> int:
                         torch.cuda.synchronize()
                         compile_rows.append((backend_label, levels, pixels, time.perf_counter() - start_s))
                     ms, mib = measure(step, args.warmup, args.repeats, device)
+                    if args.profile:
+                        profiles.append((f"{backend_label}: {label}", levels, pixels, ms, profile_step(step, device)))
                     with CallCounter() as counter:
                         step()
                     counts = (counter.host_reads, counter.calls)
@@ -363,7 +398,37 @@ def _run(args: argparse.Namespace) -> int:
             f"| {label} | {levels} | {pixels} | {'auto' if chunk is None else chunk} | {ms:.2f} | {ms / rgb_ms:.2f} "
             f"| {_mib(mib)} | {memory_ratio} | {reads} | {calls} | {mean_count:.1f} | {max_count} |"
         )
+    for label, levels, pixels, ms, (kernel_ms, launches, top) in profiles:
+        print(
+            f"\nprofile of {label}, {levels} levels, {pixels} px: wall {ms:.2f} ms, GPU kernels {kernel_ms:.2f} ms "
+            f"({100 * kernel_ms / ms:.0f}% busy), {launches:.0f} launches per step; top kernels (ms per step):"
+        )
+        for name, kms, calls in top:
+            print(f"  {kms:7.3f} ms  {calls:5.1f}x  {name[:110]}")
     return 0
+
+
+def profile_step(step: Callable[[], None], device: torch.device, steps: int = 5):
+    """(GPU kernel ms per step, kernel launches per step, top 10 kernels as (name, ms, calls) per step)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    step()
+    with profile(activities=activities) as prof:
+        for _ in range(steps):
+            step()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+    kernels = {}
+    for event in prof.events():
+        if device.type == "cuda" and getattr(event, "device_type", None) != torch.autograd.DeviceType.CUDA:
+            continue
+        total, calls = kernels.get(event.name, (0.0, 0))
+        kernels[event.name] = (total + event.device_time / 1e3, calls + 1)
+    total_ms = sum(t for t, _ in kernels.values()) / steps
+    launches = sum(c for _, c in kernels.values()) / steps
+    top = sorted(kernels.items(), key=lambda kv: -kv[1][0])[:10]
+    return total_ms, launches, [(name, t / steps, c / steps) for name, (t, c) in top]
 
 
 def _mib(value: Optional[float]) -> str:

@@ -343,3 +343,35 @@ def test_fused_launches_and_host_reads(count_ops, distortion, device):
     assert count_ops.launches(counter) <= 15, count_ops.launch_names(counter)
     assert counter.triton_launches == 3
     assert offsets_param.grad is not None and offsets_param.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
+def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
+    """VoteSplatModel.vote_loss_terms with the Triton backend and the default switches: the fused losses,
+    equal to the torch path's, with no host read; other switches keep the separate path."""
+    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    results = {}
+    for backend in ("torch", "triton"):
+        monkeypatch.setenv(BACKEND_ENV, backend)
+        torch.manual_seed(0)
+        step().backward()  # warm-up
+        torch.manual_seed(0)
+        counter = count_ops.OpCounter()
+        with counter:
+            loss = step()
+            with counter.phase("backward"):
+                loss.backward()
+        grad = model.gauss_params["vote_offsets"].grad
+        assert grad is not None
+        results[backend] = (loss.detach(), grad.clone(), counter)
+    (loss, grad, _), (fused_loss, fused_grad, counter) = results["torch"], results["triton"]
+    torch.testing.assert_close(fused_loss, loss, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(fused_grad, grad, rtol=1e-4, atol=1e-6)
+    assert grad.abs().sum() > 0
+    assert dict(counter.triton_names) == {"_fused_fwd_kernel": 1, "_fused_reduce_kernel": 1, "_fused_bwd_kernel": 1}
+    assert counter.total_syncs == 0, dict(counter.syncs)
+    # alpha*T weights: the separate kernels, not the fused ones
+    monkeypatch.setattr(model, "vote_options", VoteRenderOptions(weighting="alpha_t", distortion="l1_pixels"))
+    with count_ops.OpCounter() as counter:
+        step().backward()
+    assert set(counter.triton_names) == {"_vote_fwd_kernel", "_vote_bwd_kernel"}
