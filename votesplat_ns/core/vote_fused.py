@@ -345,6 +345,14 @@ if triton is not None:
         return gid, alpha, visible
 
     @triton.jit
+    def _floor_div(x, size):
+        """floor(x / size) for a whole ``size``, exact even where float32 division is not correctly rounded:
+        the quotient is corrected by the products, which are exact for whole numbers of tiles."""
+        q = tl.floor(x / size)
+        q = tl.where((q + 1.0) * size <= x, q + 1.0, q)
+        return tl.where(q * size > x, q - 1.0, q)
+
+    @triton.jit
     def _block_depths(votes_ptr, gid, ok, lvl, LEVELS: tl.constexpr, r0, r1, r2, t2):
         """[B, LP] camera depths of the votes of Gaussians ``gid`` (0 where not ``ok``), and their x, y, z."""
         mask = ok[:, None] & (lvl < LEVELS)[None, :]
@@ -398,8 +406,8 @@ if triton is not None:
         near = tl.load(consts_ptr + 5)
 
         # the pixel's tile run (vote_render._pixel_runs): empty outside the grid (NaN compares False)
-        tile_x = tl.floor(px / tile_size)
-        tile_y = tl.floor(py / tile_size)
+        tile_x = _floor_div(px, tile_size)
+        tile_y = _floor_div(py, tile_size)
         in_grid = (tile_x >= 0.0) & (tile_x < tiles_wide) & (tile_y >= 0.0) & (tile_y < tiles_high)
         tile = tl.where(in_grid, tile_y * tiles_wide + tile_x, 0.0).to(tl.int64)
         tiles = tiles_wide * tiles_high
