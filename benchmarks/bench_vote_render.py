@@ -10,7 +10,9 @@ Times, on random Gaussians seen by one camera:
     (one walk, every level blended over it) and, for comparison, as L
     separate single-level calls; with each backend of ``--backends``: the
     torch code and the fused Triton kernels (``votesplat_ns.core.vote_kernel``),
-    the latter once per ``--kernel-configs`` block width x warps.
+    the latter once per ``--kernel-configs`` block width x warps; and "triton-fused":
+    ``votesplat_ns.core.vote_fused.vote_losses_tiled``, the render and the losses in three Triton
+    launches (what the model runs with the Triton backend and its default switches).
 Prints a markdown table of median milliseconds, peak extra GPU memory, both
 also as a ratio to the RGB pass, and per step the host reads
 (device-to-host syncs) and torch calls made from Python in the forward pass
@@ -66,9 +68,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--backends",
         nargs="+",
-        choices=["torch", "triton"],
-        default=["torch", "triton"],
-        help="vote pass implementations to time (VoteRenderOptions.backend); triton needs CUDA",
+        choices=["torch", "triton", "triton-fused"],
+        default=["torch", "triton", "triton-fused"],
+        help="vote pass implementations to time (VoteRenderOptions.backend; triton-fused: vote_fused."
+        "vote_losses_tiled, render and losses fused); the triton ones need CUDA",
     )
     parser.add_argument(
         "--kernel-configs",
@@ -168,7 +171,8 @@ class CallCounter(TorchFunctionMode):
 def main(argv=None) -> int:
     args = parse_args(argv)
     cache = None
-    if args.device == "cuda" and "triton" in args.backends and "TRITON_CACHE_DIR" not in os.environ:
+    triton_backends = {"triton", "triton-fused"}.intersection(args.backends)
+    if args.device == "cuda" and triton_backends and "TRITON_CACHE_DIR" not in os.environ:
         # an empty Triton cache, so the first call's time is the kernels' full JIT build
         from votesplat_ns.core.ply_io import make_temp_dir
 
@@ -195,20 +199,24 @@ def _run(args: argparse.Namespace) -> int:
         from votesplat_ns.core.rasterize_torch import rasterize_torch as rasterization
 
     from votesplat_ns.core import vote_kernel
+    from votesplat_ns.core.vote_fused import vote_losses_tiled
     from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
 
     backends = list(args.backends)
-    if "triton" in backends and vote_kernel.unavailable_reason(device) is not None:
-        print(f"skipping the triton backend: {vote_kernel.unavailable_reason(device)}")
-        backends.remove("triton")
+    for backend in ("triton", "triton-fused"):
+        if backend in backends and vote_kernel.unavailable_reason(device) is not None:
+            print(f"skipping the {backend} backend: {vote_kernel.unavailable_reason(device)}")
+            backends.remove(backend)
     variants = [("torch", None)] if "torch" in backends else []
-    if "triton" in backends:
+    for backend in ("triton", "triton-fused"):
+        if backend not in backends:
+            continue
         for config in args.kernel_configs:
             try:
                 block, warps = (int(x) for x in config.lower().split("x"))
             except ValueError:
                 sys.exit(f"--kernel-configs: {config!r} is not BLOCKxWARPS (e.g. 32x2)")
-            variants.append(("triton", (block, warps)))
+            variants.append((backend, (block, warps)))
 
     scene = random_gaussians(args.num_gaussians, args.width, args.height, args.sh_degree, device, args.seed)
     params = {k: scene[k].clone().requires_grad_() for k in ("means", "quats", "scales", "opacities", "colors")}
@@ -259,10 +267,11 @@ def _run(args: argparse.Namespace) -> int:
             for chunk in (args.chunks if backend == "torch" else ["-"])
         ]
         for backend, config, chunk in runs:
-            options = VoteRenderOptions(distortion=args.distortion, backend=backend)
+            fused = backend == "triton-fused"
+            options = VoteRenderOptions(distortion=args.distortion, backend="triton" if fused else backend)
             if config is not None:
                 vote_kernel.BLOCK, vote_kernel.NUM_WARPS = config
-            backend_label = backend if config is None else f"triton {config[0]}x{config[1]}"
+            backend_label = backend if config is None else f"{backend} {config[0]}x{config[1]}"
             with torch.no_grad():
                 count = render_votes_tiled(
                     info["means2d"][0],
@@ -305,7 +314,24 @@ def _run(args: argparse.Namespace) -> int:
                     else:
                         votes = params["means"].detach()[:, None, :] + offsets[:, :levels]
                         target, mask = target_xy[:, :levels], valid[:, :levels]
-                    losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
+                    if fused:
+                        losses = vote_losses_tiled(
+                            info["means2d"][0],
+                            info["conics"][0],
+                            info["opacities"][0],
+                            votes,
+                            viewmat,
+                            K,
+                            pixel_xy,
+                            target,
+                            mask,
+                            info["isect_offsets"][0],
+                            info["flatten_ids"],
+                            info["tile_size"],
+                            options,
+                        )
+                    else:
+                        losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
                     (losses["vote"].sum() + 0.1 * losses["distortion"].sum()).backward()
 
                 def separate_calls_step(levels=levels):
@@ -325,7 +351,7 @@ def _run(args: argparse.Namespace) -> int:
                     if backend == "torch":
                         steps.append(("votes [N,3], one call per level", separate_calls_step))
                 for label, step in steps:
-                    if backend == "triton" and device.type == "cuda":
+                    if backend != "torch" and device.type == "cuda":
                         # the first call of a new (levels, switches, block) combination JIT-compiles
                         torch.cuda.synchronize()
                         start_s = time.perf_counter()

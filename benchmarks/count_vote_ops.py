@@ -98,6 +98,8 @@ VIEW_OPS = {
     "diagonal",
     "lift_fresh",
 }
+# Ops that only allocate (the caching allocator, no kernel launch on a GPU).
+ALLOC_OPS = {"empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided"}
 PHASES = ("model: sampling", "checks", "walk", "blend", "finish", "loss checks", "losses", "backward", "other")
 
 
@@ -140,16 +142,41 @@ class OpCounter(TorchDispatchMode):
         self.kernels: Dict[str, int] = Counter()
         self.op_names: Dict[str, Counter] = defaultdict(Counter)
         self.syncs: Dict[str, List[str]] = defaultdict(list)
+        self.allocs = 0
+        self.triton_launches = 0
+        self.triton_names: Dict[str, int] = Counter()
         self._forced: Optional[str] = None
         self._walked = False
         self._methods = _SyncMethods(self)
+        self._launch = None
+        self._inside_launch = False
 
     def __enter__(self):
         super().__enter__()
         self._methods.__enter__()
+        # Triton kernels are no aten ops: count them where the vote kernels launch (vote_kernel._launch)
+        from votesplat_ns.core import vote_kernel
+
+        self._launch = vote_kernel._launch
+
+        def counted(kernel, grid, *args, **kwargs):
+            self.triton_launches += 1
+            self.triton_names[getattr(kernel, "__name__", str(kernel))] += 1
+            assert self._launch is not None
+            # Triton's CPU interpreter copies the arguments with torch ops: not the kernel's launches
+            self._inside_launch = True
+            try:
+                return self._launch(kernel, grid, *args, **kwargs)
+            finally:
+                self._inside_launch = False
+
+        vote_kernel._launch = counted
         return self
 
     def __exit__(self, *exc):
+        from votesplat_ns.core import vote_kernel
+
+        vote_kernel._launch = self._launch
         self._methods.__exit__(*exc)
         return super().__exit__(*exc)
 
@@ -208,14 +235,35 @@ class OpCounter(TorchDispatchMode):
         self.syncs[self._current_phase()].append(name)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if self._inside_launch:
+            return func(*args, **(kwargs or {}))
         phase = self._current_phase()
         name = func.__name__
         self.ops[phase] += 1
-        self.kernels[phase] += name.split(".")[0] not in VIEW_OPS
+        base = name.split(".")[0]
+        self.kernels[phase] += base not in VIEW_OPS
+        self.allocs += base in ALLOC_OPS
         self.op_names[phase][name] += 1
         if _is_sync(func, args):
             self.syncs[phase].append(name)
         return func(*args, **(kwargs or {}))
+
+
+def launches(counter: OpCounter) -> int:
+    """Kernel launches a GPU would make: aten ops that are neither views nor allocations, plus Triton kernels."""
+    return counter.total_kernels - counter.allocs + counter.triton_launches
+
+
+def launch_names(counter: OpCounter) -> Dict[str, int]:
+    """The launching ops by name (aten and Triton), for messages."""
+    names: Dict[str, int] = Counter()
+    for per_phase in counter.op_names.values():
+        for name, calls in per_phase.items():
+            base = name.split(".")[0]
+            if base not in VIEW_OPS and base not in ALLOC_OPS:
+                names[name] += calls
+    names.update(counter.triton_names)
+    return dict(names)
 
 
 def count_step(step: Callable[[], torch.Tensor]) -> OpCounter:

@@ -206,6 +206,78 @@ def test_kernel_float32(kernel_scene, device):
 
 
 # ---------------------------------------------------------------------------
+# The distortion over the compacted member depths, and past their capacity
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("distortion", ["l1", "l1_pixels", "squared"])
+@pytest.mark.parametrize(
+    "cap, pair_block", [(128, 4), (4, 4)], ids=["compacted-several-pair-tiles", "more-members-than-cap"]
+)
+def test_kernel_distortion_compacted_and_past_cap(device, distortion, cap, pair_block, monkeypatch):
+    """The spread and its gradient from the members' compacted depths, summed over several tiles of
+    pairs; and the exact slow path of pixels with more members than the scratch row holds."""
+    set_block(monkeypatch, 16)
+    monkeypatch.setattr(vote_kernel, "CAP", cap)
+    monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", pair_block)
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    pixel_xy = pixel_xy[::17].to(device)
+    lists = tuple(t.to(device) for t in lists["gsplat"])
+    options = VoteRenderOptions(distortion=distortion)
+    expected, _ = compare_backends(to_device(scene, device), pixel_xy, options, lists, TILE)
+    counts = expected.count
+    # pixels on both sides of the capacity, and tiles of pairs across several pair blocks
+    assert (counts > 3 * pair_block).any() and (counts <= cap).any() and (counts > 1).sum() >= 5
+    if cap < 128:
+        assert (counts > cap).any()
+    leveled = to_device({**scene, "votes": level_votes}, device)
+    compare_backends(leveled, pixel_xy, options, lists, TILE)
+
+
+def tied_votes(votes, groups):
+    """Votes [N, L, 3] where each group of Gaussians shares its first member's vote: ties in z."""
+    votes = votes.clone()
+    for group in groups:
+        votes[group[1:]] = votes[group[0]].clone()
+    return votes
+
+
+def assert_same_up_to_ties(actual, expected, groups):
+    """Gradients [N, ...] that agree everywhere but within tie groups, where only their sum is defined:
+    the torch path's sort splits a tie's subgradient unevenly, the kernels' sign sum evenly."""
+    tied = torch.zeros(actual.shape[0], dtype=torch.bool)
+    for group in groups:
+        tied[group] = True
+        torch.testing.assert_close(actual[group].sum(0), expected[group].sum(0), rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(actual[~tied], expected[~tied], rtol=1e-9, atol=1e-9)
+
+
+TIE_GROUPS = [[0, 5, 9, 13], [2, 7], [20, 21, 22]]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("cap", [128, 2])
+@pytest.mark.parametrize("distortion", ["l1", "l1_pixels", "squared"])
+def test_kernel_distortion_with_ties(device, cap, distortion, monkeypatch):
+    """Members whose depths tie: the same spread as the torch path; gradients equal up to the split of a tie."""
+    set_block(monkeypatch, 16)
+    monkeypatch.setattr(vote_kernel, "CAP", cap)
+    monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", 4)
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    scene = {**scene, "votes": tied_votes(level_votes, TIE_GROUPS)}
+    pixel_xy = pixel_xy[::17]
+    options = VoteRenderOptions(distortion=distortion)
+    results = [
+        render_and_grads(scene, pixel_xy, with_backend(options, backend), ["votes"], lists["gsplat"], TILE)
+        for backend in ("torch", "triton")
+    ]
+    (expected, (expected_grad,)), (actual, (actual_grad,)) = results
+    assert_same(actual, expected, 1e-9, 1e-9)
+    assert_same_up_to_ties(actual_grad, expected_grad, TIE_GROUPS)
+    assert expected.distortion.abs().sum() > 0
+
+
+# ---------------------------------------------------------------------------
 # Empty tiles, pixels without members, the walk's exit
 
 

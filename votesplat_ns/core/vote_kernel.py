@@ -16,13 +16,20 @@ What a kernel program does (one program per sampled pixel):
   transmittance is at or below both the voting threshold and the colour stop, or the run
   ends. It sums, over the voting set M, the weights, the weighted table rows of every
   level, and the member depths; it records |M| and the run position of the last member.
-  Every visible entry up to the last member is a member (the transmittance only falls), so
-  a second pass over [run start, last member] knows M without storing it: it computes the
-  depth spread, sum_{i<j} |z_i - z_j| over pairs of blocks ("l1", "l1_pixels") or
-  sum_i (z_i - mean)^2 ("squared").
+  With a distortion, the walk also writes each member's depths, compacted (slot = rank in
+  M), to a per-pixel scratch row of ``CAP`` slots; the depth spread, sum_{i<j} |z_i - z_j|
+  ("l1", "l1_pixels") or sum_i (z_i - mean)^2 ("squared"), is then summed over those
+  slots only, in [PAIR_BLOCK, PAIR_BLOCK] tiles of contiguous loads: |M| ~ 30-70 members
+  instead of the pairs of every run entry up to the last member (most of which are not
+  members) with their geometry gathered again for each pair of blocks. A pixel with more
+  than ``CAP`` members takes that exact slow path: every visible entry up to the last member
+  is a member (the transmittance only falls), so pairs of run blocks with the visibility
+  recomputed give the same sums.
 * backward: re-walks [run start, last member] and scatters, with atomic adds, the gradient
   of every member's table row (weight x row gradient, plus the depth term: sum_j
-  sign(z_i - z_j) or 2 (z_i - mean)) and, for alpha*T weights with geometry gradients, of
+  sign(z_i - z_j) over the members' compacted depths, or 2 (z_i - mean); with ties in z the
+  sign sum gives each tied member the same subgradient, where the torch path's sort splits
+  the tie unevenly: the sums over a tie agree) and, for alpha*T weights with geometry gradients, of
   its means2d, conic and opacity: a second walk, back to front as gsplat's backward, carries
   the suffix sum of g_w * w over later members, through which their transmittance depends
   on this alpha.
@@ -63,6 +70,11 @@ except ImportError:  # pragma: no cover - depends on the environment
 # The gradient scatters use relaxed atomics: only the sums matter, no ordering between programs.
 BLOCK = 32
 NUM_WARPS = 2
+# Member depths kept per pixel (compacted) for the distortion, and the side of the tiles their pairs are
+# summed in. |M| is ~35 on average and ~70 at most on the benchmark scenes; a pixel with more members is
+# exact too, on a slower path (module docstring).
+CAP = 128
+PAIR_BLOCK = 32
 _DIST_MODES = {"none": 0, "l1": 1, "l1_pixels": 1, "squared": 2}
 
 
@@ -147,6 +159,11 @@ def _on(device: torch.device):
     return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
 
 
+def _launch(kernel, grid, *args, **kwargs) -> None:
+    """One kernel launch: every launch of the vote kernels goes through here, so it can be counted."""
+    kernel[grid](*args, **kwargs)
+
+
 def _pow2(x: int) -> int:
     return 1 << max(0, (int(x) - 1).bit_length())
 
@@ -163,9 +180,13 @@ class _VoteSums(torch.autograd.Function):
         value_sum = torch.empty(p, levels * width, dtype=dtype, device=device)
         depth_sum = torch.empty(p, levels, dtype=dtype, device=device)
         spread = torch.empty(p, levels, dtype=dtype, device=device)
+        # member depths, compacted: [P, L, CAP] (a dummy pointer without a distortion)
+        depths = torch.empty(p, levels, CAP, dtype=dtype, device=device) if dist else spread
         if p > 0:
             with _on(device):
-                _vote_fwd_kernel[(p,)](
+                _launch(
+                    _vote_fwd_kernel,
+                    (p,),
                     geometry,
                     table,
                     pixel_xy,
@@ -179,6 +200,7 @@ class _VoteSums(torch.autograd.Function):
                     value_sum,
                     depth_sum,
                     spread,
+                    depths,
                     LEVELS=levels,
                     LP=_pow2(levels),
                     D1=width,
@@ -186,16 +208,19 @@ class _VoteSums(torch.autograd.Function):
                     ALPHA_T=alpha_t,
                     DIST=dist,
                     BLOCK=BLOCK,
+                    CAP=CAP,
+                    PB=PAIR_BLOCK,
                     num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
                 )
-        ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum)
+        ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths)
+        ctx.cap = CAP
         ctx.config = config
         ctx.mark_non_differentiable(count, depth_sum)
         return count, weight_sum, value_sum, depth_sum, spread
 
     @staticmethod
     def backward(ctx, _g_count, g_weight_sum, g_value_sum, _g_depth_sum, g_spread):
-        geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum = ctx.saved_tensors
+        geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths = ctx.saved_tensors
         levels, width, alpha_t, dist = ctx.config
         p = pixel_xy.shape[0]
         geometry_grad = alpha_t and ctx.needs_input_grad[0]
@@ -211,7 +236,9 @@ class _VoteSums(torch.autograd.Function):
         g_table = torch.zeros_like(table)
         g_geometry = torch.zeros_like(geometry) if geometry_grad else g_table  # a dummy pointer when unused
         with _on(table.device):
-            _vote_bwd_kernel[(p,)](
+            _launch(
+                _vote_bwd_kernel,
+                (p,),
                 geometry,
                 table,
                 pixel_xy,
@@ -226,6 +253,7 @@ class _VoteSums(torch.autograd.Function):
                 g_spread,
                 g_table,
                 g_geometry,
+                depths,
                 LEVELS=levels,
                 LP=_pow2(levels),
                 D1=width,
@@ -234,6 +262,8 @@ class _VoteSums(torch.autograd.Function):
                 DIST=dist,
                 GEOMETRY_GRAD=geometry_grad,
                 BLOCK=BLOCK,
+                CAP=ctx.cap,
+                PB=PAIR_BLOCK,
                 num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
             )
         return (
@@ -273,6 +303,79 @@ if triton is not None:
         return gid, alpha, visible, dx, dy, ca, cb, cc, falloff, raw
 
     @triton.jit
+    def _store_member_depths(depth_row_ptr, depth, member, before, lvl, LEVELS: tl.constexpr, CAP: tl.constexpr):
+        """Write the members' depths [BLOCK, LP] of one walk block to slots ``before`` + rank in the block
+        of the pixel's [LEVELS, CAP] scratch row (members past CAP are dropped: the caller knows from |M|)."""
+        slot = before + tl.cumsum(member.to(tl.int32), axis=0) - 1
+        keep = member & (slot < CAP)
+        tl.store(
+            depth_row_ptr + lvl[None, :] * CAP + slot[:, None],
+            depth,
+            mask=keep[:, None] & (lvl < LEVELS)[None, :],
+        )
+
+    @triton.jit
+    def _compact_spread(
+        depth_row_ptr, m, mean, lvl, LEVELS: tl.constexpr, CAP: tl.constexpr, DIST: tl.constexpr, PB: tl.constexpr
+    ):
+        """[LP] spread of the m (<= CAP) compacted member depths of each level: sum_{i<j} |z_i - z_j|
+        (DIST 1) or sum_i (z_i - mean)^2 (DIST 2), in [PB, PB] tiles of contiguous loads."""
+        spread = mean * 0.0
+        r = tl.arange(0, PB)
+        for i0 in range(0, m, PB):
+            ri = i0 + r
+            ok_i = ri < m
+            if DIST == 2:
+                lvl_ok = lvl < LEVELS
+                z = tl.load(
+                    depth_row_ptr + lvl[None, :] * CAP + ri[:, None], mask=ok_i[:, None] & lvl_ok[None, :], other=0.0
+                )
+                deviation = tl.where(ok_i[:, None] & lvl_ok[None, :], z - mean[None, :], 0.0)
+                spread += tl.sum(deviation * deviation, axis=0)
+            if DIST == 1:
+                for level in range(LEVELS):
+                    z_i = tl.load(depth_row_ptr + level * CAP + ri, mask=ok_i, other=0.0)
+                    total = tl.sum(z_i * 0.0, axis=0)
+                    for j0 in range(i0, m, PB):
+                        rj = j0 + r
+                        ok_j = rj < m
+                        z_j = tl.load(depth_row_ptr + level * CAP + rj, mask=ok_j, other=0.0)
+                        pair = ok_j[None, :] & (ri[:, None] < rj[None, :])
+                        gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
+                        total += tl.sum(tl.sum(gap, axis=1), axis=0)
+                    spread += tl.where(lvl == level, total, 0.0)
+        return spread
+
+    @triton.jit
+    def _compact_signs(
+        z_ptrs,
+        ok_i,
+        depth_row_ptr,
+        m,
+        lvl,
+        LEVELS: tl.constexpr,
+        Z_STRIDE: tl.constexpr,
+        CAP: tl.constexpr,
+        PB: tl.constexpr,
+    ):
+        """[B, LP]: sum_j sign(z_i - z_j) over the m (<= CAP) compacted member depths, for the entries whose
+        level-l depth is at ``z_ptrs + l * Z_STRIDE`` (``ok_i``: the entries to compute)."""
+        signs = tl.zeros([z_ptrs.shape[0], lvl.shape[0]], dtype=depth_row_ptr.dtype.element_ty)
+        r = tl.arange(0, PB)
+        for level in range(LEVELS):
+            z_i = tl.load(z_ptrs + level * Z_STRIDE, mask=ok_i, other=0.0)
+            total = tl.sum(signs, axis=1) * 0.0
+            for j0 in range(0, m, PB):
+                rj = j0 + r
+                ok_j = rj < m
+                z_j = tl.load(depth_row_ptr + level * CAP + rj, mask=ok_j, other=0.0)
+                gap = z_i[:, None] - z_j[None, :]
+                sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
+                total += tl.sum(tl.where(ok_j[None, :], sign, 0.0), axis=1)
+            signs += tl.where(lvl[None, :] == level, total[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+        return signs
+
+    @triton.jit
     def _vote_fwd_kernel(
         geom_ptr,
         table_ptr,
@@ -287,6 +390,7 @@ if triton is not None:
         vsum_ptr,
         zsum_ptr,
         spread_ptr,
+        depths_ptr,
         LEVELS: tl.constexpr,
         LP: tl.constexpr,
         D1: tl.constexpr,
@@ -294,6 +398,8 @@ if triton is not None:
         ALPHA_T: tl.constexpr,
         DIST: tl.constexpr,
         BLOCK: tl.constexpr,
+        CAP: tl.constexpr,
+        PB: tl.constexpr,
     ):
         pid = tl.program_id(0).to(tl.int64)
         px = tl.load(pix_ptr + 2 * pid)
@@ -330,7 +436,6 @@ if triton is not None:
             t_after = t * tl.cumprod(keep, axis=0)
             t_before = t_after / keep
             member = visible & (t_after > colour_stop) & (t_before > threshold)
-            count += tl.sum(member.to(tl.int32), axis=0)
             last = tl.maximum(last, tl.max(tl.where(member, offs, -1), axis=0))
             if ALPHA_T:
                 w = tl.where(member, alpha * t_before, 0.0)
@@ -347,44 +452,53 @@ if triton is not None:
                 other=0.0,
             )
             zacc += tl.sum(depth, axis=0)
+            if DIST != 0:
+                _store_member_depths(depths_ptr + pid * (LEVELS * CAP), depth, member, count, lvl, LEVELS, CAP)
+            count += tl.sum(member.to(tl.int32), axis=0)
             t = tl.min(t_after, axis=0)
             pos += BLOCK
             walking = (pos < end) & (t > open_above)
 
-        # M = the visible entries in [start, last]
         stop = last + 1
         spread = tl.zeros([LP], dtype=px.dtype)
-        if DIST == 2:
-            mean = zacc / tl.maximum(count, 1).to(px.dtype)
-            for p0 in range(start, stop, BLOCK):
-                offs = p0 + lane
-                gid, _al, visible, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
-                    geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min
-                )
-                depth = tl.load(
-                    table_ptr + gid[:, None] * LD1 + lvl[None, :] * D1 + (D1 - 1),
-                    mask=visible[:, None] & lvl_ok[None, :],
-                    other=0.0,
-                )
-                deviation = tl.where(visible[:, None] & lvl_ok[None, :], depth - mean[None, :], 0.0)
-                spread += tl.sum(deviation * deviation, axis=0)
-        if DIST == 1:
-            for p0 in range(start, stop, BLOCK):
-                offs_i = p0 + lane
-                gid_i, _al, vis_i, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
-                    geom_ptr, ids_ptr, offs_i, stop, px, py, alpha_max, alpha_min
-                )
-                for q0 in range(p0, stop, BLOCK):
-                    offs_j = q0 + lane
-                    gid_j, _al2, vis_j, _dx2, _dy2, _a2, _b2, _c2, _f2, _r2 = _block_alpha(
-                        geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
-                    )
-                    pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
-                    for level in range(LEVELS):
-                        z_i = tl.load(table_ptr + gid_i * LD1 + level * D1 + (D1 - 1), mask=vis_i, other=0.0)
-                        z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
-                        gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
-                        spread += tl.where(lvl == level, tl.sum(tl.sum(gap, axis=1), axis=0), 0.0)
+        mean = zacc / tl.maximum(count, 1).to(px.dtype)
+        if DIST != 0:
+            # the members' depths were written by other threads of this program
+            tl.debug_barrier()
+            if count <= CAP:
+                spread = _compact_spread(depths_ptr + pid * (LEVELS * CAP), count, mean, lvl, LEVELS, CAP, DIST, PB)
+            else:
+                # more than CAP members: M = the visible entries in [start, last], by pairs of run blocks
+                if DIST == 2:
+                    for p0 in range(start, stop, BLOCK):
+                        offs = p0 + lane
+                        gid, _al, visible, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
+                            geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min
+                        )
+                        depth = tl.load(
+                            table_ptr + gid[:, None] * LD1 + lvl[None, :] * D1 + (D1 - 1),
+                            mask=visible[:, None] & lvl_ok[None, :],
+                            other=0.0,
+                        )
+                        deviation = tl.where(visible[:, None] & lvl_ok[None, :], depth - mean[None, :], 0.0)
+                        spread += tl.sum(deviation * deviation, axis=0)
+                if DIST == 1:
+                    for p0 in range(start, stop, BLOCK):
+                        offs_i = p0 + lane
+                        gid_i, _al, vis_i, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
+                            geom_ptr, ids_ptr, offs_i, stop, px, py, alpha_max, alpha_min
+                        )
+                        for q0 in range(p0, stop, BLOCK):
+                            offs_j = q0 + lane
+                            gid_j, _al2, vis_j, _dx2, _dy2, _a2, _b2, _c2, _f2, _r2 = _block_alpha(
+                                geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
+                            )
+                            pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
+                            for level in range(LEVELS):
+                                z_i = tl.load(table_ptr + gid_i * LD1 + level * D1 + (D1 - 1), mask=vis_i, other=0.0)
+                                z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
+                                gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
+                                spread += tl.where(lvl == level, tl.sum(tl.sum(gap, axis=1), axis=0), 0.0)
 
         tl.store(count_ptr + pid, count)
         tl.store(last_ptr + pid, last)
@@ -409,6 +523,7 @@ if triton is not None:
         g_spread_ptr,
         g_table_ptr,
         g_geom_ptr,
+        depths_ptr,
         LEVELS: tl.constexpr,
         LP: tl.constexpr,
         D1: tl.constexpr,
@@ -417,6 +532,8 @@ if triton is not None:
         DIST: tl.constexpr,
         GEOMETRY_GRAD: tl.constexpr,
         BLOCK: tl.constexpr,
+        CAP: tl.constexpr,
+        PB: tl.constexpr,
     ):
         pid = tl.program_id(0).to(tl.int64)
         px = tl.load(pix_ptr + 2 * pid)
@@ -467,19 +584,33 @@ if triton is not None:
                 g_depth = 2.0 * (depth - mean[None, :]) * g_spread[None, :]
                 tl.atomic_add(g_table_ptr + depth_ptrs, g_depth, mask=depth_mask, sem="relaxed")
             if DIST == 1:
-                signs = tl.zeros([BLOCK, LP], dtype=px.dtype)
-                for q0 in range(start, stop, BLOCK):
-                    offs_j = q0 + lane
-                    gid_j, _al2, vis_j, _dx2, _dy2, _a2, _b2, _c2, _f2, _r2 = _block_alpha(
-                        geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
+                if count <= CAP:
+                    signs = _compact_signs(
+                        table_ptr + gid * LD1 + (D1 - 1),
+                        visible,
+                        depths_ptr + pid * (LEVELS * CAP),
+                        count,
+                        lvl,
+                        LEVELS,
+                        D1,
+                        CAP,
+                        PB,
                     )
-                    for level in range(LEVELS):
-                        z_i = tl.load(table_ptr + gid * LD1 + level * D1 + (D1 - 1), mask=visible, other=0.0)
-                        z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
-                        gap = z_i[:, None] - z_j[None, :]
-                        sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
-                        sign = tl.where(visible[:, None] & vis_j[None, :], sign, 0.0)
-                        signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                else:
+                    # more than CAP members: pairs with the run's visible entries up to the last member
+                    signs = tl.zeros([BLOCK, LP], dtype=px.dtype)
+                    for q0 in range(start, stop, BLOCK):
+                        offs_j = q0 + lane
+                        gid_j, _al2, vis_j, _dx2, _dy2, _a2, _b2, _c2, _f2, _r2 = _block_alpha(
+                            geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
+                        )
+                        for level in range(LEVELS):
+                            z_i = tl.load(table_ptr + gid * LD1 + level * D1 + (D1 - 1), mask=visible, other=0.0)
+                            z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
+                            gap = z_i[:, None] - z_j[None, :]
+                            sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
+                            sign = tl.where(visible[:, None] & vis_j[None, :], sign, 0.0)
+                            signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
                 tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask, sem="relaxed")
             if ALPHA_T:
                 t = tl.min(t_after, axis=0)

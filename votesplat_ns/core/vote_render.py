@@ -127,7 +127,10 @@ class VoteRenderOptions:
         "auto". "torch": always the torch code. "triton": always the kernels
         (an error where they cannot run; on CPU they run only under Triton's
         interpreter, TRITON_INTERPRET=1, for tests). The dense reference
-        ignores it. Values agree to rounding, gradients too.
+        ignores it. Values agree to rounding, gradients too. With "triton"
+        and uniform weights, 3D blending and detach_geometry, the model's
+        vote step calls ``votesplat_ns.core.vote_fused.vote_losses_tiled``
+        instead (render and losses in three launches, no host read).
     """
 
     weighting: str = "uniform"

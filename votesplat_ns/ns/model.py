@@ -27,6 +27,7 @@ from torch.nn import Parameter
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
 from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
+from votesplat_ns.core.vote_fused import use_fused, vote_losses_tiled
 from votesplat_ns.core.vote_render import VoteRender, render_votes_tiled, vote_losses
 from votesplat_ns.ns.compat import UnavailableMetric
 from votesplat_ns.ns.model_config import VoteSplatModelConfig
@@ -401,23 +402,51 @@ class VoteSplatModel(SplatfactoModel):
         weights = torch.where(carries_vote.any(), carries_vote.float(), 1.0)
         pixel_index = torch.multinomial(weights, self.config.vote_pixels_per_step, replacement=True)
         pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, scale)
-        # Targets are finite wherever valid (valid is their finiteness) and render_votes_tiled checks the
-        # votes, so vote_losses' own input checks (a host read every step) would never fire.
-        losses = vote_losses(self.render_votes(pixel_xy), target_xy, valid, self.vote_options, check_inputs=False)
+        votes = self._votes()
+        if use_fused(self.vote_options, votes, pixel_xy):
+            # The Triton backend with the default switches: render and losses in three launches, no host
+            # read (so no value checks: the targets are finite wherever valid, and a diverged vote gives a
+            # NaN loss instead of an error).
+            info = self.info
+            losses = vote_losses_tiled(
+                info["means2d"][0],
+                info["conics"][0],
+                info["opacities"][0],
+                votes,
+                info["viewmats"][0],
+                info["Ks"][0],
+                pixel_xy,
+                target_xy,
+                valid,
+                info["isect_offsets"][0],
+                info["flatten_ids"],
+                info["tile_size"],
+                self.vote_options,
+            )
+        else:
+            # Targets are finite wherever valid (valid is their finiteness) and render_votes_tiled checks the
+            # votes, so vote_losses' own input checks (a host read every step) would never fire.
+            render = self.render_votes(pixel_xy, votes)
+            losses = vote_losses(render, target_xy, valid, self.vote_options, check_inputs=False)
         return losses["vote"].sum(), losses["distortion"].sum()
 
-    def render_votes(self, pixel_xy: torch.Tensor) -> VoteRender:
-        """The vote pass of every level at ``pixel_xy`` [P,2], on the projection of the last get_outputs call."""
-        info = self.info
+    def _votes(self) -> torch.Tensor:
+        """[N, L, 3] world-space votes p + dp (p without gradient unless votes_move_geometry)."""
         means = self.gauss_params["means"]
         if not self.config.votes_move_geometry:
             means = means.detach()
+        return means[:, None, :] + self.gauss_params["vote_offsets"]
+
+    def render_votes(self, pixel_xy: torch.Tensor, votes: Optional[torch.Tensor] = None) -> VoteRender:
+        """The vote pass of every level at ``pixel_xy`` [P,2], on the projection of the last get_outputs call
+        (``votes``: ``_votes()`` when the caller has them)."""
+        info = self.info
         return render_votes_tiled(
             info["means2d"][0],
             info["conics"][0],
             info["opacities"][0],
             info["depths"][0],
-            means[:, None, :] + self.gauss_params["vote_offsets"],
+            self._votes() if votes is None else votes,
             info["viewmats"][0],
             info["Ks"][0],
             pixel_xy,

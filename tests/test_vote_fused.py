@@ -1,0 +1,377 @@
+"""The fused vote losses (votesplat_ns.core.vote_fused.vote_losses_tiled) held to the separate path.
+
+Each case computes ``vote_losses(render_votes_tiled(..., backend="torch"), target, valid)`` (itself
+held to the dense reference in test_vote_render.py) and ``vote_losses_tiled`` on the same inputs,
+and compares the losses and their gradient with respect to the votes. Where they run: on CUDA,
+and on CPU tensors under Triton's interpreter (``TRITON_INTERPRET=1``, slow: small scenes).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from test_vote_kernel import (
+    DEVICES,
+    HEIGHT,
+    TIE_GROUPS,
+    TILE,
+    WIDTH,
+    assert_same_up_to_ties,
+    scene_of_size,
+    tied_votes,
+    to_device,
+)
+from test_vote_render import call, random_scene, tile_lists_gsplat
+
+from votesplat_ns.core import vote_fused, vote_kernel
+from votesplat_ns.core.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
+
+DISTORTIONS = ["l1", "l1_pixels", "squared", "none"]
+COUNT_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "count_vote_ops.py"
+
+
+@pytest.fixture(autouse=True)
+def no_backend_env(monkeypatch):
+    monkeypatch.delenv(BACKEND_ENV, raising=False)
+
+
+def small_blocks(monkeypatch, cap=128):
+    """Narrow walk blocks and pair tiles, so runs and voting sets span several; ``cap``: scratch slots."""
+    monkeypatch.setattr(vote_kernel, "BLOCK", 16)
+    monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", 4)
+    monkeypatch.setattr(vote_kernel, "CAP", cap)
+
+
+def targets(pixel_xy, levels, seed=5):
+    """Targets near the pixels, invalid (and NaN) at about a fifth of the (pixel, level) entries."""
+    g = torch.Generator().manual_seed(seed)
+    p = pixel_xy.shape[0]
+    target = pixel_xy.cpu()[:, None, :] + 3.0 * torch.randn(p, levels, 2, generator=g, dtype=pixel_xy.dtype)
+    valid = torch.rand(p, levels, generator=g) < 0.8
+    valid[1, 0] = False  # a pixel with a vote at some levels only
+    if levels > 1:
+        valid[1, 1:] = True
+    target[~valid] = float("nan")
+    return target.to(pixel_xy.device), valid.to(pixel_xy.device)
+
+
+def both_paths(scene, votes, pixel_xy, target, valid, lists, options, weights=(1.3, 0.7)):
+    """((vote, distortion), d loss / d votes) for the separate torch path and the fused one."""
+    offsets, flatten_ids = lists
+    results = []
+    for fused in (False, True):
+        leaf = votes.clone().requires_grad_()
+        if fused:
+            losses = vote_fused.vote_losses_tiled(
+                scene["means2d"],
+                scene["conics"],
+                scene["opacities"],
+                leaf,
+                scene["viewmat"],
+                scene["K"],
+                pixel_xy,
+                target,
+                valid,
+                offsets,
+                flatten_ids,
+                TILE,
+                options,
+            )
+        else:
+            render = call(
+                render_votes_tiled,
+                {**scene, "votes": leaf},
+                pixel_xy,
+                VoteRenderOptions(**{**options.__dict__, "backend": "torch"}),
+                isect_offsets=offsets,
+                flatten_ids=flatten_ids,
+                tile_size=TILE,
+            )
+            losses = vote_losses(render, target, valid, options, check_inputs=False)
+        (weights[0] * losses["vote"].sum() + weights[1] * losses["distortion"].sum()).backward()
+        assert leaf.grad is not None
+        results.append(((losses["vote"].detach(), losses["distortion"].detach()), leaf.grad))
+    return results
+
+
+def assert_paths_agree(results, rtol=1e-9, atol=1e-9):
+    ((vote, distortion), grad), ((fused_vote, fused_distortion), fused_grad) = results
+    assert fused_vote.shape == vote.shape and fused_distortion.shape == distortion.shape
+    torch.testing.assert_close(fused_vote.cpu(), vote.cpu(), rtol=rtol, atol=atol)
+    torch.testing.assert_close(fused_distortion.cpu(), distortion.cpu(), rtol=rtol, atol=atol)
+    torch.testing.assert_close(fused_grad.cpu(), grad.cpu(), rtol=rtol, atol=atol)
+
+
+def outside_pixels(dtype=torch.float64):
+    """Left of, right of and below the tile grid."""
+    return torch.tensor([[-1.5, 3.5], [WIDTH + 2.5, 5.5], [4.5, HEIGHT + 0.5]], dtype=dtype)
+
+
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("distortion", DISTORTIONS)
+@pytest.mark.parametrize("levels", [1, 2, 4])
+def test_fused_matches_separate_path(levels, distortion, device, monkeypatch):
+    small_blocks(monkeypatch)
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    pixel_xy = torch.cat([outside_pixels(), pixel_xy[3::17]])
+    scene, pixel_xy = to_device(scene, device), pixel_xy.to(device)
+    lists = tuple(t.to(device) for t in lists["gsplat"])
+    target, valid = targets(pixel_xy, levels)
+    options = VoteRenderOptions(distortion=distortion)
+    results = both_paths(scene, level_votes[:, :levels].to(device), pixel_xy, target, valid, lists, options)
+    assert_paths_agree(results)
+    assert results[0][1].abs().sum() > 0
+    if distortion != "none":
+        assert (results[0][0][1] > 0).all()
+    if levels == 1:
+        # [N, 3] votes and [P, 2] targets: scalar losses
+        single = both_paths(scene, level_votes[:, 0].to(device), pixel_xy, target[:, 0], valid[:, 0], lists, options)
+        assert single[1][0][0].shape == ()
+        assert_paths_agree(single)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("distortion", ["l1", "l1_pixels", "squared"])
+def test_fused_more_members_than_the_scratch_row(distortion, device, monkeypatch):
+    """Pixels with more members than CAP take the slow exact path, forward and backward."""
+    small_blocks(monkeypatch, cap=4)
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    pixel_xy = pixel_xy[3::17]
+    scene, pixel_xy = to_device(scene, device), pixel_xy.to(device)
+    lists = tuple(t.to(device) for t in lists["gsplat"])
+    count = call(
+        render_votes_tiled,
+        scene,
+        pixel_xy,
+        VoteRenderOptions(backend="torch"),
+        isect_offsets=lists[0],
+        flatten_ids=lists[1],
+        tile_size=TILE,
+    ).count
+    assert (count > 4 * vote_kernel.CAP).any() and ((count > 0) & (count <= vote_kernel.CAP)).any()
+    target, valid = targets(pixel_xy, 2)
+    options = VoteRenderOptions(distortion=distortion)
+    assert_paths_agree(both_paths(scene, level_votes[:, :2].to(device), pixel_xy, target, valid, lists, options))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("cap", [128, 2])
+@pytest.mark.parametrize("distortion", ["l1", "squared"])
+def test_fused_ties_in_depth(cap, distortion, device, monkeypatch):
+    """Members with the same vote depth: the same losses; gradients equal up to the split of a tie."""
+    small_blocks(monkeypatch, cap=cap)
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    votes = tied_votes(level_votes[:, :2], TIE_GROUPS).to(device)
+    scene, pixel_xy = to_device(scene, device), pixel_xy[3::17].to(device)
+    lists = tuple(t.to(device) for t in lists["gsplat"])
+    target, valid = targets(pixel_xy, 2)
+    results = both_paths(scene, votes, pixel_xy, target, valid, lists, VoteRenderOptions(distortion=distortion))
+    ((vote, distortion_loss), grad), ((fused_vote, fused_distortion), fused_grad) = results
+    torch.testing.assert_close(fused_vote, vote, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(fused_distortion, distortion_loss, rtol=1e-9, atol=1e-9)
+    assert_same_up_to_ties(fused_grad.cpu(), grad.cpu(), TIE_GROUPS)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fused_empty_tiles_and_pixels_without_members(device, monkeypatch):
+    small_blocks(monkeypatch)
+    scene = random_scene(40, WIDTH, HEIGHT, seed=31)
+    keep = scene["means2d"][:, 0] < 6.0  # the right tiles' runs are empty
+    scene = {k: (v[keep] if v.ndim and v.shape[0] == 40 else v) for k, v in scene.items()}
+    scene["opacities"] = scene["opacities"].clamp_max(0.3)
+    lists = tile_lists_gsplat(scene, WIDTH, HEIGHT, TILE)
+    ends = torch.cat([lists[0].reshape(-1)[1:].long(), torch.tensor([len(lists[1])])])
+    assert (ends == lists[0].reshape(-1).long()).any()
+    pixel_xy = torch.tensor(
+        [[1.5, 1.5], [3.5, 7.5], [5.5, 12.5], [12.5, 3.5], [20.5, 10.5], [23.5, 15.5], [-2.0, 3.0], [30.0, 3.0]],
+        dtype=torch.float64,
+    )
+    votes = scene["votes"][:, None, :].repeat(1, 2, 1)
+    scene, pixel_xy, votes = to_device(scene, device), pixel_xy.to(device), votes.to(device)
+    lists = tuple(t.to(device) for t in lists)
+    target, valid = targets(pixel_xy, 2)
+    for distortion in ("l1_pixels", "squared"):
+        results = both_paths(scene, votes, pixel_xy, target, valid, lists, VoteRenderOptions(distortion=distortion))
+        assert_paths_agree(results)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fused_nothing_used(device, monkeypatch):
+    """No used pixel (no member anywhere, or no valid target): zero losses, attached, zero gradient."""
+    small_blocks(monkeypatch)
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    scene, pixel_xy = to_device(scene, device), pixel_xy[3::29].to(device)
+    lists = tuple(t.to(device) for t in lists["gsplat"])
+    target, valid = targets(pixel_xy, 2)
+    cases = [
+        ({**scene, "opacities": torch.full_like(scene["opacities"], 1e-3)}, valid),  # every alpha < 1/255
+        (scene, torch.zeros_like(valid)),
+    ]
+    for case_scene, case_valid in cases:
+        results = both_paths(
+            case_scene, level_votes[:, :2].to(device), pixel_xy, target, case_valid, lists, VoteRenderOptions()
+        )
+        assert_paths_agree(results)
+        (vote, distortion), grad = results[1]
+        assert not vote.any() and not distortion.any() and not grad.any()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fused_float32(device, monkeypatch):
+    small_blocks(monkeypatch)
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    scene = to_device(scene, device, torch.float32)
+    pixel_xy = pixel_xy[3::17].to(device=device, dtype=torch.float32)
+    lists = tuple(t.to(device) for t in lists["gsplat"])
+    target, valid = targets(pixel_xy, 2)
+    votes = level_votes[:, :2].to(device=device, dtype=torch.float32)
+    results = both_paths(scene, votes, pixel_xy, target, valid, lists, VoteRenderOptions(distortion="l1_pixels"))
+    assert_paths_agree(results, rtol=1e-4, atol=1e-4)
+
+
+# ---------------------------------------------------------------------------
+# Dispatch and errors
+
+
+def test_use_fused_only_for_its_options(monkeypatch):
+    votes, pixel_xy = torch.zeros(3, 2, 3), torch.zeros(4, 2)
+    runs = vote_kernel.unavailable_reason(votes.device) is None
+    assert vote_fused.use_fused(VoteRenderOptions(backend="triton", distortion="squared"), votes, pixel_xy) == runs
+    assert not vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy)  # auto: the torch path
+    assert not vote_fused.use_fused(VoteRenderOptions(backend="torch"), votes, pixel_xy)
+    for switch in ({"weighting": "alpha_t"}, {"blend_space": "2d"}, {"detach_geometry": False}):
+        assert not vote_fused.use_fused(VoteRenderOptions(backend="triton", **switch), votes, pixel_xy)
+    monkeypatch.setenv(BACKEND_ENV, "triton")
+    assert vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy) == runs
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fused_errors(device):
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    scene, pixel_xy = to_device(scene, device), pixel_xy[:4].to(device)
+    votes = level_votes[:, :2].to(device)
+    offsets, flatten_ids = (t.to(device) for t in lists["gsplat"])
+    target, valid = targets(pixel_xy, 2)
+
+    def run(options=None, **changes):
+        args = dict(
+            means2d=scene["means2d"],
+            conics=scene["conics"],
+            opacities=scene["opacities"],
+            votes=votes,
+            viewmat=scene["viewmat"],
+            K=scene["K"],
+            pixel_xy=pixel_xy,
+            target_xy=target,
+            valid=valid,
+            isect_offsets=offsets,
+            flatten_ids=flatten_ids,
+            tile_size=TILE,
+            options=options,
+        )
+        return vote_fused.vote_losses_tiled(**{**args, **changes})
+
+    with pytest.raises(ValueError, match="uniform weights"):
+        run(VoteRenderOptions(weighting="alpha_t"))
+    with pytest.raises(ValueError, match="target_xy must have shape"):
+        run(target_xy=target[:, 0])
+    with pytest.raises(ValueError, match="valid must be a bool"):
+        run(valid=valid.float())
+    with pytest.raises(ValueError, match="conics must have shape"):
+        run(conics=scene["conics"][:-1])
+    with pytest.raises(ValueError, match="share one dtype"):
+        run(votes=votes.float())
+
+
+# ---------------------------------------------------------------------------
+# Launches and host reads of a step
+
+
+@pytest.fixture(scope="module")
+def count_ops():
+    spec = importlib.util.spec_from_file_location("votesplat_count_vote_ops_fused", COUNT_PATH)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
+def test_fused_launches_and_host_reads(count_ops, distortion, device):
+    """Forward + backward of the fused losses, as the model combines them: at most 15 launches (torch
+    kernels and Triton kernels), no host read."""
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    # contiguous, as the model's sampled pixels (a strided slice would cost a copy)
+    scene, pixel_xy = to_device(scene, device), pixel_xy[3::29].contiguous().to(device)
+    offsets, flatten_ids = (t.to(device) for t in lists["gsplat"])
+    target, valid = targets(pixel_xy, 4)
+    means = scene["votes"].detach()
+    offsets_param = (level_votes - means[:, None, :]).to(device).requires_grad_()
+
+    def step():
+        losses = vote_fused.vote_losses_tiled(
+            scene["means2d"],
+            scene["conics"],
+            scene["opacities"],
+            means[:, None, :] + offsets_param,
+            scene["viewmat"],
+            scene["K"],
+            pixel_xy,
+            target,
+            valid,
+            offsets,
+            flatten_ids,
+            TILE,
+            VoteRenderOptions(distortion=distortion),
+        )
+        return losses["vote"].sum() + 0.05 * losses["distortion"].sum()
+
+    step().backward()  # warm-up: first-call caches out of the count
+    offsets_param.grad = None
+    counter = count_ops.count_step(step)
+    assert counter.total_syncs == 0, dict(counter.syncs)
+    # 3 Triton kernels and the zeroed vote gradient; the rest is the test's own loss and its backward
+    assert count_ops.launches(counter) <= 15, count_ops.launch_names(counter)
+    assert counter.triton_launches == 3
+    assert offsets_param.grad is not None and offsets_param.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
+def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
+    """VoteSplatModel.vote_loss_terms with the Triton backend and the default switches: the fused losses,
+    equal to the torch path's, with no host read; other switches keep the separate path."""
+    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    results = {}
+    for backend in ("torch", "triton"):
+        monkeypatch.setenv(BACKEND_ENV, backend)
+        torch.manual_seed(0)
+        step().backward()  # warm-up
+        torch.manual_seed(0)
+        counter = count_ops.OpCounter()
+        with counter:
+            loss = step()
+            with counter.phase("backward"):
+                loss.backward()
+        grad = model.gauss_params["vote_offsets"].grad
+        assert grad is not None
+        results[backend] = (loss.detach(), grad.clone(), counter)
+    (loss, grad, _), (fused_loss, fused_grad, counter) = results["torch"], results["triton"]
+    torch.testing.assert_close(fused_loss, loss, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(fused_grad, grad, rtol=1e-4, atol=1e-6)
+    assert grad.abs().sum() > 0
+    assert dict(counter.triton_names) == {"_fused_fwd_kernel": 1, "_fused_reduce_kernel": 1, "_fused_bwd_kernel": 1}
+    assert counter.total_syncs == 0, dict(counter.syncs)
+    # alpha*T weights: the separate kernels, not the fused ones
+    monkeypatch.setattr(model, "vote_options", VoteRenderOptions(weighting="alpha_t", distortion="l1_pixels"))
+    with count_ops.OpCounter() as counter:
+        step().backward()
+    assert set(counter.triton_names) == {"_vote_fwd_kernel", "_vote_bwd_kernel"}

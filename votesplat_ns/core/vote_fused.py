@@ -1,0 +1,742 @@
+"""The vote step's losses in three Triton launches: ``vote_losses_tiled``.
+
+``vote_losses(render_votes_tiled(...), target_xy, valid)`` for the training defaults (uniform
+weights, blending in 3D, ``detach_geometry=True``; any distortion), fused: same values, same
+gradient with respect to the votes (the only input that gets one with these options). Same
+membership rule, levels and distortions as :mod:`votesplat_ns.core.vote_render` (read its module
+docstring); the walk is that of :mod:`votesplat_ns.core.vote_kernel`.
+
+Why: on an H100 the separate path is bound by its ~115-130 launches (torch ops around the two
+kernels: tile lookup, vote table, normalisation, projection, losses, their backward), not by the
+kernels. Here everything per pixel happens in the kernels:
+
+* forward, one program per pixel: the pixel's tile run from ``pixel_xy`` and ``isect_offsets``
+  (positions outside the tile grid have an empty run); the walk, summing the members' votes of
+  every level and their camera depths (from ``viewmat``); the members' ids (and, with a
+  distortion, their depths) to a compacted per-pixel scratch row of ``vote_kernel.CAP`` slots; the
+  mean vote, its projection with ``K``, the L1 distance to the target where ``valid``, the
+  distortion (over the compacted depths; pixels with more members than the row holds take the
+  exact slow path of the vote kernels) and its scaling; per pixel and level it writes the loss
+  terms and the gradient of each term with respect to the mean vote and to a member depth.
+* a one-program reduction: the per-level means over the used pixels (valid and |M| > 0), in a
+  fixed order (no atomics: the losses are deterministic).
+* backward, one program per pixel: scatters d loss / d vote to the members (from the compacted
+  ids; a pixel past the row's capacity walks its run again).
+
+Launches per step: the two forward kernels, and in the backward a zeroed gradient and one kernel.
+No host read: unlike ``render_votes_tiled``, nothing here checks values (finite votes and pixels,
+ids and offsets in range); shapes, dtypes and devices are checked. Ids and run positions are
+clamped into range, so bad lists give wrong sets, not an out-of-bounds read. The model already
+skips ``vote_losses``' own value checks (``check_inputs=False``): targets are finite where valid
+by construction.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Optional
+
+import torch
+from torch import Tensor
+
+from votesplat_ns.core import vote_kernel
+from votesplat_ns.core.vote_render import (
+    ALPHA_MIN,
+    COLOUR_STOP_T,
+    VoteRenderOptions,
+    _requested_backend,
+    _validate_tiles,
+    _vote_threshold,
+)
+
+# pyright: reportOptionalMemberAccess=false, reportInvalidTypeForm=false
+# (as in vote_kernel: ``tl`` is None without triton; ``tl.constexpr`` annotations are Triton's markers.)
+
+triton, tl = vote_kernel.triton, vote_kernel.tl
+
+# Pixels per step of the one-program reduction.
+REDUCE_BLOCK = 1024
+# distortion -> (kernel mode, l1 in pixels)
+_DIST = {"none": (0, False), "l1": (1, False), "l1_pixels": (1, True), "squared": (2, False)}
+
+
+def fused_unavailable_reason(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> Optional[str]:
+    """None when ``vote_losses_tiled`` can serve these options and tensors, else why not (one line)."""
+    if options.weighting != "uniform" or options.blend_space != "3d" or not options.detach_geometry:
+        return "the fused vote losses serve uniform weights, blending in 3D and detach_geometry=True only"
+    reason = vote_kernel.unavailable_reason(votes.device)
+    if reason is None and votes.dtype not in (torch.float32, torch.float64):
+        reason = f"the Triton vote kernels take float32 or float64 tensors, got {votes.dtype}"
+    if reason is None and pixel_xy.requires_grad:
+        reason = "the fused vote losses give pixel_xy no gradient; pass pixel_xy without requires_grad"
+    return reason
+
+
+def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
+    """Whether a training step should call ``vote_losses_tiled``: the backend resolves to "triton"
+    (``VoteRenderOptions.backend`` or VOTESPLAT_VOTE_BACKEND) and it can serve the options. Where it
+    cannot, the caller's separate path runs (and raises its own error if the kernels cannot run)."""
+    return _requested_backend(options) == "triton" and fused_unavailable_reason(options, votes, pixel_xy) is None
+
+
+def vote_losses_tiled(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    votes: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    pixel_xy: Tensor,
+    target_xy: Tensor,
+    valid: Tensor,
+    isect_offsets: Tensor,
+    flatten_ids: Tensor,
+    tile_size: int,
+    options: Optional[VoteRenderOptions] = None,
+) -> Dict[str, Tensor]:
+    """``vote_losses(render_votes_tiled(...), target_xy, valid, options)`` in three launches, no host read.
+
+    Args:
+        means2d [N,2], conics [N,3], opacities [N]: the Gaussians projected to one camera (no
+            gradient reaches them); entries of Gaussians absent from the lists are never read.
+        votes [N,3] or [N,L,3]: world-space votes, differentiable.
+        viewmat [4,4], K [3,3]: the camera (no gradient).
+        pixel_xy [P,2]: continuous positions (no gradient).
+        target_xy [P,2] / [P,L,2], valid [P] / [P,L] bool: as in ``vote_losses``.
+        isect_offsets, flatten_ids, tile_size: gsplat's tile lists of this camera, as in
+            ``render_votes_tiled``.
+        options: must have uniform weights, 3D blending and ``detach_geometry`` (see
+            ``fused_unavailable_reason``); ``backend`` is not consulted (the caller chose).
+
+    Returns {"vote", "distortion"}: scalars for [N,3] votes, [L] tensors for [N,L,3], as
+    ``vote_losses``. Values are not checked (module docstring).
+    """
+    options = options or VoteRenderOptions()
+    reason = fused_unavailable_reason(options, votes, pixel_xy)
+    if reason is not None:
+        raise ValueError(f"vote_losses_tiled cannot run: {reason}; use render_votes_tiled and vote_losses")
+    if votes.ndim not in (2, 3) or votes.shape[-1] != 3 or (votes.ndim == 3 and votes.shape[1] < 1):
+        raise ValueError(f"votes must have shape [N, 3] or [N, L, 3] (one vote per level), got {list(votes.shape)}")
+    single = votes.ndim == 2
+    n = votes.shape[0]
+    levels = 1 if single else votes.shape[1]
+    if pixel_xy.ndim != 2 or pixel_xy.shape[1] != 2:
+        raise ValueError(f"pixel_xy must have shape [P, 2], got {list(pixel_xy.shape)}")
+    p = pixel_xy.shape[0]
+    expected = {"means2d": (n, 2), "conics": (n, 3), "opacities": (n,), "viewmat": (4, 4), "K": (3, 3)}
+    for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities), ("viewmat", viewmat), ("K", K)):
+        if tuple(t.shape) != expected[name]:
+            raise ValueError(
+                f"{name} must have shape {list(expected[name])} (N = {n} from votes), got {list(t.shape)}; "
+                f"pass the tensors of one camera"
+            )
+    level_shape = (p,) if single else (p, levels)
+    if tuple(target_xy.shape) != level_shape + (2,):
+        raise ValueError(f"target_xy must have shape {list(level_shape + (2,))}, got {list(target_xy.shape)}")
+    if tuple(valid.shape) != level_shape or valid.dtype != torch.bool:
+        raise ValueError(
+            f"valid must be a bool tensor of shape {list(level_shape)}, got {valid.dtype} {list(valid.shape)}"
+        )
+    floats = (means2d, conics, opacities, votes, viewmat, K, pixel_xy)
+    if len({t.dtype for t in floats}) != 1:
+        raise ValueError("means2d, conics, opacities, votes, viewmat, K and pixel_xy must share one dtype")
+    if len({t.device for t in floats + (target_xy, valid)}) != 1:
+        raise ValueError("all inputs of vote_losses_tiled must be on the same device")
+    offsets, tiles_high, tiles_wide = _validate_tiles(isect_offsets, flatten_ids, tile_size, None, votes.device)
+
+    dist, in_pixels = _DIST[options.distortion]
+    if n == 0 or p == 0:
+        # nothing to walk: zero losses that stay attached to the graph (zero gradient)
+        zero = votes.new_zeros(levels) + votes.sum() * 0.0
+        vote, distortion = zero, zero.clone()
+    else:
+        threshold = _vote_threshold(options)
+        consts = vote_kernel._constants(
+            (
+                threshold,
+                options.alpha_max,
+                max(threshold, COLOUR_STOP_T),
+                ALPHA_MIN,
+                COLOUR_STOP_T,
+                float(options.vote_near_plane),
+            ),
+            votes.dtype,
+            votes.device,
+        )
+        config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel())
+        vote, distortion = _FusedVoteLosses.apply(
+            votes.reshape(n, levels, 3).contiguous(),
+            means2d.detach().contiguous(),
+            conics.detach().contiguous(),
+            opacities.detach().contiguous(),
+            viewmat.detach().contiguous(),
+            K.detach().contiguous(),
+            pixel_xy.detach().contiguous(),
+            target_xy.detach().reshape(p, levels, 2).to(votes.dtype).contiguous(),
+            valid.reshape(p, levels).contiguous().view(torch.uint8),
+            offsets.contiguous(),
+            flatten_ids.contiguous(),
+            consts,
+            config,
+        )
+    if single:
+        return {"vote": vote[0], "distortion": distortion[0]}
+    return {"vote": vote, "distortion": distortion}
+
+
+class _FusedVoteLosses(torch.autograd.Function):
+    @staticmethod
+    def forward(
+        ctx, votes, means2d, conics, opacities, viewmat, K, pixel_xy, target, valid, offsets, ids, consts, config
+    ):
+        levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects = config
+        p, device, dtype = pixel_xy.shape[0], votes.device, votes.dtype
+        cap = vote_kernel.CAP
+        walk = torch.empty(3, p, dtype=torch.int64, device=device)  # |M|, run start, last member's position
+        members = torch.empty(p, cap, dtype=torch.int32, device=device)
+        depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else members
+        # per pixel and level: loss terms (vote L1, distortion, used) and the backward's coefficients
+        # (d vote-L1 / d member vote [3], d distortion / d member depth factor, mean member depth)
+        terms = torch.empty(p, 8, levels, dtype=dtype, device=device)
+        vote = torch.empty(levels, dtype=dtype, device=device)
+        distortion = torch.empty(levels, dtype=dtype, device=device)
+        denominator = torch.empty(levels, dtype=dtype, device=device)
+        lp = vote_kernel._pow2(levels)
+        with vote_kernel._on(device):
+            vote_kernel._launch(
+                _fused_fwd_kernel,
+                (p,),
+                means2d,
+                conics,
+                opacities,
+                votes,
+                viewmat,
+                K,
+                pixel_xy,
+                target,
+                valid,
+                offsets,
+                ids,
+                consts,
+                walk,
+                members,
+                depths,
+                terms,
+                p,
+                n_isects,
+                votes.shape[0],
+                tiles_wide,
+                tiles_high,
+                tile_size,
+                LEVELS=levels,
+                LP=lp,
+                DIST=dist,
+                IN_PIXELS=in_pixels,
+                BLOCK=vote_kernel.BLOCK,
+                CAP=cap,
+                PB=vote_kernel.PAIR_BLOCK,
+                num_warps=vote_kernel.NUM_WARPS,
+            )
+            vote_kernel._launch(
+                _fused_reduce_kernel,
+                (1,),
+                terms,
+                vote,
+                distortion,
+                denominator,
+                p,
+                LEVELS=levels,
+                LP=lp,
+                RB=REDUCE_BLOCK,
+                num_warps=4,
+            )
+        ctx.save_for_backward(
+            votes, means2d, conics, opacities, viewmat, pixel_xy, ids, consts, walk, members, depths, terms, denominator
+        )
+        ctx.config = (config, cap)
+        ctx.set_materialize_grads(False)
+        return vote, distortion
+
+    @staticmethod
+    def backward(ctx, g_vote, g_distortion):
+        (
+            votes,
+            means2d,
+            conics,
+            opacities,
+            viewmat,
+            pixel_xy,
+            ids,
+            consts,
+            walk,
+            members,
+            depths,
+            terms,
+            denominator,
+        ) = ctx.saved_tensors
+        (levels, dist, _in_pixels, _tw, _th, _ts, n_isects), cap = ctx.config
+        none = (None,) * 12
+        has_vote, has_distortion = g_vote is not None, g_distortion is not None and dist != 0
+        if not ctx.needs_input_grad[0] or not (has_vote or has_distortion):
+            return (None,) + none
+        g_votes = torch.zeros_like(votes)
+        p = pixel_xy.shape[0]
+        with vote_kernel._on(votes.device):
+            vote_kernel._launch(
+                _fused_bwd_kernel,
+                (p,),
+                means2d,
+                conics,
+                opacities,
+                votes,
+                viewmat,
+                pixel_xy,
+                ids,
+                consts,
+                walk,
+                members,
+                depths,
+                terms,
+                denominator,
+                # with strides: the gradient of a sum arrives expanded (stride 0), and copying it is a launch
+                g_vote if has_vote else denominator,
+                g_vote.stride(0) if has_vote else 0,
+                g_distortion if has_distortion else denominator,
+                g_distortion.stride(0) if has_distortion else 0,
+                g_votes,
+                p,
+                n_isects,
+                votes.shape[0],
+                LEVELS=levels,
+                LP=vote_kernel._pow2(levels),
+                DIST=dist,
+                HAS_VOTE=has_vote,
+                HAS_DIST=has_distortion,
+                BLOCK=vote_kernel.BLOCK,
+                CAP=cap,
+                PB=vote_kernel.PAIR_BLOCK,
+                num_warps=vote_kernel.NUM_WARPS,
+            )
+        return (g_votes,) + none
+
+
+if triton is not None:
+    _store_member_depths = vote_kernel._store_member_depths
+    _compact_spread = vote_kernel._compact_spread
+    _compact_signs = vote_kernel._compact_signs
+
+    @triton.jit
+    def _split_alpha(means_ptr, conics_ptr, opac_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min, n_gauss):
+        """``vote_kernel._block_alpha`` on separate means2d / conics / opacities, ids clamped into [0, N)."""
+        inside = offs < stop
+        gid = tl.load(ids_ptr + offs, mask=inside, other=0).to(tl.int64)
+        gid = tl.minimum(tl.maximum(gid, 0), n_gauss - 1)
+        mx = tl.load(means_ptr + 2 * gid, mask=inside, other=0.0)
+        my = tl.load(means_ptr + 2 * gid + 1, mask=inside, other=0.0)
+        ca = tl.load(conics_ptr + 3 * gid, mask=inside, other=0.0)
+        cb = tl.load(conics_ptr + 3 * gid + 1, mask=inside, other=0.0)
+        cc = tl.load(conics_ptr + 3 * gid + 2, mask=inside, other=0.0)
+        opacity = tl.load(opac_ptr + gid, mask=inside, other=0.0)
+        dx = mx - px
+        dy = my - py
+        # the operation order of vote_render._alpha
+        sigma = cb * dx * dy + 0.5 * (dx * dx * ca + dy * dy * cc)
+        alpha = tl.minimum(opacity * tl.exp(-tl.maximum(sigma, 0.0)), alpha_max)
+        visible = inside & (sigma >= 0.0) & (alpha >= alpha_min)
+        return gid, alpha, visible
+
+    @triton.jit
+    def _floor_div(x, size):
+        """floor(x / size) for a whole ``size``, exact even where float32 division is not correctly rounded:
+        the quotient is corrected by the products, which are exact for whole numbers of tiles."""
+        q = tl.floor(x / size)
+        q = tl.where((q + 1.0) * size <= x, q + 1.0, q)
+        return tl.where(q * size > x, q - 1.0, q)
+
+    @triton.jit
+    def _block_depths(votes_ptr, gid, ok, lvl, LEVELS: tl.constexpr, r0, r1, r2, t2):
+        """[B, LP] camera depths of the votes of Gaussians ``gid`` (0 where not ``ok``), and their x, y, z."""
+        mask = ok[:, None] & (lvl < LEVELS)[None, :]
+        base = gid[:, None] * (LEVELS * 3) + lvl[None, :] * 3
+        x = tl.load(votes_ptr + base, mask=mask, other=0.0)
+        y = tl.load(votes_ptr + base + 1, mask=mask, other=0.0)
+        z = tl.load(votes_ptr + base + 2, mask=mask, other=0.0)
+        depth = tl.where(mask, x * r0 + y * r1 + z * r2 + t2, 0.0)
+        return depth, x, y, z
+
+    @triton.jit
+    def _fused_fwd_kernel(
+        means_ptr,
+        conics_ptr,
+        opac_ptr,
+        votes_ptr,
+        view_ptr,
+        k_ptr,
+        pix_ptr,
+        target_ptr,
+        valid_ptr,
+        offsets_ptr,
+        ids_ptr,
+        consts_ptr,
+        walk_ptr,
+        members_ptr,
+        depths_ptr,
+        terms_ptr,
+        n_pixels,
+        n_isects,
+        n_gauss,
+        tiles_wide,
+        tiles_high,
+        tile_size,
+        LEVELS: tl.constexpr,
+        LP: tl.constexpr,
+        DIST: tl.constexpr,
+        IN_PIXELS: tl.constexpr,
+        BLOCK: tl.constexpr,
+        CAP: tl.constexpr,
+        PB: tl.constexpr,
+    ):
+        pid = tl.program_id(0).to(tl.int64)
+        px = tl.load(pix_ptr + 2 * pid)
+        py = tl.load(pix_ptr + 2 * pid + 1)
+        threshold = tl.load(consts_ptr)
+        alpha_max = tl.load(consts_ptr + 1)
+        open_above = tl.load(consts_ptr + 2)
+        alpha_min = tl.load(consts_ptr + 3)
+        colour_stop = tl.load(consts_ptr + 4)
+        near = tl.load(consts_ptr + 5)
+
+        # the pixel's tile run (vote_render._pixel_runs): empty outside the grid (NaN compares False)
+        tile_x = _floor_div(px, tile_size)
+        tile_y = _floor_div(py, tile_size)
+        in_grid = (tile_x >= 0.0) & (tile_x < tiles_wide) & (tile_y >= 0.0) & (tile_y < tiles_high)
+        tile = tl.where(in_grid, tile_y * tiles_wide + tile_x, 0.0).to(tl.int64)
+        tiles = tiles_wide * tiles_high
+        start = tl.load(offsets_ptr + tile, mask=in_grid, other=0).to(tl.int64)
+        has_next = in_grid & (tile + 1 < tiles)
+        end = tl.load(offsets_ptr + tile + 1, mask=has_next, other=n_isects).to(tl.int64)
+        start = tl.minimum(tl.maximum(start, 0), n_isects)
+        end = tl.where(in_grid, tl.minimum(tl.maximum(end, start), n_isects), start)
+
+        lane = tl.arange(0, BLOCK).to(tl.int64)
+        lvl = tl.arange(0, LP)
+        lvl_ok = lvl < LEVELS
+        r20 = tl.load(view_ptr + 8)
+        r21 = tl.load(view_ptr + 9)
+        r22 = tl.load(view_ptr + 10)
+        t2 = tl.load(view_ptr + 11)
+        member_row = members_ptr + pid * CAP
+        depth_row = depths_ptr + pid * (LEVELS * CAP)
+
+        t = px * 0.0 + 1.0
+        count = tl.sum(lane * 0, axis=0).to(tl.int32)
+        last = start * 0 - 1
+        sx = tl.zeros([LP], dtype=px.dtype)
+        sy = tl.zeros([LP], dtype=px.dtype)
+        sz = tl.zeros([LP], dtype=px.dtype)
+        zacc = tl.zeros([LP], dtype=px.dtype)
+        pos = start
+        walking = pos < end
+        while walking:
+            offs = pos + lane
+            gid, alpha, visible = _split_alpha(
+                means_ptr, conics_ptr, opac_ptr, ids_ptr, offs, end, px, py, alpha_max, alpha_min, n_gauss
+            )
+            keep = 1.0 - tl.where(visible, alpha, 0.0)
+            t_after = t * tl.cumprod(keep, axis=0)
+            t_before = t_after / keep
+            member = visible & (t_after > colour_stop) & (t_before > threshold)
+            last = tl.maximum(last, tl.max(tl.where(member, offs, -1), axis=0))
+            depth, x, y, z = _block_depths(votes_ptr, gid, member, lvl, LEVELS, r20, r21, r22, t2)
+            sx += tl.sum(x, axis=0)
+            sy += tl.sum(y, axis=0)
+            sz += tl.sum(z, axis=0)
+            zacc += tl.sum(depth, axis=0)
+            slot = count + tl.cumsum(member.to(tl.int32), axis=0) - 1
+            tl.store(member_row + slot, gid.to(tl.int32), mask=member & (slot < CAP))
+            if DIST != 0:
+                _store_member_depths(depth_row, depth, member, count, lvl, LEVELS, CAP)
+            count += tl.sum(member.to(tl.int32), axis=0)
+            t = tl.min(t_after, axis=0)
+            pos += BLOCK
+            walking = (pos < end) & (t > open_above)
+
+        n_members = tl.maximum(count, 1).to(px.dtype)
+        # uniform mean (Eq. 8), to the camera, projected (Eq. 9): vote_render._finish / project_to_pixels
+        mx = sx / n_members
+        my = sy / n_members
+        mz = sz / n_members
+        v00 = tl.load(view_ptr + 0)
+        v01 = tl.load(view_ptr + 1)
+        v02 = tl.load(view_ptr + 2)
+        v10 = tl.load(view_ptr + 4)
+        v11 = tl.load(view_ptr + 5)
+        v12 = tl.load(view_ptr + 6)
+        cam_x = mx * v00 + my * v01 + mz * v02 + tl.load(view_ptr + 3)
+        cam_y = mx * v10 + my * v11 + mz * v12 + tl.load(view_ptr + 7)
+        cam_z = mx * r20 + my * r21 + mz * r22 + t2
+        zc = tl.maximum(cam_z, near)
+        u = cam_x / zc
+        w = cam_y / zc
+        k00 = tl.load(k_ptr + 0)
+        k01 = tl.load(k_ptr + 1)
+        k10 = tl.load(k_ptr + 3)
+        k11 = tl.load(k_ptr + 4)
+        proj_x = u * k00 + w * k01 + tl.load(k_ptr + 2)
+        proj_y = u * k10 + w * k11 + tl.load(k_ptr + 5)
+        # vote loss (Eq. 10) at the used levels: valid and a non-empty voting set
+        used = (tl.load(valid_ptr + pid * LEVELS + lvl, mask=lvl_ok, other=0) != 0) & (count > 0)
+        target_x = tl.load(target_ptr + pid * (2 * LEVELS) + 2 * lvl, mask=used, other=0.0)
+        target_y = tl.load(target_ptr + pid * (2 * LEVELS) + 2 * lvl + 1, mask=used, other=0.0)
+        error_x = proj_x - target_x
+        error_y = proj_y - target_y
+        error = tl.where(used, tl.abs(error_x) + tl.abs(error_y), 0.0)
+        # its gradient with respect to each member's vote (1 / |M| of the mean's): sign(0) = 0 as torch's abs
+        sign_x = tl.where(error_x > 0.0, 1.0, tl.where(error_x < 0.0, -1.0, 0.0))
+        sign_y = tl.where(error_y > 0.0, 1.0, tl.where(error_y < 0.0, -1.0, 0.0))
+        g_u = k00 * sign_x + k10 * sign_y
+        g_w = k01 * sign_x + k11 * sign_y
+        g_cam_x = g_u / zc
+        g_cam_y = g_w / zc
+        # clamp_min passes the gradient where cam_z >= near
+        g_cam_z = tl.where(cam_z >= near, -(g_u * cam_x + g_w * cam_y) / (zc * zc), 0.0)
+        scale = tl.where(used, 1.0 / n_members, 0.0)
+        jac_x = (v00 * g_cam_x + v10 * g_cam_y + r20 * g_cam_z) * scale
+        jac_y = (v01 * g_cam_x + v11 * g_cam_y + r21 * g_cam_z) * scale
+        jac_z = (v02 * g_cam_x + v12 * g_cam_y + r22 * g_cam_z) * scale
+
+        # depth distortion (Eq. 12) over the members' depths, and d distortion / d depth = factor * s_i
+        # (s_i = sum_j sign(z_i - z_j) for l1, z_i - mean for squared)
+        mean_z = zacc / n_members
+        distortion = tl.zeros([LP], dtype=px.dtype)
+        factor = tl.zeros([LP], dtype=px.dtype)
+        if DIST != 0:
+            # the members' depths were written by other threads of this program
+            tl.debug_barrier()
+            spread = tl.zeros([LP], dtype=px.dtype)
+            if count <= CAP:
+                spread = _compact_spread(depth_row, count, mean_z, lvl, LEVELS, CAP, DIST, PB)
+            else:
+                # more than CAP members: M = the visible entries in [start, last], by pairs of run blocks
+                stop = last + 1
+                for p0 in range(start, stop, BLOCK):
+                    offs_i = p0 + lane
+                    gid_i, _a, vis_i = _split_alpha(
+                        means_ptr, conics_ptr, opac_ptr, ids_ptr, offs_i, stop, px, py, alpha_max, alpha_min, n_gauss
+                    )
+                    z_i, _x, _y, _z = _block_depths(votes_ptr, gid_i, vis_i, lvl, LEVELS, r20, r21, r22, t2)
+                    if DIST == 2:
+                        deviation = tl.where(vis_i[:, None] & lvl_ok[None, :], z_i - mean_z[None, :], 0.0)
+                        spread += tl.sum(deviation * deviation, axis=0)
+                    if DIST == 1:
+                        for q0 in range(p0, stop, BLOCK):
+                            offs_j = q0 + lane
+                            gid_j, _a2, vis_j = _split_alpha(
+                                means_ptr,
+                                conics_ptr,
+                                opac_ptr,
+                                ids_ptr,
+                                offs_j,
+                                stop,
+                                px,
+                                py,
+                                alpha_max,
+                                alpha_min,
+                                n_gauss,
+                            )
+                            z_j, _x2, _y2, _z2 = _block_depths(votes_ptr, gid_j, vis_j, lvl, LEVELS, r20, r21, r22, t2)
+                            pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
+                            for level in range(LEVELS):
+                                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
+                                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
+                                gap = tl.where(pair, tl.abs(zi[:, None] - zj[None, :]), 0.0)
+                                spread += tl.where(lvl == level, tl.sum(tl.sum(gap, axis=1), axis=0), 0.0)
+            if DIST == 1:
+                distortion = spread
+                factor = spread * 0.0 + 1.0
+                if IN_PIXELS:
+                    # the mean pairwise gap in pixels at the members' mean depth, that scale held constant
+                    pairs = tl.maximum(n_members * (n_members - 1.0) / 2.0, 1.0)
+                    per_unit = tl.sqrt(k00 * k11) / tl.maximum(mean_z, near)
+                    distortion = spread / pairs * per_unit
+                    factor = per_unit / pairs
+            if DIST == 2:
+                distortion = count.to(px.dtype) * spread
+                factor = spread * 0.0 + 2.0 * count.to(px.dtype)
+            distortion = tl.where(used, distortion, 0.0)
+            factor = tl.where(used, factor, 0.0)
+
+        tl.store(walk_ptr + pid, count.to(tl.int64))
+        tl.store(walk_ptr + n_pixels + pid, start)
+        tl.store(walk_ptr + 2 * n_pixels + pid, last)
+        row = terms_ptr + pid * (8 * LEVELS) + lvl
+        tl.store(row, error, mask=lvl_ok)
+        tl.store(row + LEVELS, distortion, mask=lvl_ok)
+        tl.store(row + 2 * LEVELS, used.to(px.dtype), mask=lvl_ok)
+        tl.store(row + 3 * LEVELS, jac_x, mask=lvl_ok)
+        tl.store(row + 4 * LEVELS, jac_y, mask=lvl_ok)
+        tl.store(row + 5 * LEVELS, jac_z, mask=lvl_ok)
+        tl.store(row + 6 * LEVELS, factor, mask=lvl_ok)
+        tl.store(row + 7 * LEVELS, mean_z, mask=lvl_ok)
+
+    @triton.jit
+    def _fused_reduce_kernel(
+        terms_ptr, vote_ptr, dist_ptr, den_ptr, n_pixels, LEVELS: tl.constexpr, LP: tl.constexpr, RB: tl.constexpr
+    ):
+        """Per level: the means of the vote L1 and of the distortion over the used pixels (vote_losses)."""
+        lvl = tl.arange(0, LP)
+        lvl_ok = lvl < LEVELS
+        rows = tl.arange(0, RB).to(tl.int64)
+        first = tl.load(terms_ptr + lvl, mask=lvl_ok, other=0.0)
+        error = first * 0.0
+        distortion = first * 0.0
+        used = first * 0.0
+        for p0 in range(0, n_pixels, RB):
+            r = p0 + rows
+            mask = (r < n_pixels)[:, None] & lvl_ok[None, :]
+            at = terms_ptr + r[:, None] * (8 * LEVELS) + lvl[None, :]
+            error += tl.sum(tl.load(at, mask=mask, other=0.0), axis=0)
+            distortion += tl.sum(tl.load(at + LEVELS, mask=mask, other=0.0), axis=0)
+            used += tl.sum(tl.load(at + 2 * LEVELS, mask=mask, other=0.0), axis=0)
+        denominator = tl.maximum(used, 1.0)
+        tl.store(vote_ptr + lvl, error / denominator, mask=lvl_ok)
+        tl.store(dist_ptr + lvl, distortion / denominator, mask=lvl_ok)
+        tl.store(den_ptr + lvl, denominator, mask=lvl_ok)
+
+    @triton.jit
+    def _fused_bwd_kernel(
+        means_ptr,
+        conics_ptr,
+        opac_ptr,
+        votes_ptr,
+        view_ptr,
+        pix_ptr,
+        ids_ptr,
+        consts_ptr,
+        walk_ptr,
+        members_ptr,
+        depths_ptr,
+        terms_ptr,
+        den_ptr,
+        g_vote_ptr,
+        g_vote_stride,
+        g_dist_ptr,
+        g_dist_stride,
+        g_votes_ptr,
+        n_pixels,
+        n_isects,
+        n_gauss,
+        LEVELS: tl.constexpr,
+        LP: tl.constexpr,
+        DIST: tl.constexpr,
+        HAS_VOTE: tl.constexpr,
+        HAS_DIST: tl.constexpr,
+        BLOCK: tl.constexpr,
+        CAP: tl.constexpr,
+        PB: tl.constexpr,
+    ):
+        pid = tl.program_id(0).to(tl.int64)
+        count = tl.load(walk_ptr + pid)
+        if count > 0:
+            lvl = tl.arange(0, LP)
+            lvl_ok = lvl < LEVELS
+            row = terms_ptr + pid * (8 * LEVELS) + lvl
+            denominator = tl.load(den_ptr + lvl, mask=lvl_ok, other=1.0)
+            g_mean_x = tl.zeros([LP], dtype=denominator.dtype)
+            g_mean_y = tl.zeros([LP], dtype=denominator.dtype)
+            g_mean_z = tl.zeros([LP], dtype=denominator.dtype)
+            if HAS_VOTE:
+                g_vote = tl.load(g_vote_ptr + lvl * g_vote_stride, mask=lvl_ok, other=0.0) / denominator
+                g_mean_x = g_vote * tl.load(row + 3 * LEVELS, mask=lvl_ok, other=0.0)
+                g_mean_y = g_vote * tl.load(row + 4 * LEVELS, mask=lvl_ok, other=0.0)
+                g_mean_z = g_vote * tl.load(row + 5 * LEVELS, mask=lvl_ok, other=0.0)
+            g_depth = tl.zeros([LP], dtype=denominator.dtype)
+            if HAS_DIST:
+                g_dist = tl.load(g_dist_ptr + lvl * g_dist_stride, mask=lvl_ok, other=0.0) / denominator
+                g_depth = g_dist * tl.load(row + 6 * LEVELS, mask=lvl_ok, other=0.0)
+            mean_z = tl.load(row + 7 * LEVELS, mask=lvl_ok, other=0.0)
+            r20 = tl.load(view_ptr + 8)
+            r21 = tl.load(view_ptr + 9)
+            r22 = tl.load(view_ptr + 10)
+            t2 = tl.load(view_ptr + 11)
+            depth_row = depths_ptr + pid * (LEVELS * CAP)
+            if count <= CAP:
+                r = tl.arange(0, PB)
+                for i0 in range(0, count, PB):
+                    ri = i0 + r
+                    ok = ri < count
+                    gid = tl.load(members_ptr + pid * CAP + ri, mask=ok, other=0).to(tl.int64)
+                    s = tl.zeros([PB, LP], dtype=denominator.dtype)
+                    if HAS_DIST:
+                        if DIST == 1:
+                            s = _compact_signs(depth_row + ri, ok, depth_row, count, lvl, LEVELS, CAP, CAP, PB)
+                        if DIST == 2:
+                            z = tl.load(
+                                depth_row + lvl[None, :] * CAP + ri[:, None],
+                                mask=ok[:, None] & lvl_ok[None, :],
+                                other=0.0,
+                            )
+                            s = z - mean_z[None, :]
+                    _scatter_vote_grads(
+                        g_votes_ptr, gid, ok, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
+                    )
+            else:
+                # more than CAP members: walk [start, last] again; its visible entries are the members
+                px = tl.load(pix_ptr + 2 * pid)
+                py = tl.load(pix_ptr + 2 * pid + 1)
+                alpha_max = tl.load(consts_ptr + 1)
+                alpha_min = tl.load(consts_ptr + 3)
+                start = tl.load(walk_ptr + n_pixels + pid)
+                stop = tl.load(walk_ptr + 2 * n_pixels + pid) + 1
+                lane = tl.arange(0, BLOCK).to(tl.int64)
+                for p0 in range(start, stop, BLOCK):
+                    offs_i = p0 + lane
+                    gid, _a, vis_i = _split_alpha(
+                        means_ptr, conics_ptr, opac_ptr, ids_ptr, offs_i, stop, px, py, alpha_max, alpha_min, n_gauss
+                    )
+                    z_i, _x, _y, _z = _block_depths(votes_ptr, gid, vis_i, lvl, LEVELS, r20, r21, r22, t2)
+                    s = tl.zeros([BLOCK, LP], dtype=denominator.dtype)
+                    if HAS_DIST:
+                        if DIST == 2:
+                            s = z_i - mean_z[None, :]
+                        if DIST == 1:
+                            for q0 in range(start, stop, BLOCK):
+                                offs_j = q0 + lane
+                                gid_j, _a2, vis_j = _split_alpha(
+                                    means_ptr,
+                                    conics_ptr,
+                                    opac_ptr,
+                                    ids_ptr,
+                                    offs_j,
+                                    stop,
+                                    px,
+                                    py,
+                                    alpha_max,
+                                    alpha_min,
+                                    n_gauss,
+                                )
+                                z_j, _x2, _y2, _z2 = _block_depths(
+                                    votes_ptr, gid_j, vis_j, lvl, LEVELS, r20, r21, r22, t2
+                                )
+                                for level in range(LEVELS):
+                                    zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
+                                    zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
+                                    gap = zi[:, None] - zj[None, :]
+                                    sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
+                                    sign = tl.where(vis_j[None, :], sign, 0.0)
+                                    s += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                    _scatter_vote_grads(
+                        g_votes_ptr, gid, vis_i, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
+                    )
+
+    @triton.jit
+    def _scatter_vote_grads(
+        g_votes_ptr, gid, ok, lvl, LEVELS: tl.constexpr, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
+    ):
+        """Add, for members ``gid`` [B] and every level, the mean vote's gradient plus the depth term
+        g_depth * s (s [B, LP]) along d depth / d vote = viewmat[2, :3]."""
+        mask = ok[:, None] & (lvl < LEVELS)[None, :]
+        at = g_votes_ptr + gid[:, None] * (LEVELS * 3) + lvl[None, :] * 3
+        term = g_depth[None, :] * s
+        tl.atomic_add(at, g_mean_x[None, :] + term * r20, mask=mask, sem="relaxed")
+        tl.atomic_add(at + 1, g_mean_y[None, :] + term * r21, mask=mask, sem="relaxed")
+        tl.atomic_add(at + 2, g_mean_z[None, :] + term * r22, mask=mask, sem="relaxed")
