@@ -315,7 +315,7 @@ def test_fused_launches_and_host_reads(count_ops, distortion, device):
     offsets, flatten_ids = (t.to(device) for t in lists["gsplat"])
     target, valid = targets(pixel_xy, 4)
     means = scene["votes"].detach()
-    offsets_param = (level_votes - means[:, None, :]).to(device).requires_grad_()
+    offsets_param = (level_votes.to(device) - means[:, None, :]).requires_grad_()
 
     def step():
         losses = vote_fused.vote_losses_tiled(
@@ -375,3 +375,20 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
     with count_ops.OpCounter() as counter:
         step().backward()
     assert set(counter.triton_names) == {"_vote_fwd_kernel", "_vote_bwd_kernel"}
+
+
+@pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
+def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, monkeypatch):
+    """The fused losses read nothing on the host, so a NaN vote gives a NaN loss; the model reads the loss's
+    finiteness every FUSED_FINITE_CHECK_EVERY steps and stops with the same one-line error as the torch path."""
+    from votesplat_ns.ns.model import FUSED_FINITE_CHECK_EVERY
+
+    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    monkeypatch.setenv(BACKEND_ENV, "triton")
+    with torch.no_grad():
+        model.gauss_params["vote_offsets"][:5] = float("nan")
+    model.step = 10 * FUSED_FINITE_CHECK_EVERY  # not a checking step: no host read, a NaN loss
+    assert not torch.isfinite(step())
+    model.step = 10 * FUSED_FINITE_CHECK_EVERY - 1
+    with pytest.raises(ValueError, match="vote offsets have diverged"):
+        step()

@@ -245,6 +245,7 @@ def tied_votes(votes, groups):
 def assert_same_up_to_ties(actual, expected, groups):
     """Gradients [N, ...] that agree everywhere but within tie groups, where only their sum is defined:
     the torch path's sort splits a tie's subgradient unevenly, the kernels' sign sum evenly."""
+    actual, expected = actual.cpu(), expected.cpu()
     tied = torch.zeros(actual.shape[0], dtype=torch.bool)
     for group in groups:
         tied[group] = True
@@ -264,11 +265,12 @@ def test_kernel_distortion_with_ties(device, cap, distortion, monkeypatch):
     monkeypatch.setattr(vote_kernel, "CAP", cap)
     monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", 4)
     scene, level_votes, pixel_xy, lists = scene_of_size(50)
-    scene = {**scene, "votes": tied_votes(level_votes, TIE_GROUPS)}
-    pixel_xy = pixel_xy[::17]
+    scene = to_device({**scene, "votes": tied_votes(level_votes, TIE_GROUPS)}, device)
+    pixel_xy = pixel_xy[::17].to(device)
+    tile_lists = tuple(t.to(device) for t in lists["gsplat"])
     options = VoteRenderOptions(distortion=distortion)
     results = [
-        render_and_grads(scene, pixel_xy, with_backend(options, backend), ["votes"], lists["gsplat"], TILE)
+        render_and_grads(scene, pixel_xy, with_backend(options, backend), ["votes"], tile_lists, TILE)
         for backend in ("torch", "triton")
     ]
     (expected, (expected_grad,)), (actual, (actual_grad,)) = results

@@ -67,6 +67,7 @@ SYNTH_DOWNSCALE=${SYNTH_DOWNSCALE:-1}
 FOX=${FOX:-.gpu/fox}
 PY=${PY:-python3}
 EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-}
+VOTESPLAT_TRAIN_ARGS=${VOTESPLAT_TRAIN_ARGS:-}                # votesplat's runs only, e.g. --pipeline.model.vote-every-n-steps 1
 QUALITY_SCENES=${QUALITY_SCENES:-"votesplat_ns/data/demo build/scenes/nested build/scenes/forward"}
 ABLATION_SCENE=${ABLATION_SCENE:-build/scenes/forward}
 ABLATION_SEEDS=${ABLATION_SEEDS:-"0 1 2"}                  # one run per variant and seed, all in parallel
@@ -538,7 +539,8 @@ train_compare() {  # EXPERIMENT DATA DOWNSCALE
       votesplat) set_vote_args "$experiment" "$data"
                  # a fresh vote cache each run: its one-time build is part of votesplat's wall time
                  rm -rf "$RUNS/votesplat_cache_$experiment"
-                 train_one "$experiment" votesplat "$data" "$downscale" "$log_file" "${VOTE_ARGS[@]}" ;;
+                 # shellcheck disable=SC2086
+                 train_one "$experiment" votesplat "$data" "$downscale" "$log_file" "${VOTE_ARGS[@]}" $VOTESPLAT_TRAIN_ARGS ;;
       *) log "unknown method $method (splatfacto or votesplat)" | tee -a "$log_file"; return 1 ;;
     esac
     results+=("$RUNS/result_${experiment}_${method}.json")

@@ -121,16 +121,17 @@ class VoteRenderOptions:
         votes stay finite; in scene units, like gsplat's near_plane. The
         depth regulariser uses the unclamped depth.
     backend: how ``render_votes_tiled`` walks and blends. "auto": the torch
-        code (the fused Triton kernels of ``votesplat_ns.core.vote_kernel`` are
-        not faster yet on an H100: BENCHMARKS.md, "Fused vote kernel"); the
+        code (the separate Triton kernels of ``votesplat_ns.core.vote_kernel``
+        are not faster on an H100: BENCHMARKS.md, "Fused vote kernel"); the
         environment variable VOTESPLAT_VOTE_BACKEND=torch|triton overrides
         "auto". "torch": always the torch code. "triton": always the kernels
         (an error where they cannot run; on CPU they run only under Triton's
         interpreter, TRITON_INTERPRET=1, for tests). The dense reference
-        ignores it. Values agree to rounding, gradients too. With "triton"
-        and uniform weights, 3D blending and detach_geometry, the model's
-        vote step calls ``votesplat_ns.core.vote_fused.vote_losses_tiled``
-        instead (render and losses in three launches, no host read).
+        ignores it. Values agree to rounding, gradients too. The model's vote
+        step calls ``votesplat_ns.core.vote_fused.vote_losses_tiled`` instead
+        (render and losses in three launches, no host read) with uniform
+        weights, 3D blending and detach_geometry, when the backend is
+        "triton", or "auto" on CUDA (``vote_fused.use_fused``).
     """
 
     weighting: str = "uniform"

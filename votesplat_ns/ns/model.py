@@ -45,6 +45,9 @@ from votesplat_ns.ns.viewer import VoteSplatViewerState
 from votesplat_ns.ns.vote_init import start_offsets_lifted
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
+# The fused vote losses do not read the host, so they cannot raise on diverged votes each step; the
+# model reads their finiteness this often instead (a NaN loss otherwise trains on silently).
+FUSED_FINITE_CHECK_EVERY = 100
 
 
 def _pixels_and_targets(
@@ -72,6 +75,13 @@ def pixels_carrying_votes(flat_labels: torch.Tensor, centroids: torch.Tensor) ->
     level_index = torch.arange(flat_labels.shape[0], device=flat_labels.device)[:, None]
     # finiteness tested on the [L, K+1] table, then looked up per pixel (not on [L, H*W] gathered values)
     return torch.isfinite(centroids[..., 0])[level_index, flat_labels.long()].any(dim=0)
+
+
+def _raise_if_diverged(vote_loss: torch.Tensor) -> None:
+    if not bool(torch.isfinite(vote_loss).all()):
+        raise ValueError(
+            "the vote loss is NaN or inf: the vote offsets have diverged (lower the learning rate or check the loss)"
+        )
 
 
 def vote_step_due(step: int, start: int, every: int) -> bool:
@@ -423,6 +433,9 @@ class VoteSplatModel(SplatfactoModel):
                 info["tile_size"],
                 self.vote_options,
             )
+            if self.step % FUSED_FINITE_CHECK_EVERY == FUSED_FINITE_CHECK_EVERY - 1:
+                # one host read every FUSED_FINITE_CHECK_EVERY steps, so diverged votes still stop training
+                _raise_if_diverged(losses["vote"])
         else:
             # Targets are finite wherever valid (valid is their finiteness) and render_votes_tiled checks the
             # votes, so vote_losses' own input checks (a host read every step) would never fire.

@@ -52,7 +52,7 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     votes_move_geometry: bool = False
     """Let the vote losses move the Gaussians' means/opacities/shapes (off: geometry is the RGB loss's job)."""
     vote_backend: Literal["auto", "torch", "triton"] = "auto"
-    """Vote pass: auto (torch code; the Triton kernels are not faster yet), torch, or triton (fused kernels, CUDA)."""
+    """Vote pass: auto (on CUDA the fused Triton losses where the switches allow, else torch code), torch, or triton."""
     retrofit_from: Optional[Path] = None
     """Add instances to a trained scene (a splatfacto run folder, a step-*.ckpt or a 3DGS .ply): train only the vote offsets."""
     retrofit_frame: Literal["auto", "dataparser", "dataset", "colmap"] = "auto"
