@@ -59,6 +59,26 @@ def targets(pixel_xy, levels, seed=5):
     return target.to(pixel_xy.device), valid.to(pixel_xy.device)
 
 
+def fused_losses(scene, votes, pixel_xy, target, valid, lists, options):
+    """``vote_fused.vote_losses_tiled`` on a test scene and its (isect_offsets, flatten_ids) at tile TILE."""
+    offsets, flatten_ids = lists
+    return vote_fused.vote_losses_tiled(
+        scene["means2d"],
+        scene["conics"],
+        scene["opacities"],
+        votes,
+        scene["viewmat"],
+        scene["K"],
+        pixel_xy,
+        target,
+        valid,
+        offsets,
+        flatten_ids,
+        TILE,
+        options,
+    )
+
+
 def both_paths(scene, votes, pixel_xy, target, valid, lists, options, weights=(1.3, 0.7)):
     """((vote, distortion), d loss / d votes) for the separate torch path and the fused one."""
     offsets, flatten_ids = lists
@@ -66,21 +86,7 @@ def both_paths(scene, votes, pixel_xy, target, valid, lists, options, weights=(1
     for fused in (False, True):
         leaf = votes.clone().requires_grad_()
         if fused:
-            losses = vote_fused.vote_losses_tiled(
-                scene["means2d"],
-                scene["conics"],
-                scene["opacities"],
-                leaf,
-                scene["viewmat"],
-                scene["K"],
-                pixel_xy,
-                target,
-                valid,
-                offsets,
-                flatten_ids,
-                TILE,
-                options,
-            )
+            losses = fused_losses(scene, leaf, pixel_xy, target, valid, lists, options)
         else:
             render = call(
                 render_votes_tiled,
@@ -318,21 +324,9 @@ def test_fused_launches_and_host_reads(count_ops, distortion, device):
     offsets_param = (level_votes.to(device) - means[:, None, :]).requires_grad_()
 
     def step():
-        losses = vote_fused.vote_losses_tiled(
-            scene["means2d"],
-            scene["conics"],
-            scene["opacities"],
-            means[:, None, :] + offsets_param,
-            scene["viewmat"],
-            scene["K"],
-            pixel_xy,
-            target,
-            valid,
-            offsets,
-            flatten_ids,
-            TILE,
-            VoteRenderOptions(distortion=distortion),
-        )
+        votes = means[:, None, :] + offsets_param
+        options = VoteRenderOptions(distortion=distortion)
+        losses = fused_losses(scene, votes, pixel_xy, target, valid, (offsets, flatten_ids), options)
         return losses["vote"].sum() + 0.05 * losses["distortion"].sum()
 
     step().backward()  # warm-up: first-call caches out of the count
