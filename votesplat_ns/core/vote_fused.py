@@ -43,6 +43,8 @@ from votesplat_ns.core.vote_render import (
     ALPHA_MIN,
     COLOUR_STOP_T,
     VoteRenderOptions,
+    _check_shapes,
+    _kernel_unavailable_reason,
     _requested_backend,
     _validate_tiles,
     _vote_threshold,
@@ -63,12 +65,7 @@ def fused_unavailable_reason(options: VoteRenderOptions, votes: Tensor, pixel_xy
     """None when ``vote_losses_tiled`` can serve these options and tensors, else why not (one line)."""
     if options.weighting != "uniform" or options.blend_space != "3d" or not options.detach_geometry:
         return "the fused vote losses serve uniform weights, blending in 3D and detach_geometry=True only"
-    reason = vote_kernel.unavailable_reason(votes.device)
-    if reason is None and votes.dtype not in (torch.float32, torch.float64):
-        reason = f"the Triton vote kernels take float32 or float64 tensors, got {votes.dtype}"
-    if reason is None and pixel_xy.requires_grad:
-        reason = "the fused vote losses give pixel_xy no gradient; pass pixel_xy without requires_grad"
-    return reason
+    return _kernel_unavailable_reason(votes, pixel_xy, "the fused vote losses")
 
 
 def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
@@ -127,13 +124,8 @@ def vote_losses_tiled(
     if pixel_xy.ndim != 2 or pixel_xy.shape[1] != 2:
         raise ValueError(f"pixel_xy must have shape [P, 2], got {list(pixel_xy.shape)}")
     p = pixel_xy.shape[0]
-    expected = {"means2d": (n, 2), "conics": (n, 3), "opacities": (n,), "viewmat": (4, 4), "K": (3, 3)}
-    for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities), ("viewmat", viewmat), ("K", K)):
-        if tuple(t.shape) != expected[name]:
-            raise ValueError(
-                f"{name} must have shape {list(expected[name])} (N = {n} from votes), got {list(t.shape)}; "
-                f"pass the tensors of one camera"
-            )
+    shapes = {"means2d": (means2d, (n, 2)), "conics": (conics, (n, 3)), "opacities": (opacities, (n,))}
+    _check_shapes(n, {**shapes, "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3))})
     level_shape = (p,) if single else (p, levels)
     if tuple(target_xy.shape) != level_shape + (2,):
         raise ValueError(f"target_xy must have shape {list(level_shape + (2,))}, got {list(target_xy.shape)}")

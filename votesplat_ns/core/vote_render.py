@@ -431,18 +431,25 @@ def _requested_backend(options: VoteRenderOptions) -> str:
     return backend
 
 
-def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
-    """Whether render_votes_tiled runs the Triton kernels (see VoteRenderOptions.backend)."""
-    backend = _requested_backend(options)
-    if backend == "torch":
-        return False
+def _kernel_unavailable_reason(votes: Tensor, pixel_xy: Tensor, kernels: str) -> Optional[str]:
+    """None when the Triton vote kernels can take these tensors, else why not (one line); ``kernels``
+    names them in the pixel_xy line."""
     from votesplat_ns.core import vote_kernel
 
     reason = vote_kernel.unavailable_reason(votes.device)
     if reason is None and votes.dtype not in (torch.float32, torch.float64):
         reason = f"the Triton vote kernels take float32 or float64 tensors, got {votes.dtype}"
     if reason is None and pixel_xy.requires_grad:
-        reason = "the Triton vote kernels give pixel_xy no gradient; pass pixel_xy without requires_grad"
+        reason = f"{kernels} give pixel_xy no gradient; pass pixel_xy without requires_grad"
+    return reason
+
+
+def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
+    """Whether render_votes_tiled runs the Triton kernels (see VoteRenderOptions.backend)."""
+    backend = _requested_backend(options)
+    if backend == "torch":
+        return False
+    reason = _kernel_unavailable_reason(votes, pixel_xy, "the Triton vote kernels")
     if backend == "triton" and reason is not None:
         raise ValueError(f"VoteRenderOptions.backend='triton' cannot run: {reason}; use backend='auto' or 'torch'")
     # auto stays on the torch path until the kernels are measured faster (BENCHMARKS.md)
@@ -699,13 +706,8 @@ def _validate_inputs(
     levels = 1 if votes.ndim == 2 else votes.shape[1]
     if levels < 1:
         raise ValueError(f"votes must have at least one level, got shape {list(votes.shape)}")
-    expected = {"means2d": (n, 2), "conics": (n, 3), "opacities": (n,), "depths": (n,)}
-    for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities), ("depths", depths)):
-        if tuple(t.shape) != expected[name]:
-            raise ValueError(
-                f"{name} must have shape {list(expected[name])} (N = {n} from votes), got {list(t.shape)}; "
-                f"pass the tensors of one camera"
-            )
+    shapes = {"means2d": (means2d, (n, 2)), "conics": (conics, (n, 3)), "opacities": (opacities, (n,))}
+    _check_shapes(n, {**shapes, "depths": (depths, (n,))})
     if tuple(viewmat.shape) != (4, 4) or tuple(K.shape) != (3, 3):
         raise ValueError(
             f"viewmat must be [4, 4] and K [3, 3] for one camera, got {list(viewmat.shape)} and {list(K.shape)}"
@@ -722,12 +724,24 @@ def _validate_inputs(
     return n, pixel_xy.shape[0], levels
 
 
+def _check_shapes(n: int, tensors: Dict[str, Tuple[Tensor, Tuple[int, ...]]]) -> None:
+    """Raise at the first of ``tensors`` (name: (tensor, expected shape)) whose shape is not the expected
+    one; n: the N read from votes."""
+    for name, (t, shape) in tensors.items():
+        if tuple(t.shape) != shape:
+            raise ValueError(
+                f"{name} must have shape {list(shape)} (N = {n} from votes), got {list(t.shape)}; "
+                f"pass the tensors of one camera"
+            )
+
+
+DIVERGED_VOTES = "votes contain NaN or inf; the vote offsets have diverged (lower the learning rate or check the loss)"
+
+
 def _finiteness_checks(votes: Tensor, pixel_xy: Tensor) -> Dict[str, Tensor]:
     """{error message: 0-d bool tensor that must be True}, to be read with one host sync."""
     return {
-        "votes contain NaN or inf; the vote offsets have diverged (lower the learning rate or check the loss)": (
-            _all_finite(votes)
-        ),
+        DIVERGED_VOTES: _all_finite(votes),
         "pixel_xy contains NaN or inf; pass finite continuous pixel positions": _all_finite(pixel_xy),
     }
 

@@ -28,7 +28,7 @@ from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
 from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
 from votesplat_ns.core.vote_fused import use_fused, vote_losses_tiled
-from votesplat_ns.core.vote_render import VoteRender, render_votes_tiled, vote_losses
+from votesplat_ns.core.vote_render import DIVERGED_VOTES, VoteRender, render_votes_tiled, vote_losses
 from votesplat_ns.ns.compat import UnavailableMetric
 from votesplat_ns.ns.model_config import VoteSplatModelConfig
 from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
@@ -79,9 +79,7 @@ def pixels_carrying_votes(flat_labels: torch.Tensor, centroids: torch.Tensor) ->
 
 def _raise_if_diverged(vote_loss: torch.Tensor) -> None:
     if not bool(torch.isfinite(vote_loss).all()):
-        raise ValueError(
-            "the vote loss is NaN or inf: the vote offsets have diverged (lower the learning rate or check the loss)"
-        )
+        raise ValueError(DIVERGED_VOTES)
 
 
 def vote_step_due(step: int, start: int, every: int) -> bool:
