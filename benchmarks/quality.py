@@ -215,17 +215,14 @@ def train_base_scene(scene: Path, args) -> Path:
 
 def write_base_ply(base_config: Path) -> Path:
     """The base run's Gaussians as a standard 3DGS PLY beside its config (the retrofit-from-PLY source)."""
-    import torch
-
     from votesplat_ns.core.ply_io import write_gaussian_table
-    from votesplat_ns.core.scene import TrainedScene
-    from votesplat_ns.ns.run import latest_checkpoint
+    from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY, TrainedScene
+    from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
     path = base_config.parent / "scene.ply"
     if not path.exists():
-        state = torch.load(latest_checkpoint(base_config), map_location="cpu")["pipeline"]
-        prefix = "_model.gauss_params."
-        params = {key[len(prefix) :]: value for key, value in state.items() if key.startswith(prefix)}
+        names = SPLAT_PARAM_NAMES + (VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY)
+        params = load_gaussians(latest_checkpoint(base_config), names)
         write_gaussian_table(path, TrainedScene.from_params(params).vertex_table())
     return path
 

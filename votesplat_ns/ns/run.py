@@ -77,17 +77,18 @@ def latest_checkpoint(path: Path) -> Path:
     return candidates[-1]
 
 
-def load_gaussians(checkpoint: Path) -> Dict[str, torch.Tensor]:
-    """splatfacto's Gaussian parameters from a nerfstudio checkpoint (splatfacto or votesplat)."""
+def load_gaussians(checkpoint: Path, names: Sequence[str] = SPLAT_PARAM_NAMES) -> Dict[str, torch.Tensor]:
+    """splatfacto's Gaussian parameters (or the ``gauss_params`` in ``names``, e.g. with a votesplat run's
+    vote offsets and support) from a nerfstudio checkpoint (splatfacto or votesplat)."""
     state = torch.load(checkpoint, map_location="cpu")
     pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
-    missing = [name for name in SPLAT_PARAM_NAMES if f"_model.gauss_params.{name}" not in pipeline_state]
+    missing = [name for name in names if f"_model.gauss_params.{name}" not in pipeline_state]
     if missing:
         raise VoteSplatInputError(
             f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
             "retrofit needs one written by ns-train splatfacto or votesplat"
         )
-    return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in SPLAT_PARAM_NAMES}
+    return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in names}
 
 
 def gaussians_from_ply_arrays(arrays: Dict[str, np.ndarray]) -> Dict[str, torch.Tensor]:
