@@ -8,12 +8,9 @@ and on CPU tensors under Triton's interpreter (``TRITON_INTERPRET=1``, slow: sma
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from conftest import load_benchmark
 from test_vote_kernel import (
     DEVICES,
     HEIGHT,
@@ -31,7 +28,6 @@ from votesplat_ns.core import vote_fused, vote_kernel
 from votesplat_ns.core.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
 
 DISTORTIONS = ["l1", "l1_pixels", "squared", "none"]
-COUNT_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "count_vote_ops.py"
 
 
 @pytest.fixture(autouse=True)
@@ -302,12 +298,7 @@ def test_fused_errors(device):
 
 @pytest.fixture(scope="module")
 def count_ops():
-    spec = importlib.util.spec_from_file_location("votesplat_count_vote_ops_fused", COUNT_PATH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("count_vote_ops.py", "votesplat_count_vote_ops_fused")
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -7,28 +7,19 @@ autograd's backward ops are seen too, plus Tensor.tolist).
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from conftest import load_benchmark
 from test_vote_render import call, random_scene, sample_pixels, tile_lists_gsplat, with_level_votes
 
 from votesplat_ns.core import vote_render
 from votesplat_ns.core.vote_maps import voting_pixels
 from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
 
-COUNT_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "count_vote_ops.py"
-
 
 @pytest.fixture(scope="module")
 def count_ops():
-    spec = importlib.util.spec_from_file_location("votesplat_count_vote_ops", COUNT_PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("count_vote_ops.py", "votesplat_count_vote_ops")
 
 
 @pytest.fixture(scope="module")
