@@ -42,6 +42,8 @@
 #
 # Environment: STEPS (7000), METHODS ("splatfacto votesplat"), CALL_BUDGET_S (570),
 # GPU_TESTS, KERNEL_CONFIGS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods).
+# VOTESPLAT_PROFILE_STEPS=A:B profiles each ns-train's steps [A, B) into $OUT/profile_<experiment>_<method>.txt
+# (benchmarks/train_profile.py: wall per step, phases, torch ops, host syncs by call site).
 set -uo pipefail
 cd "$(dirname "$0")/../.." || exit 2
 
