@@ -16,6 +16,7 @@ perturbed by the profiler; the per-step wall time is measured on the steps befor
 from __future__ import annotations
 
 import collections
+import importlib
 import os
 import time
 import traceback
@@ -23,6 +24,7 @@ import warnings
 from typing import Callable, Dict, List
 
 import torch
+from nerfstudio.engine.trainer import Trainer
 
 # (module, class, method): the phases of a step, as nerfstudio 1.1.5 calls them
 PHASES = (
@@ -56,8 +58,6 @@ def _wrap(function: Callable, label: str) -> Callable:
 
 
 def _install_phases() -> None:
-    import importlib
-
     for module_name, class_name, name in PHASES:
         module = importlib.import_module(module_name)
         owner = getattr(module, class_name) if class_name else module
@@ -82,8 +82,6 @@ def _synchronize() -> None:
 
 def install(first: int, stop: int, out_path: str) -> None:
     """Profile ns-train's steps [first, stop) (call before nerfstudio's trainer starts)."""
-    from nerfstudio.engine.trainer import Trainer
-
     _install_phases()
     original = Trainer.train_iteration
     state: Dict = {"syncs": collections.Counter(), "times": []}
