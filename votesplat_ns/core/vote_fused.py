@@ -228,10 +228,7 @@ class _FusedVoteLosses(torch.autograd.Function):
                 LP=lp,
                 DIST=dist,
                 IN_PIXELS=in_pixels,
-                BLOCK=vote_kernel.BLOCK,
-                CAP=cap,
-                PB=vote_kernel.PAIR_BLOCK,
-                num_warps=vote_kernel.NUM_WARPS,
+                **vote_kernel._walk_options(cap),
             )
             vote_kernel._launch(
                 _fused_reduce_kernel,
@@ -246,8 +243,9 @@ class _FusedVoteLosses(torch.autograd.Function):
                 RB=REDUCE_BLOCK,
                 num_warps=4,
             )
+        # in the order of the backward kernel's leading arguments
         ctx.save_for_backward(
-            votes, means2d, conics, opacities, viewmat, pixel_xy, ids, consts, walk, members, depths, terms, denominator
+            means2d, conics, opacities, votes, viewmat, pixel_xy, ids, consts, walk, members, depths, terms, denominator
         )
         ctx.config = (config, cap)
         ctx.set_materialize_grads(False)
@@ -255,21 +253,8 @@ class _FusedVoteLosses(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_vote, g_distortion):
-        (
-            votes,
-            means2d,
-            conics,
-            opacities,
-            viewmat,
-            pixel_xy,
-            ids,
-            consts,
-            walk,
-            members,
-            depths,
-            terms,
-            denominator,
-        ) = ctx.saved_tensors
+        inputs = ctx.saved_tensors
+        votes, pixel_xy, denominator = inputs[3], inputs[5], inputs[12]
         (levels, dist, _in_pixels, _tw, _th, _ts, n_isects), cap = ctx.config
         none = (None,) * 12
         has_vote, has_distortion = g_vote is not None, g_distortion is not None and dist != 0
@@ -281,19 +266,7 @@ class _FusedVoteLosses(torch.autograd.Function):
             vote_kernel._launch(
                 _fused_bwd_kernel,
                 (p,),
-                means2d,
-                conics,
-                opacities,
-                votes,
-                viewmat,
-                pixel_xy,
-                ids,
-                consts,
-                walk,
-                members,
-                depths,
-                terms,
-                denominator,
+                *inputs,
                 # with strides: the gradient of a sum arrives expanded (stride 0), and copying it is a launch
                 g_vote if has_vote else denominator,
                 g_vote.stride(0) if has_vote else 0,
@@ -308,10 +281,7 @@ class _FusedVoteLosses(torch.autograd.Function):
                 DIST=dist,
                 HAS_VOTE=has_vote,
                 HAS_DIST=has_distortion,
-                BLOCK=vote_kernel.BLOCK,
-                CAP=cap,
-                PB=vote_kernel.PAIR_BLOCK,
-                num_warps=vote_kernel.NUM_WARPS,
+                **vote_kernel._walk_options(cap),
             )
         return (g_votes,) + none
 
@@ -405,8 +375,9 @@ if triton is not None:
         pos = start
         walking = pos < end
         while walking:
-            offs = pos + lane
-            gid, _alpha, member, _t_before, t, last = _walk_block(geo, False, offs, end, pix, walk, t, last)
+            gid, _alpha, member, _t_before, t, last, pos, walking = _walk_block(
+                geo, False, pos, end, pix, walk, t, last, BLOCK
+            )
             depth, x, y, z = _entry_depths(zsrc, True, 3, gid, member, lvl, LEVELS)
             sx += tl.sum(x, axis=0)
             sy += tl.sum(y, axis=0)
@@ -414,8 +385,6 @@ if triton is not None:
             zacc += tl.sum(depth, axis=0)
             slot, count = _compact(depth_row, depth, member, count, lvl, LEVELS, CAP, DIST)
             tl.store(member_row + slot, gid.to(tl.int32), mask=member & (slot < CAP))
-            pos += BLOCK
-            walking = (pos < end) & (t > walk[1])
 
         n_members = tl.maximum(count, 1).to(px.dtype)
         # uniform mean (Eq. 8), to the camera, projected (Eq. 9): vote_render._finish / project_to_pixels

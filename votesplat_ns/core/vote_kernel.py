@@ -169,6 +169,11 @@ def _launch(kernel, grid, *args, **kwargs) -> None:
     kernel[grid](*args, **kwargs)
 
 
+def _walk_options(cap: int) -> dict:
+    """The launch options the walking kernels share: walk width, scratch slots, pair tile side, warps."""
+    return {"BLOCK": BLOCK, "CAP": cap, "PB": PAIR_BLOCK, "num_warps": NUM_WARPS}
+
+
 def _pow2(x: int) -> int:
     return 1 << max(0, (int(x) - 1).bit_length())
 
@@ -213,10 +218,7 @@ class _VoteSums(torch.autograd.Function):
                     LDP=_pow2(levels * width),
                     ALPHA_T=alpha_t,
                     DIST=dist,
-                    BLOCK=BLOCK,
-                    CAP=CAP,
-                    PB=PAIR_BLOCK,
-                    num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
+                    **_walk_options(CAP),
                 )
         ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths)
         ctx.cap = CAP
@@ -268,10 +270,7 @@ class _VoteSums(torch.autograd.Function):
                 ALPHA_T=alpha_t,
                 DIST=dist,
                 GEOMETRY_GRAD=geometry_grad,
-                BLOCK=BLOCK,
-                CAP=ctx.cap,
-                PB=PAIR_BLOCK,
-                num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
+                **_walk_options(ctx.cap),
             )
         return (
             g_geometry if geometry_grad else None,
@@ -341,16 +340,21 @@ if triton is not None:
         return keep, t_after, t_after / keep
 
     @triton.jit
-    def _walk_block(geo, PACKED: tl.constexpr, offs, end, pix, walk, t, last):
-        """One block of the front-to-back walk (``walk`` from ``_program_pixel``): the entries' gid, alpha,
-        membership in M and transmittance in front of them; the transmittance behind the block, and the run
-        position of the last member so far (``last``: before this block)."""
-        threshold, _open_above, colour_stop = walk
+    def _walk_block(geo, PACKED: tl.constexpr, pos, end, pix, walk, t, last, BLOCK: tl.constexpr):
+        """The block of the front-to-back walk at run position ``pos`` (``walk`` from ``_program_pixel``;
+        ``t``: the transmittance in front of the block, ``last``: the last member's position before it): the
+        entries' gid, alpha, membership in M and transmittance in front of them; the transmittance behind the
+        block, the last member's position, the next block's position, and whether to walk on (the run goes on
+        and a later entry can still join M)."""
+        threshold, open_above, colour_stop = walk
+        offs = pos + tl.arange(0, BLOCK).to(tl.int64)
         gid, alpha, visible, _dx, _dy, _a, _b, _c, _f, _r = _entry_alpha(geo, PACKED, offs, end, pix)
         _keep, t_after, t_before = _transmittance(t, alpha, visible)
         member = visible & (t_after > colour_stop) & (t_before > threshold)
         last = tl.maximum(last, tl.max(tl.where(member, offs, -1), axis=0))
-        return gid, alpha, member, t_before, tl.min(t_after, axis=0), last
+        t = tl.min(t_after, axis=0)
+        pos += BLOCK
+        return gid, alpha, member, t_before, t, last, pos, (pos < end) & (t > open_above)
 
     @triton.jit
     def _entry_depths(zsrc, PROJECT: tl.constexpr, D1: tl.constexpr, gid, ok, lvl, LEVELS: tl.constexpr):
@@ -569,8 +573,9 @@ if triton is not None:
         pos = start
         walking = pos < end
         while walking:
-            offs = pos + lane
-            gid, alpha, member, t_before, t, last = _walk_block(geo, True, offs, end, pix, walk, t, last)
+            gid, alpha, member, t_before, t, last, pos, walking = _walk_block(
+                geo, True, pos, end, pix, walk, t, last, BLOCK
+            )
             if ALPHA_T:
                 w = tl.where(member, alpha * t_before, 0.0)
             else:
@@ -583,8 +588,6 @@ if triton is not None:
             depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, member, lvl, LEVELS)
             zacc += tl.sum(depth, axis=0)
             _slot, count = _compact(depth_row, depth, member, count, lvl, LEVELS, CAP, DIST)
-            pos += BLOCK
-            walking = (pos < end) & (t > walk[1])
 
         mean = zacc / tl.maximum(count, 1).to(px.dtype)
         runs = (geo, pix, (table_ptr,), start, last + 1)
