@@ -272,13 +272,14 @@ def _run(args: argparse.Namespace) -> int:
             if config is not None:
                 vote_kernel.BLOCK, vote_kernel.NUM_WARPS = config
             backend_label = backend if config is None else f"{backend} {config[0]}x{config[1]}"
-            with torch.no_grad():
-                count = render_votes_tiled(
+
+            def vote_forward(votes: torch.Tensor):
+                return render_votes_tiled(
                     info["means2d"][0],
                     info["conics"][0],
                     info["opacities"][0],
                     info["depths"][0],
-                    params["means"],
+                    votes,
                     viewmat,
                     K,
                     pixel_xy,
@@ -287,26 +288,12 @@ def _run(args: argparse.Namespace) -> int:
                     info["tile_size"],
                     options,
                     chunk=None if chunk == "-" else chunk,
-                ).count.float()
+                )
+
+            with torch.no_grad():
+                count = vote_forward(params["means"]).count.float()
             count_stats = (count.mean().item(), int(count.max().item()))
             for levels in args.levels:
-
-                def vote_forward(votes: torch.Tensor):
-                    return render_votes_tiled(
-                        info["means2d"][0],
-                        info["conics"][0],
-                        info["opacities"][0],
-                        info["depths"][0],
-                        votes,
-                        viewmat,
-                        K,
-                        pixel_xy,
-                        info["isect_offsets"][0],
-                        info["flatten_ids"],
-                        info["tile_size"],
-                        options,
-                        chunk=None if chunk == "-" else chunk,
-                    )
 
                 def one_call_step(levels=levels):
                     if levels == 1:

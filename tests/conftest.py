@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 # Short enough for CI on 2 cores, long enough for the votes to move well past their start.
 DEMO_STEPS = int(os.environ.get("VOTESPLAT_TEST_STEPS", "240"))
 DEMO_VOTE_START = 40
@@ -19,6 +23,17 @@ def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
         if any(name in TRAINING_FIXTURES for name in getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
+
+
+def load_benchmark(script: str, module_name: str) -> ModuleType:
+    """Import benchmarks/``script`` (not a package) as ``module_name``, registered in sys.modules so that its
+    dataclasses resolve and tests can look it up by that name."""
+    spec = importlib.util.spec_from_file_location(module_name, BENCHMARKS / script)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, **model_overrides) -> Path:

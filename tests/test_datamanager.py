@@ -138,6 +138,9 @@ def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
         assert np.array_equal(labels[1].numpy(), renumbered_parts(part))
         assert centroids.shape == (2, 4, 2) and torch.isnan(centroids[:, 0]).all()
         assert torch.isnan(centroids[0, 3]).all()  # level 0 has 2 masks: padded
+        # the pixels training samples from: those inside a kept mask at some level, in raster order
+        in_a_mask = ((labels[0] > 0) | (labels[1] > 0)).reshape(-1)
+        assert torch.equal(data["vote_pixels"], torch.nonzero(in_a_mask).squeeze(1))
         for level, file_labels in ((0, np.where(instance == BORDER_ID, 0, instance)), (1, renumbered_parts(part))):
             for k, centre in expected_centroids(file_labels).items():
                 np.testing.assert_array_equal(centroids[level, k].numpy(), centre)
@@ -211,6 +214,7 @@ def test_view_without_masks_and_unsafe_cache_dir(tmp_path):
     manager = setup_manager(data, tmp_path / "cache")
     _, batch = manager.next_train(0)
     assert not batch["vote_labels"].any() and batch["vote_centroids"].shape == (2, 1, 2)
+    assert batch["vote_pixels"].shape == (0,)
     with pytest.raises(ValueError, match="inside the dataset"):
         setup_manager(data, data / "votesplat_cache")
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
+from test_semantics import ColourHistogramEncoder
 
 from votesplat_ns.core.semantics import instance_features, query_text, select_instances
 from votesplat_ns.eval.lerf_ovs import (
@@ -401,34 +401,6 @@ def test_masks_written_as_labels_come_back_unchanged(tmp_path):
         frame_from_masks("frame_00001.jpg", {})
 
 
-class _ColourEncoder:
-    """Test encoder: histogram of the non-black pixels over 8 colour bins; colour words are their bin."""
-
-    config = {"kind": "colour_histogram_test", "bins_per_channel": 2}
-    bins = {"red": 4, "green": 2, "blue": 1}
-
-    def encode_images(self, crops):
-        rows = []
-        for crop in crops:
-            pixels = crop.reshape(-1, 3).astype(int)
-            pixels = pixels[pixels.any(axis=1)]
-            bins = 4 * (pixels[:, 0] >= 128) + 2 * (pixels[:, 1] >= 128) + (pixels[:, 2] >= 128)
-            rows.append(torch.bincount(torch.as_tensor(bins), minlength=8).float())
-        return F.normalize(torch.stack(rows), dim=-1)
-
-    def encode_text(self, texts):
-        rows = []
-        for text in texts:
-            vector = torch.zeros(8)
-            words = [self.bins[w] for w in text.split() if w in self.bins]
-            if words:
-                vector[words] = 1.0
-            else:
-                vector[1:] = 1.0
-            rows.append(vector)
-        return F.normalize(torch.stack(rows), dim=-1)
-
-
 def test_synthetic_scene_scored_end_to_end_with_text_selection(tmp_path):
     """Named objects -> label files -> text query over instance features -> selection masks -> metrics."""
     shape = (30, 40)
@@ -450,7 +422,7 @@ def test_synthetic_scene_scored_end_to_end_with_text_selection(tmp_path):
             tmp_path / "synthetic" / f"frame_{view + 1:05d}.json", frame_from_masks(f"frame_{view + 1:05d}.jpg", masks)
         )
 
-    encoder = _ColourEncoder()
+    encoder = ColourHistogramEncoder()
     features = instance_features(images, instance_maps, encoder, min_pixels=16)
     frames = load_scene_labels(tmp_path / "synthetic")
 

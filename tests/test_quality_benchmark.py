@@ -3,25 +3,17 @@ benchmarks/sweep.py's family-set option."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import statistics
 import sys
-from pathlib import Path
 
 import pytest
-
-QUALITY_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "quality.py"
-SWEEP_PATH = QUALITY_PATH.with_name("sweep.py")
+from conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def quality():
-    spec = importlib.util.spec_from_file_location("votesplat_quality_benchmark", QUALITY_PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("quality.py", "votesplat_quality_benchmark")
 
 
 def row(variant, seed, miou, num_pred=5):
@@ -169,11 +161,7 @@ def test_merge_gives_rows_per_scene_and_the_mean_over_scenes(quality, tmp_path):
 
 @pytest.fixture(scope="module")
 def sweep():
-    spec = importlib.util.spec_from_file_location("votesplat_sweep_benchmark", SWEEP_PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("sweep.py", "votesplat_sweep_benchmark")
 
 
 def test_sweep_family_option_reads_the_set_folder(sweep, tmp_path):

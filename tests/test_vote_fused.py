@@ -8,12 +8,9 @@ and on CPU tensors under Triton's interpreter (``TRITON_INTERPRET=1``, slow: sma
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from conftest import load_benchmark
 from test_vote_kernel import (
     DEVICES,
     HEIGHT,
@@ -31,7 +28,6 @@ from votesplat_ns.core import vote_fused, vote_kernel
 from votesplat_ns.core.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
 
 DISTORTIONS = ["l1", "l1_pixels", "squared", "none"]
-COUNT_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "count_vote_ops.py"
 
 
 @pytest.fixture(autouse=True)
@@ -302,12 +298,7 @@ def test_fused_errors(device):
 
 @pytest.fixture(scope="module")
 def count_ops():
-    spec = importlib.util.spec_from_file_location("votesplat_count_vote_ops_fused", COUNT_PATH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("count_vote_ops.py", "votesplat_count_vote_ops_fused")
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -337,6 +328,35 @@ def test_fused_launches_and_host_reads(count_ops, distortion, device):
     assert count_ops.launches(counter) <= 15, count_ops.launch_names(counter)
     assert counter.triton_launches == 3
     assert offsets_param.grad is not None and offsets_param.grad.abs().sum() > 0
+
+
+def compiled_variants(kernel) -> int:
+    """How many variants Triton has compiled of ``kernel`` (its per-device caches of compiled kernels)."""
+    return sum(len(next(part for part in cache if isinstance(part, dict))) for cache in kernel.device_caches.values())
+
+
+@pytest.mark.parametrize("device", [d for d in DEVICES if d == "cuda"])
+def test_fused_kernels_compile_once_for_any_list_length(device):
+    """A training step's tile-list length changes every step: after the first step, lengths of every
+    remainder mod 16 reuse the compiled kernels (no per-step JIT)."""
+    scene, level_votes, pixel_xy, lists = scene_of_size(50)
+    scene, pixel_xy = to_device(scene, device), pixel_xy[3::29].contiguous().to(device)
+    offsets, flatten_ids = (t.to(device) for t in lists["gsplat"])
+    target, valid = targets(pixel_xy, 4)
+    votes = level_votes.to(device).requires_grad_()
+    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_reduce_kernel, vote_fused._fused_bwd_kernel)
+
+    def step(extra):
+        # entries past the last tile's run start: the list grows, the kernels' integer arguments change
+        ids = torch.cat([flatten_ids, flatten_ids[:extra]])
+        losses = fused_losses(scene, votes, pixel_xy, target, valid, (offsets, ids), VoteRenderOptions())
+        (losses["vote"].sum() + losses["distortion"].sum()).backward()
+
+    step(0)
+    before = [compiled_variants(kernel) for kernel in kernels]
+    for extra in range(1, 17):
+        step(extra)
+    assert [compiled_variants(kernel) for kernel in kernels] == before
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU

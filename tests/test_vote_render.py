@@ -426,19 +426,11 @@ def grads_of(render_fn, scene, pixel_xy, options, names, **kwargs):
     return out, [torch.zeros_like(leaves[k]) if gr is None else gr for k, gr in zip(names, grads)]
 
 
-@pytest.mark.parametrize("device", ["cpu", CUDA_PARAM])
-@pytest.mark.parametrize("builder", ["gsplat", "everything"])
-@pytest.mark.parametrize("options", TILED_OPTIONS, ids=option_id)
-def test_tiled_matches_reference(tiled_scene, options, builder, device):
-    scene, pixel_xy, tile_size, lists = tiled_scene
-    scene = scene_to(scene, device)
-    pixel_xy = pixel_xy.to(device)
-    offsets, flatten_ids = (t.to(device) for t in lists[builder])
-    names = ["votes"] if options.detach_geometry else ["votes", "means2d", "conics", "opacities"]
+def assert_tiled_matches_reference(scene, pixel_xy, options, names, tile_lists, tile_size, tol=1e-9, **kwargs):
+    """render_votes_tiled over ``tile_lists`` (isect_offsets, flatten_ids) gives render_votes_reference's values and
+    gradients of ``names`` within ``tol``; returns the reference gradients."""
+    offsets, flatten_ids = tile_lists
     expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, names)
-    run_lengths = torch.diff(torch.cat([offsets.reshape(-1).long(), offsets.new_tensor([len(flatten_ids)]).long()]))
-    chunk = 5
-    assert run_lengths.max() > 4 * chunk  # the walk must carry its state across chunks
     actual, actual_grads = grads_of(
         render_votes_tiled,
         scene,
@@ -448,11 +440,29 @@ def test_tiled_matches_reference(tiled_scene, options, builder, device):
         isect_offsets=offsets,
         flatten_ids=flatten_ids,
         tile_size=tile_size,
-        chunk=chunk,
+        **kwargs,
     )
-    assert_render_close(actual, expected)
+    assert_render_close(actual, expected, rtol=tol, atol=tol)
     for name, a, e in zip(names, actual_grads, expected_grads):
-        torch.testing.assert_close(a, e, rtol=1e-9, atol=1e-9, msg=name)
+        torch.testing.assert_close(a, e, rtol=tol, atol=tol, msg=name)
+    return expected_grads
+
+
+@pytest.mark.parametrize("device", ["cpu", CUDA_PARAM])
+@pytest.mark.parametrize("builder", ["gsplat", "everything"])
+@pytest.mark.parametrize("options", TILED_OPTIONS, ids=option_id)
+def test_tiled_matches_reference(tiled_scene, options, builder, device):
+    scene, pixel_xy, tile_size, lists = tiled_scene
+    scene = scene_to(scene, device)
+    pixel_xy = pixel_xy.to(device)
+    offsets, flatten_ids = (t.to(device) for t in lists[builder])
+    names = ["votes"] if options.detach_geometry else ["votes", "means2d", "conics", "opacities"]
+    run_lengths = torch.diff(torch.cat([offsets.reshape(-1).long(), offsets.new_tensor([len(flatten_ids)]).long()]))
+    chunk = 5
+    assert run_lengths.max() > 4 * chunk  # the walk must carry its state across chunks
+    expected_grads = assert_tiled_matches_reference(
+        scene, pixel_xy, options, names, (offsets, flatten_ids), tile_size, chunk=chunk
+    )
     assert expected_grads[0].abs().sum() > 0
 
 
@@ -461,22 +471,10 @@ def test_tiled_matches_reference_float32(tiled_scene, device):
     scene, pixel_xy, tile_size, lists = tiled_scene
     scene = scene_to(scene, device, torch.float32)
     pixel_xy = pixel_xy.to(device=device, dtype=torch.float32)
-    offsets, flatten_ids = (t.to(device) for t in lists["gsplat"])
-    options = VoteRenderOptions()
-    expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, ["votes"])
-    actual, actual_grads = grads_of(
-        render_votes_tiled,
-        scene,
-        pixel_xy,
-        options,
-        ["votes"],
-        isect_offsets=offsets,
-        flatten_ids=flatten_ids,
-        tile_size=tile_size,
-        chunk=16,
+    tile_lists = tuple(t.to(device) for t in lists["gsplat"])
+    assert_tiled_matches_reference(
+        scene, pixel_xy, VoteRenderOptions(), ["votes"], tile_lists, tile_size, tol=1e-4, chunk=16
     )
-    assert_render_close(actual, expected, rtol=1e-4, atol=1e-4)
-    torch.testing.assert_close(actual_grads[0], expected_grads[0], rtol=1e-4, atol=1e-4)
 
 
 def test_tiled_pixels_outside_the_grid_are_empty(tiled_scene):
@@ -498,23 +496,9 @@ def test_tiled_pixels_outside_the_grid_are_empty(tiled_scene):
 def test_tiled_default_chunk_matches_reference(tiled_scene):
     """chunk=None sizes the steps from the pixel count and the runs; same values and gradients."""
     scene, pixel_xy, tile_size, lists = tiled_scene
-    offsets, flatten_ids = lists["gsplat"]
     options = VoteRenderOptions(weighting="alpha_t", detach_geometry=False)
     names = ["votes", "means2d", "conics", "opacities"]
-    expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, names)
-    actual, actual_grads = grads_of(
-        render_votes_tiled,
-        scene,
-        pixel_xy,
-        options,
-        names,
-        isect_offsets=offsets,
-        flatten_ids=flatten_ids,
-        tile_size=tile_size,
-    )
-    assert_render_close(actual, expected)
-    for name, a, e in zip(names, actual_grads, expected_grads):
-        torch.testing.assert_close(a, e, rtol=1e-9, atol=1e-9, msg=name)
+    assert_tiled_matches_reference(scene, pixel_xy, options, names, lists["gsplat"], tile_size)
 
 
 def opaque_wall(n=60, width=24, height=20, seed=12, dtype=torch.float64):
@@ -627,24 +611,9 @@ def test_levels_equal_separate_calls(tiled_scene, render_fn, options):
 def test_levels_tiled_match_reference(tiled_scene):
     scene, pixel_xy, tile_size, lists = tiled_scene
     scene = with_level_votes(scene)
-    offsets, flatten_ids = lists["gsplat"]
     options = VoteRenderOptions(weighting="alpha_t", blend_space="2d", detach_geometry=False)
     names = ["votes", "means2d", "opacities"]
-    expected, expected_grads = grads_of(render_votes_reference, scene, pixel_xy, options, names)
-    actual, actual_grads = grads_of(
-        render_votes_tiled,
-        scene,
-        pixel_xy,
-        options,
-        names,
-        isect_offsets=offsets,
-        flatten_ids=flatten_ids,
-        tile_size=tile_size,
-        chunk=5,
-    )
-    assert_render_close(actual, expected)
-    for name, a, e in zip(names, actual_grads, expected_grads):
-        torch.testing.assert_close(a, e, rtol=1e-9, atol=1e-9, msg=name)
+    assert_tiled_matches_reference(scene, pixel_xy, options, names, lists["gsplat"], tile_size, chunk=5)
 
 
 @pytest.mark.parametrize("render_fn", ["reference", "tiled"])

@@ -7,27 +7,19 @@ autograd's backward ops are seen too, plus Tensor.tolist).
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from conftest import load_benchmark
 from test_vote_render import call, random_scene, sample_pixels, tile_lists_gsplat, with_level_votes
 
 from votesplat_ns.core import vote_render
+from votesplat_ns.core.vote_maps import voting_pixels
 from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
-
-COUNT_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "count_vote_ops.py"
 
 
 @pytest.fixture(scope="module")
 def count_ops():
-    spec = importlib.util.spec_from_file_location("votesplat_count_vote_ops", COUNT_PATH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("count_vote_ops.py", "votesplat_count_vote_ops")
 
 
 @pytest.fixture(scope="module")
@@ -131,8 +123,39 @@ def test_model_view_without_masks_gives_zero_connected_losses(count_ops, vote_mo
     labels = torch.zeros(2, 48, 64, dtype=torch.int32)
     centroids = torch.full((2, 5, 2), float("nan"))
     model.gauss_params["vote_offsets"].grad = None
-    vote, distortion = model.vote_loss_terms({"vote_labels": labels, "vote_centroids": centroids})
+    batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
+    assert batch["vote_pixels"].numel() == 0
+    vote, distortion = model.vote_loss_terms(batch)
     (vote + distortion).backward()
     assert vote.item() == 0.0 and distortion.item() == 0.0
     grad = model.gauss_params["vote_offsets"].grad
     assert grad is not None and not grad.any()
+
+
+def test_vote_losses_computed_with_the_metrics_are_the_loss_dicts(count_ops, monkeypatch):
+    """get_metrics_dict computes the step's vote losses once and get_loss_dict of the same batch returns
+    them; a batch that did not go through get_metrics_dict gets its own."""
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    model, _ = count_ops.model_step(levels=2, n=300, width=32, height=24, pixels=64)
+    monkeypatch.setattr(SplatfactoModel, "get_metrics_dict", lambda self, outputs, batch: {})
+    monkeypatch.setattr(SplatfactoModel, "get_loss_dict", lambda self, outputs, batch, metrics_dict=None: {})
+    calls = []
+    terms = model.vote_loss_terms
+    monkeypatch.setattr(model, "vote_loss_terms", lambda batch: calls.append(batch) or terms(batch))
+    labels = torch.zeros(2, 24, 32, dtype=torch.int32)
+    labels[:, 4:20, 4:28] = 1
+    centroids = torch.tensor([[[float("nan")] * 2, [15.0, 11.0]]] * 2)
+    batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
+    other = dict(batch)
+
+    model.get_metrics_dict({}, batch)
+    early = model.get_loss_dict({}, batch)
+    assert len(calls) == 1 and set(early) == {"vote_loss", "vote_distortion"}
+    assert early["vote_loss"].requires_grad
+    model.get_metrics_dict({}, batch)
+    late = model.get_loss_dict({}, other)  # not the batch the metrics saw: computed again
+    assert len(calls) == 3 and calls[-1] is other and set(late) == set(early)
+    model.eval()
+    model.get_metrics_dict({}, batch)
+    assert model.get_loss_dict({}, batch) == {} and len(calls) == 3  # no vote outside training

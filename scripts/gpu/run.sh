@@ -42,6 +42,8 @@
 #
 # Environment: STEPS (7000), METHODS ("splatfacto votesplat"), CALL_BUDGET_S (570),
 # GPU_TESTS, KERNEL_CONFIGS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods).
+# VOTESPLAT_PROFILE_STEPS=A:B profiles each ns-train's steps [A, B) into $OUT/profile_<experiment>_<method>.txt
+# (benchmarks/train_profile.py: wall per step, phases, torch ops, host syncs by call site).
 set -uo pipefail
 cd "$(dirname "$0")/../.." || exit 2
 
@@ -127,6 +129,13 @@ atexit.register(_write_stats)
 command = sys.argv[1]
 sys.argv = [f"ns-{command}"] + sys.argv[2:]
 from votesplat_ns.ns.patches import offline_lpips
+
+profile = os.environ.get("VOTESPLAT_PROFILE_STEPS")  # "A:B": profile ns-train's steps [A, B)
+if profile and command == "train":
+    from benchmarks.train_profile import install
+
+    first, stop = (int(value) for value in profile.split(":"))
+    install(first, stop, os.environ.get("VOTESPLAT_PROFILE_OUT", "train_profile.txt"))
 
 if command == "train":
     from nerfstudio.scripts.train import entrypoint
@@ -398,7 +407,7 @@ train_one() {
     log "ns-train $method on $data: $STEPS steps, time limit ${train_limit} s" | tee -a "$log_file"
     local t0; t0=$(date +%s.%N)
     # shellcheck disable=SC2086
-    VOTESPLAT_RUN_STATS=$stats timeout --signal=INT --kill-after=20 "$train_limit" \
+    VOTESPLAT_RUN_STATS=$stats VOTESPLAT_PROFILE_OUT=$OUT/profile_${experiment}_${method}.txt timeout --signal=INT --kill-after=20 "$train_limit" \
       "$PY" /tmp/ns_launch.py train "$method" --data "$data" --max-num-iterations "$STEPS" \
       --vis tensorboard --viewer.quit-on-train-completion True \
       --output-dir "$RUNS" --experiment-name "$experiment" --timestamp run \

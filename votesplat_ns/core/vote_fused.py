@@ -286,6 +286,12 @@ class _FusedVoteLosses(torch.autograd.Function):
         return (g_votes,) + none
 
 
+# Integer arguments that change from step to step (tile-list length, Gaussian count, pixel count). Triton
+# otherwise specialises a kernel on whether each integer is divisible by 16 (or is 1) and compiles a new
+# variant for every new combination: on a training run that was seconds of JIT in the first hundred vote
+# steps. They only bound loops and clamp ids, so the hint buys nothing here.
+_VARYING_INTS = ("n_pixels", "n_isects", "n_gauss")
+
 if triton is not None:
     _program_pixel = vote_kernel._program_pixel
     _walk_block = vote_kernel._walk_block
@@ -305,7 +311,7 @@ if triton is not None:
         q = tl.where((q + 1.0) * size <= x, q + 1.0, q)
         return tl.where(q * size > x, q - 1.0, q)
 
-    @triton.jit
+    @triton.jit(do_not_specialize=_VARYING_INTS)
     def _fused_fwd_kernel(
         means_ptr,
         conics_ptr,
@@ -466,7 +472,7 @@ if triton is not None:
         tl.store(row + 6 * LEVELS, factor, mask=lvl_ok)
         tl.store(row + 7 * LEVELS, mean_z, mask=lvl_ok)
 
-    @triton.jit
+    @triton.jit(do_not_specialize=("n_pixels",))
     def _fused_reduce_kernel(
         terms_ptr, vote_ptr, dist_ptr, den_ptr, n_pixels, LEVELS: tl.constexpr, LP: tl.constexpr, RB: tl.constexpr
     ):
@@ -490,7 +496,7 @@ if triton is not None:
         tl.store(dist_ptr + lvl, distortion / denominator, mask=lvl_ok)
         tl.store(den_ptr + lvl, denominator, mask=lvl_ok)
 
-    @triton.jit
+    @triton.jit(do_not_specialize=_VARYING_INTS)
     def _fused_bwd_kernel(
         means_ptr,
         conics_ptr,

@@ -350,3 +350,13 @@ def gather_vote_targets(
     if squeeze:
         return targets[0], valid[0]
     return targets, valid
+
+
+def voting_pixels(vote_labels: torch.Tensor, vote_centroids: torch.Tensor) -> torch.Tensor:
+    """int64 [C]: the flat indices (row * W + column), ascending, of the pixels that carry a vote at
+    some level (their mask there has a finite centroid), from the datamanager's [L, H, W] labels and
+    [L, K+1, 2] NaN-padded centroids. Training samples its vote pixels among these."""
+    level_index = torch.arange(vote_labels.shape[0], device=vote_labels.device)[:, None]
+    flat_labels = vote_labels.reshape(vote_labels.shape[0], -1).long()
+    # finiteness tested on the [L, K+1] table, then looked up per pixel
+    return torch.isfinite(vote_centroids[..., 0])[level_index, flat_labels].any(dim=0).nonzero().squeeze(1)

@@ -4,7 +4,9 @@
   - ``data["vote_labels"]``: int32 [L, H, W] mask ids (0 = no mask),
   - ``data["vote_centroids"]``: float32 [L, Kmax+1, 2] (column, row) per id in pixel-index
     coordinates, NaN-padded (row 0 is always NaN),
-both at exactly the resolution of ``data["image"]``. The level names are published as
+  - ``data["vote_pixels"]``: int64 [C] flat indices of the pixels that carry a vote
+    (``core.vote_maps.voting_pixels``), among which training samples its vote pixels,
+all at exactly the resolution of ``data["image"]``. The level names are published as
 ``train_dataset.metadata["vote_levels"]`` (the pipeline passes that metadata to the model).
 
 Masks are made once per view by a :mod:`mask source <votesplat_ns.core.mask_sources>` at the image
@@ -61,6 +63,7 @@ from votesplat_ns.core.vote_maps import (
     resize_label_images,
     resize_vote_maps,
     vote_maps_from_labels,
+    voting_pixels,
 )
 from votesplat_ns.ns.data_checks import (  # noqa: F401 (re-exported: callers import the checks from here)
     CACHE_DIR_FLAG,
@@ -306,10 +309,17 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         if cached is None or tuple(cached["vote_labels"].shape[1:]) != (height, width):
             # reading, resizing or undistorting a view costs ms to 0.2 s of CPU: keep the result
             vote_maps = self.vote_maps_for_train_view(index, height, width)
+            labels = torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32))
+            centroids = torch.from_numpy(vote_maps.padded_centroids())
             cached = {
-                "vote_labels": torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32)),
-                "vote_centroids": torch.from_numpy(vote_maps.padded_centroids()),
+                "vote_labels": labels,
+                "vote_centroids": centroids,
+                "vote_pixels": voting_pixels(labels, centroids),
             }
+            if torch.device(self.device).type == "cuda":
+                # page-locked: the model's non_blocking copy is then asynchronous (a pageable copy makes
+                # the host wait for the GPU's queue on every vote step)
+                cached = {name: tensor.pin_memory() for name, tensor in cached.items()}
             self._in_memory[index] = cached
             while len(self._in_memory) > max(0, self.config.vote_maps_in_memory):
                 self._in_memory.popitem(last=False)

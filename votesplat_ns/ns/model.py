@@ -70,13 +70,6 @@ def _pixels_and_targets(
     return pixel_xy, target_xy.transpose(0, 1), valid.transpose(0, 1)
 
 
-def pixels_carrying_votes(flat_labels: torch.Tensor, centroids: torch.Tensor) -> torch.Tensor:
-    """[H*W] bool: the pixel carries a 2D vote at some level (its mask there has a finite centroid)."""
-    level_index = torch.arange(flat_labels.shape[0], device=flat_labels.device)[:, None]
-    # finiteness tested on the [L, K+1] table, then looked up per pixel (not on [L, H*W] gathered values)
-    return torch.isfinite(centroids[..., 0])[level_index, flat_labels.long()].any(dim=0)
-
-
 def _raise_if_diverged(vote_loss: torch.Tensor) -> None:
     if not bool(torch.isfinite(vote_loss).all()):
         raise ValueError(DIVERGED_VOTES)
@@ -117,6 +110,8 @@ class VoteSplatModel(SplatfactoModel):
         # that densification copies a parent's support to its children and pruning drops it.
         self.gauss_params["vote_support"] = Parameter(torch.zeros(num_points, num_levels, device=device))
         self.vote_options = self.config.vote_render_options()
+        # (batch, its vote losses): computed in get_metrics_dict, used by get_loss_dict of the same batch
+        self._early_vote_losses: Tuple[Optional[Dict], Dict[str, torch.Tensor]] = (None, {})
         self.viewer_state = VoteSplatViewerState(self)
 
     @property
@@ -366,6 +361,10 @@ class VoteSplatModel(SplatfactoModel):
         return {}
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        # The vote losses are computed here, where the batch first reaches the model, and handed to
+        # get_loss_dict: splatfacto's metrics and colour losses read the GPU (PSNR, image copies),
+        # so host work done before them overlaps the colour pass still running on the GPU.
+        self._early_vote_losses = (batch, self._vote_losses(batch))
         if self.training and self.vote_only:
             return {"gaussian_count": self.num_points}
         return super().get_metrics_dict(outputs, batch)
@@ -389,26 +388,36 @@ class VoteSplatModel(SplatfactoModel):
             loss_dict: Dict[str, torch.Tensor] = {}
         else:
             loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
-        if self.votes_active() and "vote_labels" in batch:
-            vote_loss, distortion = self.vote_loss_terms(batch)
-            loss_dict["vote_loss"] = self.config.vote_loss_weight * vote_loss
-            if self.config.vote_distortion != "none":
-                loss_dict["vote_distortion"] = self.config.distortion_loss_weight * distortion
+        early_batch, early_losses = self._early_vote_losses
+        self._early_vote_losses = (None, {})
+        loss_dict.update(early_losses if early_batch is batch else self._vote_losses(batch))
         return loss_dict
+
+    def _vote_losses(self, batch: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:
+        """The weighted vote loss and distortion of this step's batch ({} on steps that do not vote)."""
+        if not (self.votes_active() and "vote_labels" in batch):
+            return {}
+        vote_loss, distortion = self.vote_loss_terms(batch)
+        losses = {"vote_loss": self.config.vote_loss_weight * vote_loss}
+        if self.config.vote_distortion != "none":
+            losses["vote_distortion"] = self.config.distortion_loss_weight * distortion
+        return losses
 
     def vote_loss_terms(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
         """Vote L1 and distortion, summed over levels, on pixels sampled from the vote maps."""
-        labels, centroids = self._vote_maps(batch)
+        labels, centroids, voting = self._vote_maps(batch)
         # splatfacto renders at 1/d of the image resolution early in training; positions in the
         # continuous pixel frame (pixel centre = index + 0.5) scale by exactly 1/d.
         scale = 1.0 / self._get_downscale_factor()
         flat_labels = labels.reshape(labels.shape[0], -1)
-        carries_vote = pixels_carrying_votes(flat_labels, centroids)
-        # One pixel sample and one walk for all levels: membership depends only on geometry. A view
-        # with no masks samples any pixels, none of which is valid: both losses are then 0 and still
-        # connected to the offsets, without reading on the host whether the view has a mask.
-        weights = torch.where(carries_vote.any(), carries_vote.float(), 1.0)
-        pixel_index = torch.multinomial(weights, self.config.vote_pixels_per_step, replacement=True)
+        # One pixel sample and one walk for all levels: membership depends only on geometry. Uniform
+        # among the pixels that carry a vote; a view with none samples any pixels, none of which is
+        # valid: both losses are then 0 and still connected to the offsets.
+        size = (self.config.vote_pixels_per_step,)
+        if voting.numel():
+            pixel_index = voting[torch.randint(voting.numel(), size, device=self.device)]
+        else:
+            pixel_index = torch.randint(flat_labels.shape[1], size, device=self.device)
         pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, scale)
         votes = self._votes()
         if use_fused(self.vote_options, votes, pixel_xy):
@@ -474,28 +483,29 @@ class VoteSplatModel(SplatfactoModel):
         Rendered at the camera's full resolution; pixels whose voting set is empty are left out.
         Levels without any vote in this view give NaN.
         """
-        labels, centroids = self._vote_maps(batch)
+        labels, centroids, voting = self._vote_maps(batch)
         self.get_outputs(camera.to(self.device))
         flat_labels = labels.reshape(labels.shape[0], -1)
-        pixel_index = torch.nonzero(pixels_carrying_votes(flat_labels, centroids)).squeeze(-1)
-        pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, 1.0)
+        pixel_xy, target_xy, valid = _pixels_and_targets(voting, labels.shape[-1], flat_labels, centroids, 1.0)
         render = self.render_votes(pixel_xy)
         used = valid & (render.count > 0)[:, None]  # [P, L]
         error = (render.projected_vote - target_xy).abs().sum(-1)  # [P, L]
         errors = [error[used[:, level], level].mean() for level in range(labels.shape[0])]  # NaN when empty
         return torch.stack(errors)
 
-    def _vote_maps(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
-        # [L, H, W] at the datamanager's image resolution; [L, K+1, 2] pixel-index coordinates.
-        # non_blocking: a copy from pinned host memory then does not wait for the GPU's queue.
+    def _vote_maps(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        # [L, H, W] at the datamanager's image resolution; [L, K+1, 2] pixel-index coordinates; [C] the
+        # pixels carrying a vote. non_blocking: the datamanager pins them on CUDA, so the copies do not
+        # wait for the GPU's queue.
         labels = batch["vote_labels"].to(self.device, non_blocking=True)
         centroids = batch["vote_centroids"].to(self.device, non_blocking=True)
+        voting = batch["vote_pixels"].to(self.device, non_blocking=True)
         if labels.shape[0] != self.num_vote_levels:
             raise ValueError(
                 f"the vote maps have {labels.shape[0]} levels but the model has vote_levels={self.config.vote_levels}; "
                 "make --pipeline.model.vote-levels match the datamanager's mask levels"
             )
-        return labels, centroids
+        return labels, centroids, voting
 
     @torch.no_grad()
     def record_vote_support(self) -> None:
@@ -506,7 +516,7 @@ class VoteSplatModel(SplatfactoModel):
         """
         grad = self.gauss_params["vote_offsets"].grad
         if grad is not None:
-            self.gauss_params["vote_support"].add_((grad.abs().sum(dim=-1) > 0).float())
+            self.gauss_params["vote_support"].add_(grad.ne(0).any(dim=-1))
 
     def step_post_backward(self, step):
         self.record_vote_support()

@@ -1,0 +1,154 @@
+"""Where a training step spends its host time: a profile of steps [A, B) of a running ``ns-train``.
+
+Installed by ``scripts/gpu/run.sh``'s launcher when ``VOTESPLAT_PROFILE_STEPS=A:B`` is set (for either
+method, so splatfacto and votesplat are profiled alike). Over those steps it records
+
+* the wall time per step (CUDA synchronised at A and B, so the mean is real time per step),
+* a ``torch.profiler`` table: the named phases below (``record_function`` around nerfstudio's and our
+  methods) and the torch ops by self CPU time, with CUDA kernel time and launch counts,
+* every operation that synchronises the host with the GPU (``torch.cuda.set_sync_debug_mode``),
+  counted per call site (the innermost frames of the project, nerfstudio and gsplat).
+
+Written to ``$VOTESPLAT_PROFILE_OUT`` (default ``train_profile.txt``). Timing inside the window is
+perturbed by the profiler; the per-step wall time is measured on the steps before it.
+"""
+
+from __future__ import annotations
+
+import collections
+import importlib
+import os
+import time
+import traceback
+import warnings
+from typing import Callable, Dict, List
+
+import torch
+from nerfstudio.engine.trainer import Trainer
+
+# (module, class, method): the phases of a step, as nerfstudio 1.1.5 calls them
+PHASES = (
+    ("nerfstudio.engine.trainer", "Trainer", "train_iteration"),
+    ("nerfstudio.pipelines.base_pipeline", "VanillaPipeline", "get_train_loss_dict"),
+    ("nerfstudio.data.datamanagers.full_images_datamanager", "FullImageDatamanager", "next_train"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_outputs"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_loss_dict"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_metrics_dict"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "step_post_backward"),
+    ("nerfstudio.engine.optimizers", "Optimizers", "optimizer_scaler_step_all"),
+    ("nerfstudio.engine.optimizers", "Optimizers", "scheduler_step_all"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "get_outputs"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "get_metrics_dict"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "get_loss_dict"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "step_post_backward"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "vote_loss_terms"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "record_vote_support"),
+    ("votesplat_ns.core.vote_fused", None, "vote_losses_tiled"),
+)
+SYNC_SITE_FRAMES = 3
+
+
+def _wrap(function: Callable, label: str) -> Callable:
+    def wrapped(*args, **kwargs):
+        with torch.profiler.record_function(label):
+            return function(*args, **kwargs)
+
+    wrapped.__wrapped__ = function  # type: ignore[attr-defined]
+    return wrapped
+
+
+def _install_phases() -> None:
+    for module_name, class_name, name in PHASES:
+        module = importlib.import_module(module_name)
+        owner = getattr(module, class_name) if class_name else module
+        label = f"## {class_name or module_name.rsplit('.', 1)[-1]}.{name}"
+        setattr(owner, name, _wrap(getattr(owner, name), label))
+        if class_name is None:  # a module function: rebind it where the model imported it
+            model = importlib.import_module("votesplat_ns.ns.model")
+            if hasattr(model, name):
+                setattr(model, name, getattr(owner, name))
+
+
+def _sync_site() -> str:
+    frames = [f for f in traceback.extract_stack()[:-2] if "/torch/" not in f.filename and "warnings" not in f.filename]
+    ours = [f for f in frames if any(k in f.filename for k in ("votesplat_ns", "nerfstudio", "gsplat"))]
+    return " <- ".join(f"{os.path.basename(f.filename)}:{f.lineno} {f.name}" for f in ours[-SYNC_SITE_FRAMES:][::-1])
+
+
+def _synchronize() -> None:
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+
+def install(first: int, stop: int, out_path: str) -> None:
+    """Profile ns-train's steps [first, stop) (call before nerfstudio's trainer starts)."""
+    _install_phases()
+    original = Trainer.train_iteration
+    state: Dict = {"syncs": collections.Counter(), "times": []}
+    shown = warnings.showwarning
+
+    def on_warning(message, category, filename, lineno, file=None, line=None):
+        if "synchronizing" in str(message):
+            state["syncs"][_sync_site()] += 1
+            return
+        shown(message, category, filename, lineno, file, line)
+
+    def train_iteration(self, step):
+        if step == first - 20:
+            _synchronize()
+            state["t_before"] = time.perf_counter()
+        if step == first:
+            _synchronize()
+            state["wall_before"] = (time.perf_counter() - state["t_before"]) / 20 if "t_before" in state else None
+            state["profiler"] = torch.profiler.profile(
+                activities=[torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+            )
+            state["profiler"].__enter__()
+            warnings.showwarning = on_warning
+            warnings.simplefilter("always")
+            if torch.cuda.is_available():
+                torch.cuda.set_sync_debug_mode("warn")
+            state["t0"] = time.perf_counter()
+        result = original(self, step)
+        if step == stop - 1:
+            if torch.cuda.is_available():
+                torch.cuda.set_sync_debug_mode(0)
+            _synchronize()
+            elapsed = time.perf_counter() - state["t0"]
+            warnings.showwarning = shown
+            state["profiler"].__exit__(None, None, None)
+            _write(out_path, state, first, stop, elapsed, type(self.pipeline.model).__name__)
+        return result
+
+    Trainer.train_iteration = train_iteration
+
+
+def _write(out_path: str, state: Dict, first: int, stop: int, elapsed: float, model_name: str) -> None:
+    steps = stop - first
+    events = state["profiler"].key_averages()
+    lines: List[str] = [
+        f"{model_name}: steps [{first}, {stop}) profiled",
+        f"wall per step before the window (20 steps, synchronised): {state['wall_before'] * 1e3:.2f} ms"
+        if state.get("wall_before")
+        else "wall per step before: n/a",
+        f"wall per step in the window (profiler on): {elapsed / steps * 1e3:.2f} ms",
+        "",
+        "phases (per step; CPU total includes children):",
+    ]
+    for event in sorted(events, key=lambda e: -e.cpu_time_total):
+        if event.key.startswith("## "):
+            lines.append(
+                f"  {event.key[3:]:<45} calls {event.count / steps:6.2f}  cpu {event.cpu_time_total / steps / 1e3:7.3f} ms"
+            )
+    kernels = [e for e in events if e.device_type == torch.autograd.DeviceType.CUDA]
+    kernel_ms = sum(e.self_device_time_total for e in kernels) / steps / 1e3
+    launches = sum(e.count for e in kernels) / steps
+    lines += ["", f"GPU kernels per step: {kernel_ms:.3f} ms in {launches:.1f} launches", ""]
+    lines.append("syncs per step by call site:")
+    for site, count in state["syncs"].most_common(25):
+        lines.append(f"  {count / steps:6.2f}  {site}")
+    lines += ["", "ops by self CPU time (top 40):"]
+    lines.append(events.table(sort_by="self_cpu_time_total", row_limit=40, max_name_column_width=60))
+    text = "\n".join(lines) + "\n"
+    with open(out_path, "w") as handle:
+        handle.write(text)
