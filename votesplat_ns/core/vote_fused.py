@@ -591,7 +591,7 @@ if triton is not None:
                         if DIST == 2:
                             s = z_i - mean_z[None, :]
                         if DIST == 1:
-                            s = _run_signs(z_i, vis_i, runs, lvl, LEVELS, False, True, 3, BLOCK)
+                            s = _run_signs(z_i, runs, lvl, LEVELS, False, True, 3, BLOCK)
                     _scatter_vote_grads(
                         g_votes_ptr, gid, vis_i, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
                     )

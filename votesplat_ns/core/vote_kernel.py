@@ -368,7 +368,13 @@ if triton is not None:
             x = tl.load(at, mask=mask, other=0.0)
             y = tl.load(at + 1, mask=mask, other=0.0)
             z = tl.load(at + 2, mask=mask, other=0.0)
-            depth = tl.where(mask, x * zsrc[1] + y * zsrc[2] + z * zsrc[3] + zsrc[4], 0.0)
+            # Explicit fmas, no mul + add left for the compiler to contract: it contracts per element, and on
+            # sm_90 it fused y * r1 in some lanes of a block and x * r0 in others (the lanes of one layout), so
+            # two computations of one depth differed in the last bit and the sign sums past CAP got
+            # sign(z_i - z_i) = +-1 for a member against itself and split tied votes. This is the order the
+            # compiler chose everywhere in the kernels before these helpers were shared: y * r1 rounded, then
+            # x * r0 and z * r2 fused. The interpreter rounds each step: x * r0 + y * r1 + z * r2 + t2, as before.
+            depth = tl.where(mask, tl.fma(z, zsrc[3], tl.fma(x, zsrc[1], y * zsrc[2])) + zsrc[4], 0.0)
         else:
             depth = tl.load(at + (D1 - 1), mask=mask, other=0.0)
             x = depth
@@ -497,7 +503,6 @@ if triton is not None:
     @triton.jit
     def _run_signs(
         z_i,
-        ok_i,
         runs,
         lvl,
         LEVELS: tl.constexpr,
@@ -507,7 +512,12 @@ if triton is not None:
         BLOCK: tl.constexpr,
     ):
         """``_compact_signs`` past CAP members, for entries of depths ``z_i`` [B, LP]: the members are the visible
-        entries of the run (``runs`` = (geo, pix, zsrc, start, stop) as in ``_member_spread``)."""
+        entries of the run (``runs`` = (geo, pix, zsrc, start, stop) as in ``_member_spread``).
+
+        Rows of entries that are not members get a sum too: the callers' scatters mask them. No mask of the rows
+        here: on sm_90 one moved the entries' alpha and depths into the [B, B] sign tile's layout (several
+        lanes per value, computed again there) instead of converting the row sums, as the kernels did before
+        these helpers were shared."""
         geo, pix, zsrc, start, stop = runs
         signs = tl.zeros([z_i.shape[0], lvl.shape[0]], dtype=z_i.dtype)
         lane = tl.arange(0, BLOCK).to(tl.int64)
@@ -519,7 +529,7 @@ if triton is not None:
                 zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
                 zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
                 sign = _sign(zi[:, None] - zj[None, :])  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
-                sign = tl.where(ok_i[:, None] & vis_j[None, :], sign, 0.0)
+                sign = tl.where(vis_j[None, :], sign, 0.0)
                 signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
         return signs
 
@@ -679,7 +689,7 @@ if triton is not None:
                     signs = _compact_signs(z_ptrs, visible, depth_row, count, lvl, LEVELS, D1, CAP, PB)
                 else:
                     depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, visible, lvl, LEVELS)
-                    signs = _run_signs(depth, visible, runs, lvl, LEVELS, True, False, D1, BLOCK)
+                    signs = _run_signs(depth, runs, lvl, LEVELS, True, False, D1, BLOCK)
                 tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask, sem="relaxed")
             if ALPHA_T:
                 t = tl.min(t_after, axis=0)
