@@ -40,8 +40,9 @@ _DTYPES = {"float32": "fp32", "float64": "fp64", "int32": "i32", "int64": "i64",
 _MODULES = ("votesplat_ns.core.vote_kernel", "votesplat_ns.core.vote_fused")
 
 
-def _arg_type(value):
-    """Triton's type of a launch argument as a signature string, or ("constexpr", value) where it specialises."""
+def _arg_type(value, specialise=True):
+    """Triton's type of a launch argument as a signature string, or ("constexpr", value) where it specialises
+    (``specialise``: False for a parameter the kernel marks ``do_not_specialize``, whose 1 stays an int)."""
     import torch
 
     if isinstance(value, torch.Tensor):
@@ -49,12 +50,19 @@ def _arg_type(value):
     if isinstance(value, bool):
         return "i1"
     if isinstance(value, int):
-        if value == 1:
+        if value == 1 and specialise:
             return ["constexpr", 1]
         return "i32" if -(2**31) <= value < 2**31 else "i64"
     if isinstance(value, float):
         return "fp32"
     raise TypeError(f"no signature type for a launch argument of type {type(value).__name__}")
+
+
+def _unspecialised(kernel):
+    """Names of the parameters ``kernel`` marks ``do_not_specialize`` (names or positions in ``triton.jit``); under
+    the interpreter the jit options are kept in ``kernel.kwargs``."""
+    marked = getattr(kernel, "do_not_specialize", None) or getattr(kernel, "kwargs", {}).get("do_not_specialize")
+    return {kernel.arg_names[m] if isinstance(m, int) else m for m in marked or ()}
 
 
 def record(test_files, pytest_args):
@@ -70,7 +78,8 @@ def record(test_files, pytest_args):
         fn = getattr(kernel, "fn", kernel)
         options = {"num_warps": kwargs.get("num_warps", 4)}
         constexprs = {k: v for k, v in kwargs.items() if k not in ("num_warps", "num_stages")}
-        entry = {"kernel": fn.__name__, "args": [_arg_type(a) for a in args], "constexprs": constexprs}
+        types = [_arg_type(a, name not in _unspecialised(kernel)) for name, a in zip(kernel.arg_names, args)]
+        entry = {"kernel": fn.__name__, "args": types, "constexprs": constexprs}
         entry["options"] = options
         seen.setdefault(json.dumps(entry, sort_keys=True), entry)
         return launch(kernel, grid, *args, **kwargs)
