@@ -533,7 +533,9 @@ if triton is not None:
                 signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
         return signs
 
-    @triton.jit
+    # n_gauss changes as the scene densifies and only clamps ids: not specialised on (Triton would compile a
+    # variant for each new divisibility by 16), as vote_fused's per-step integers
+    @triton.jit(do_not_specialize=("n_gauss",))
     def _vote_fwd_kernel(
         geom_ptr,
         table_ptr,
@@ -609,7 +611,7 @@ if triton is not None:
         tl.store(zsum_ptr + pid * LEVELS + lvl, zacc, mask=lvl_ok)
         tl.store(spread_ptr + pid * LEVELS + lvl, spread, mask=lvl_ok)
 
-    @triton.jit
+    @triton.jit(do_not_specialize=("n_gauss",))
     def _vote_bwd_kernel(
         geom_ptr,
         table_ptr,
