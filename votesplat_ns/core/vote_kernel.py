@@ -323,8 +323,11 @@ if triton is not None:
         opacity = tl.load(opac_ptr + O_STRIDE * gid, mask=inside, other=0.0)
         dx = mx - px
         dy = my - py
-        # the operation order of vote_render._alpha
-        sigma = cb * dx * dy + 0.5 * (dx * dx * ca + dy * dy * cc)
+        # the operation order of vote_render._alpha, with explicit fmas (as _entry_depths): every copy of this
+        # block (the walk, the re-walks, each layout the compiler puts it in) must find the same members, and
+        # the compiler may contract mul + add differently per copy. The order is the one it chose before;
+        # the interpreter rounds each step: cb * dx * dy + 0.5 * (dx * dx * ca + dy * dy * cc).
+        sigma = tl.fma(cb * dx, dy, 0.5 * tl.fma(dx * dx, ca, dy * dy * cc))
         falloff = tl.exp(-tl.maximum(sigma, 0.0))
         raw = opacity * falloff
         alpha = tl.minimum(raw, alpha_max)
