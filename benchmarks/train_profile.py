@@ -11,12 +11,21 @@ method, so splatfacto and votesplat are profiled alike). Over those steps it rec
 
 Written to ``$VOTESPLAT_PROFILE_OUT`` (default ``train_profile.txt``). Timing inside the window is
 perturbed by the profiler; the per-step wall time is measured on the steps before it.
+
+``install_step_times`` (run.sh: ``VOTESPLAT_STEP_TIMES=1``) instead times a whole run without the
+profiler: for every step its wall time (from one step's start to the next one's) and the host time
+of each phase above, plus the set-up before step 0 and the tail after the last step's iteration
+(the final callbacks, e.g. votesplat's foreground pass, and the checkpoint). The host and
+the GPU run in lock step in these trainings (splatfacto reads the GPU ~15 times a step), so a
+phase's host time includes the GPU work it waits for.
 """
 
 from __future__ import annotations
 
+import atexit
 import collections
 import importlib
+import json
 import os
 import time
 import traceback
@@ -35,8 +44,11 @@ PHASES = (
     ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_loss_dict"),
     ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_metrics_dict"),
     ("nerfstudio.models.splatfacto", "SplatfactoModel", "step_post_backward"),
-    ("nerfstudio.engine.optimizers", "Optimizers", "optimizer_scaler_step_all"),
+    ("nerfstudio.engine.optimizers", "Optimizers", "optimizer_scaler_step_some"),
+    ("nerfstudio.engine.optimizers", "Optimizers", "zero_grad_some"),
+    ("torch.autograd", None, "backward"),
     ("nerfstudio.engine.optimizers", "Optimizers", "scheduler_step_all"),
+    ("votesplat_ns.ns.datamanager", "VoteDataManager", "host_vote_batch"),
     ("votesplat_ns.ns.model", "VoteSplatModel", "get_outputs"),
     ("votesplat_ns.ns.model", "VoteSplatModel", "get_metrics_dict"),
     ("votesplat_ns.ns.model", "VoteSplatModel", "get_loss_dict"),
@@ -57,12 +69,24 @@ def _wrap(function: Callable, label: str) -> Callable:
     return wrapped
 
 
-def _install_phases() -> None:
+def _timed(function: Callable, label: str, totals: Dict[str, float]) -> Callable:
+    def wrapped(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            totals[label] = totals.get(label, 0.0) + time.perf_counter() - start
+
+    wrapped.__wrapped__ = function  # type: ignore[attr-defined]
+    return wrapped
+
+
+def _install_phases(wrap: Callable[[Callable, str], Callable] = _wrap) -> None:
     for module_name, class_name, name in PHASES:
         module = importlib.import_module(module_name)
         owner = getattr(module, class_name) if class_name else module
         label = f"## {class_name or module_name.rsplit('.', 1)[-1]}.{name}"
-        setattr(owner, name, _wrap(getattr(owner, name), label))
+        setattr(owner, name, wrap(getattr(owner, name), label))
         if class_name is None:  # a module function: rebind it where the model imported it
             model = importlib.import_module("votesplat_ns.ns.model")
             if hasattr(model, name):
@@ -121,6 +145,49 @@ def install(first: int, stop: int, out_path: str) -> None:
         return result
 
     Trainer.train_iteration = train_iteration
+
+
+def install_step_times(out_path: str) -> None:
+    """Time every step of ns-train and its phases (host time, no profiler) into ``out_path`` (JSON)."""
+    process_start = time.perf_counter()
+    phase_totals: Dict[str, float] = {}
+    _install_phases(lambda function, label: _timed(function, label[3:], phase_totals))
+    original = Trainer.train_iteration
+    record: Dict = {"steps": [], "wall_ms": [], "phases_ms": collections.defaultdict(list)}
+    state: Dict = {}
+
+    def close_step(now: float) -> None:
+        if "step" in state:
+            record["steps"].append(state["step"])
+            record["wall_ms"].append(round((now - state["start"]) * 1e3, 3))
+            for label in phase_totals.keys() | record["phases_ms"].keys():
+                values = record["phases_ms"][label]
+                values.extend([0.0] * (len(record["steps"]) - 1 - len(values)))
+                values.append(round(phase_totals.get(label, 0.0) * 1e3, 3))
+        phase_totals.clear()
+
+    def train_iteration(self, step):
+        now = time.perf_counter()
+        if "step" not in state:
+            record["setup_s"] = round(now - process_start, 3)
+        close_step(now)
+        state.update(step=step, start=now)
+        result = original(self, step)
+        state["end"] = time.perf_counter()
+        return result
+
+    def write() -> None:
+        now = time.perf_counter()
+        if "end" in state:  # the last step ends with its iteration; what follows is the tail
+            close_step(state["end"])
+            record["tail_s"] = round(now - state["end"], 3)
+        record["total_s"] = round(now - process_start, 3)
+        record["phases_ms"] = dict(record["phases_ms"])
+        with open(out_path, "w") as handle:
+            json.dump(record, handle)
+
+    Trainer.train_iteration = train_iteration
+    atexit.register(write)
 
 
 def _write(out_path: str, state: Dict, first: int, stop: int, elapsed: float, model_name: str) -> None:

@@ -106,11 +106,16 @@ def grid_launches():
     for fp, levels, dist in itertools.product(("fp32", "fp64"), (1, 4), (0, 1, 2)):
         lp = vk._pow2(levels)
         f, i32, i64, u8 = "*" + fp, "*i32", "*i64", "*u8"
-        fused = [f, f, f, f, f, f, f, f, u8, i32, i32, f, i64, i32, f, f] + ["i32"] * 6
-        out.append(
-            entry("_fused_fwd_kernel", fused, dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, **walk))
-        )
-        fused_bwd = [f, f, f, f, f, f, i32, f, i64, i32, f, f, f, f, "i32", f, "i32", f] + ["i32"] * 3
+        d = f if dist else i32  # the member depths' buffer, the members' own without a distortion
+        fwd = dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, **walk)
+        # vote_losses_tiled: the sampling pointers are placeholders (the tile offsets), its map ints 1 and 1.0
+        tiled = [f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, d, f]
+        out.append(entry("_fused_fwd_kernel", tiled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=False)))
+        if fp == "fp32":  # vote_losses_sampled takes float32 only
+            # the target and valid pointers are placeholders too (the position buffer, the draws)
+            sampled = [f, f, f, f, f, f, f, f, i64, i64, i64, i32, f, i32, i32, f, i64, i32, d, f]
+            out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=True)))
+        fused_bwd = [f, f, f, f, f, f, i32, f, i64, i32, d, f, f, f, "i32", f, "i32", f] + ["i32"] * 3
         flags = dict(HAS_VOTE=True, HAS_DIST=dist != 0)
         out.append(entry("_fused_bwd_kernel", fused_bwd, dict(LEVELS=levels, LP=lp, DIST=dist, **flags, **walk)))
         for alpha_t, d1 in itertools.product((False, True), (3, 4)):

@@ -168,6 +168,29 @@ def test_vote_maps_in_memory_bounds_the_views_kept_and_reuses_them(dataset, tmp_
     assert len(manager._in_memory) == 2
 
 
+def test_first_step_prepares_every_view_in_the_background(dataset, tmp_path, monkeypatch):
+    """From the first next_train, the views' vote batches are prepared by background threads (up to
+    vote_maps_in_memory views in all); a later first visit takes the prepared batch, equal to one made on the spot."""
+    manager = setup_manager(dataset, tmp_path / "cache", vote_maps_in_memory=FRAMES - 1)
+    reference = setup_manager(dataset, tmp_path / "cache")
+    camera, _ = manager.next_train(0)
+    assert camera.metadata is not None
+    visited = int(camera.metadata["cam_idx"])
+    assert manager._prefetch is not None
+    assert len(manager._prefetch) == FRAMES - 2 and visited not in manager._prefetch
+    prepared = dict(manager._prefetch)
+    made_here = []
+    original = manager._vote_batch_tensors
+    monkeypatch.setattr(manager, "_vote_batch_tensors", lambda *args: made_here.append(args) or original(*args))
+    for index in prepared:
+        batch = manager.vote_batch(index)
+        assert prepared[index].done() and index not in manager._prefetch
+        expected = reference.vote_batch(index)
+        for name in expected:
+            torch.testing.assert_close(batch[name], expected[name], rtol=0, atol=0, equal_nan=True)
+    assert made_here == []  # none was made again
+
+
 def test_downscaled_images_get_downscaled_vote_maps(dataset, tmp_path):
     manager = setup_manager(dataset, tmp_path / "cache", downscale=2, border_masks="vote")
     assert "images_2" in str(manager.train_dataset.image_filenames[0])

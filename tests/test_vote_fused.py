@@ -25,6 +25,7 @@ from test_vote_kernel import (
 from test_vote_render import call, random_scene, tile_lists_gsplat
 
 from votesplat_ns.core import vote_fused, vote_kernel
+from votesplat_ns.core.vote_maps import pixels_and_targets, voting_pixels
 from votesplat_ns.core.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
 
 DISTORTIONS = ["l1", "l1_pixels", "squared", "none"]
@@ -359,6 +360,34 @@ def test_fused_kernels_compile_once_for_any_list_length(device):
     assert [compiled_variants(kernel) for kernel in kernels] == before
 
 
+@pytest.mark.parametrize("device", [d for d in DEVICES if d == "cuda"])
+@pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
+def test_warm_up_compiles_what_a_training_step_launches(distortion, device):
+    """start_warm_up's thread compiles the variants of the three fused kernels that a training step's
+    vote_losses_sampled launches (float32 votes, gsplat's int32 tile lists, another tile size and grid):
+    after it, the step compiles nothing."""
+    levels = 2
+    options = VoteRenderOptions(distortion=distortion)
+    vote_fused.start_warm_up(levels, options, torch.device(device)).join()
+    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_reduce_kernel, vote_fused._fused_bwd_kernel)
+    before = [compiled_variants(kernel) for kernel in kernels]
+    scene, level_votes, _, lists = scene_of_size(50)
+    scene = to_device(scene, device, torch.float32)
+    offsets, flatten_ids = (t.to(device=device, dtype=torch.int32) for t in lists["gsplat"])
+    votes = level_votes[:, :levels].to(device=device, dtype=torch.float32).requires_grad_()
+    labels = torch.randint(1, 3, (levels, HEIGHT * WIDTH), dtype=torch.int32, device=device)
+    centroids = torch.rand(levels, 3, 2, device=device) * WIDTH
+    voting = torch.arange(HEIGHT * WIDTH, device=device)
+    sample = torch.randint(voting.numel(), (64,), device=device)
+    args = (scene["means2d"], scene["conics"], scene["opacities"], votes, scene["viewmat"], scene["K"], sample)
+    losses = vote_fused.vote_losses_sampled(
+        *args, voting, labels, centroids, WIDTH, 1.0, offsets, flatten_ids, TILE, options
+    )
+    (2.0 * losses["vote"].sum() + 0.5 * losses["distortion"].sum()).backward()
+    assert votes.grad is not None and votes.grad.abs().sum() > 0
+    assert [compiled_variants(kernel) for kernel in kernels] == before
+
+
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
 def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
     """VoteSplatModel.vote_loss_terms with the Triton backend and the default switches: the fused losses,
@@ -406,3 +435,84 @@ def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, 
     model.step = 10 * FUSED_FINITE_CHECK_EVERY - 1
     with pytest.raises(ValueError, match="vote offsets have diverged"):
         step()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("distortion", ["l1_pixels", "squared", "none"])
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, device, monkeypatch):
+    """vote_losses_sampled (pixel and target lookup in the forward kernel) gives the values and vote
+    gradients of vote_maps.pixels_and_targets followed by vote_losses_tiled, for the same draw: the same
+    float32 operations (bitwise under the interpreter; on the H100 the gradients differ by ~1 ulp). Vote
+    maps at 1/scale of the render size, masks without a vote included."""
+    small_blocks(monkeypatch)
+    levels, masks = 2, 6
+    scene, level_votes, _, lists = scene_of_size(50)
+    scene = to_device(scene, device, torch.float32)
+    votes = level_votes[:, :levels].to(device=device, dtype=torch.float32)
+    offsets, flatten_ids = (t.to(device) for t in lists["gsplat"])
+    g = torch.Generator().manual_seed(31)
+    map_width, map_height = int(WIDTH / scale), int(HEIGHT / scale)
+    labels = torch.randint(0, masks + 1, (levels, map_height * map_width), generator=g, dtype=torch.int32)
+    centroids = torch.rand(levels, masks + 1, 2, generator=g) * torch.tensor([map_width, map_height])
+    centroids[:, 0] = float("nan")  # label 0: no mask
+    centroids[0, 2] = float("nan")  # a mask without a vote (cut by the border)
+    voting = voting_pixels(labels.reshape(levels, map_height, map_width), centroids)
+    assert 0 < voting.numel() < labels.shape[1]
+    sample = torch.cat([torch.tensor([0, voting.numel() - 1]), torch.randint(voting.numel(), (40,), generator=g)])
+    labels, centroids, voting, sample = (t.to(device) for t in (labels, centroids, voting, sample))
+    options = VoteRenderOptions(distortion=distortion)
+    results = []
+    for sampled in (False, True):
+        leaf = votes.clone().requires_grad_()
+        args = (scene["means2d"], scene["conics"], scene["opacities"], leaf, scene["viewmat"], scene["K"])
+        if sampled:
+            losses = vote_fused.vote_losses_sampled(
+                *args, sample, voting, labels, centroids, map_width, scale, offsets, flatten_ids, TILE, options
+            )
+        else:
+            looked_up = pixels_and_targets(voting[sample], map_width, labels, centroids, scale)
+            losses = vote_fused.vote_losses_tiled(*args, *looked_up, offsets, flatten_ids, TILE, options)
+        (1.3 * losses["vote"].sum() + 0.7 * losses["distortion"].sum()).backward()
+        assert leaf.grad is not None
+        results.append(((losses["vote"].detach(), losses["distortion"].detach()), leaf.grad))
+    if device == "cpu":  # the interpreter: the same operations give the same bits
+        assert_paths_agree(results, rtol=0, atol=0)
+    else:  # compiled, the two variants may contract other multiply-adds: vote gradients ~1 ulp apart
+        assert_paths_agree(results, rtol=1e-5, atol=1e-6)
+    assert results[1][1].abs().sum() > 0 and (results[1][0][0] > 0).all()
+
+
+def test_sampled_losses_reject_bad_inputs():
+    """One-line errors for what the kernel cannot take (checked before any launch)."""
+    scene, level_votes, _, lists = scene_of_size(10)
+    scene = to_device(scene, "cpu", torch.float32)
+    votes = level_votes[:, :2].float()
+    labels, centroids = torch.zeros(2, 16, dtype=torch.int32), torch.zeros(2, 3, 2)
+    voting, sample = torch.arange(4), torch.zeros(5, dtype=torch.int64)
+    args = (scene["means2d"], scene["conics"], scene["opacities"])
+    view = (scene["viewmat"], scene["K"])
+    tiles = (*lists["gsplat"], TILE, VoteRenderOptions(backend="triton"))
+    if vote_kernel.unavailable_reason(votes.device) is not None:
+        pytest.skip("the Triton kernels cannot run here")
+    for bad, match in [
+        (dict(votes=votes.double()), "float32 votes"),
+        (dict(voting=voting[:0]), "voting is empty"),
+        (dict(labels=labels.long()), "flat_labels must be int32"),
+        (dict(centroids=centroids[:1]), "centroids must be float32"),
+        (dict(sample=sample.int()), "1-D int64"),
+    ]:
+        given = {**dict(votes=votes, sample=sample, voting=voting, labels=labels, centroids=centroids), **bad}
+        with pytest.raises(ValueError, match=match):
+            vote_fused.vote_losses_sampled(
+                *args,
+                given["votes"],
+                *view,
+                given["sample"],
+                given["voting"],
+                given["labels"],
+                given["centroids"],
+                4,
+                1.0,
+                *tiles,
+            )

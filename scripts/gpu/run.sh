@@ -44,6 +44,8 @@
 # GPU_TESTS, KERNEL_CONFIGS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods).
 # VOTESPLAT_PROFILE_STEPS=A:B profiles each ns-train's steps [A, B) into $OUT/profile_<experiment>_<method>.txt
 # (benchmarks/train_profile.py: wall per step, phases, torch ops, host syncs by call site).
+# VOTESPLAT_STEP_TIMES=1 writes every step's wall and phase host times of each ns-train, no profiler,
+# into $OUT/steps_<experiment>_<method>.json (set-up and tail too; compare with benchmarks/step_times.py).
 set -uo pipefail
 cd "$(dirname "$0")/../.." || exit 2
 
@@ -136,6 +138,10 @@ if profile and command == "train":
 
     first, stop = (int(value) for value in profile.split(":"))
     install(first, stop, os.environ.get("VOTESPLAT_PROFILE_OUT", "train_profile.txt"))
+elif os.environ.get("VOTESPLAT_STEP_TIMES") and command == "train":  # every step's wall and phases, no profiler
+    from benchmarks.train_profile import install_step_times
+
+    install_step_times(os.environ.get("VOTESPLAT_STEP_TIMES_OUT", "step_times.json"))
 
 if command == "train":
     from nerfstudio.scripts.train import entrypoint
@@ -407,7 +413,7 @@ train_one() {
     log "ns-train $method on $data: $STEPS steps, time limit ${train_limit} s" | tee -a "$log_file"
     local t0; t0=$(date +%s.%N)
     # shellcheck disable=SC2086
-    VOTESPLAT_RUN_STATS=$stats VOTESPLAT_PROFILE_OUT=$OUT/profile_${experiment}_${method}.txt timeout --signal=INT --kill-after=20 "$train_limit" \
+    VOTESPLAT_RUN_STATS=$stats VOTESPLAT_PROFILE_OUT=$OUT/profile_${experiment}_${method}.txt VOTESPLAT_STEP_TIMES_OUT=$OUT/steps_${experiment}_${method}.json timeout --signal=INT --kill-after=20 "$train_limit" \
       "$PY" /tmp/ns_launch.py train "$method" --data "$data" --max-num-iterations "$STEPS" \
       --vis tensorboard --viewer.quit-on-train-completion True \
       --output-dir "$RUNS" --experiment-name "$experiment" --timestamp run \

@@ -33,7 +33,8 @@ by construction.
 
 from __future__ import annotations
 
-from typing import Dict, Optional
+import threading
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -80,6 +81,50 @@ def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bo
     return fused_unavailable_reason(options, votes, pixel_xy) is None
 
 
+def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device) -> threading.Thread:
+    """Compiles the kernels of ``vote_losses_sampled`` (forward, reduction, backward) for ``levels``
+    [N, L, 3] float32 votes and ``options`` on CUDA ``device`` in a background thread, by running them
+    on a one-Gaussian scene on a side stream: otherwise the first vote step of a training compiles them
+    on the spot (~5 s on an H100 host). Join the thread before the first real call; a failure here is
+    left to that call, which compiles (and reports) by itself."""
+
+    def run() -> None:
+        try:
+            with torch.cuda.device(device), torch.cuda.stream(torch.cuda.Stream(device)):
+
+                def f32(values) -> Tensor:
+                    return torch.tensor(values, dtype=torch.float32, device=device)
+
+                votes = f32([0.0, 0.0, 2.0]).repeat(1, levels, 1).requires_grad_()
+                # the argument dtypes of a training step: gsplat's int32 tile lists, int64 pixel draws
+                losses = vote_losses_sampled(
+                    f32([[8.0, 8.0]]),
+                    f32([[1.0, 0.0, 1.0]]),
+                    f32([0.5]),
+                    votes,
+                    torch.eye(4, dtype=torch.float32, device=device),
+                    f32([[8.0, 0.0, 8.0], [0.0, 8.0, 8.0], [0.0, 0.0, 1.0]]),
+                    torch.zeros(2, dtype=torch.int64, device=device),
+                    torch.zeros(1, dtype=torch.int64, device=device),
+                    torch.ones(levels, 1, dtype=torch.int32, device=device),
+                    torch.full((levels, 2, 2), 0.5, dtype=torch.float32, device=device),
+                    1,
+                    1.0,
+                    torch.zeros(1, 1, dtype=torch.int32, device=device),
+                    torch.zeros(1, dtype=torch.int32, device=device),
+                    16,
+                    options,
+                )
+                (losses["vote"].sum() + losses["distortion"].sum()).backward()
+                torch.cuda.current_stream(device).synchronize()
+        except Exception:  # noqa: BLE001 (the first real call compiles and raises on its own)
+            pass
+
+    thread = threading.Thread(target=run, name="vote-kernel-warm-up", daemon=True)
+    thread.start()
+    return thread
+
+
 def vote_losses_tiled(
     means2d: Tensor,
     conics: Tensor,
@@ -113,19 +158,10 @@ def vote_losses_tiled(
     ``vote_losses``. Values are not checked (module docstring).
     """
     options = options or VoteRenderOptions()
-    reason = fused_unavailable_reason(options, votes, pixel_xy)
-    if reason is not None:
-        raise ValueError(f"vote_losses_tiled cannot run: {reason}; use render_votes_tiled and vote_losses")
-    if votes.ndim not in (2, 3) or votes.shape[-1] != 3 or (votes.ndim == 3 and votes.shape[1] < 1):
-        raise ValueError(f"votes must have shape [N, 3] or [N, L, 3] (one vote per level), got {list(votes.shape)}")
-    single = votes.ndim == 2
-    n = votes.shape[0]
-    levels = 1 if single else votes.shape[1]
+    levels, single = _checked_levels(options, votes, pixel_xy)
     if pixel_xy.ndim != 2 or pixel_xy.shape[1] != 2:
         raise ValueError(f"pixel_xy must have shape [P, 2], got {list(pixel_xy.shape)}")
     p = pixel_xy.shape[0]
-    shapes = {"means2d": (means2d, (n, 2)), "conics": (conics, (n, 3)), "opacities": (opacities, (n,))}
-    _check_shapes(n, {**shapes, "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3))})
     level_shape = (p,) if single else (p, levels)
     if tuple(target_xy.shape) != level_shape + (2,):
         raise ValueError(f"target_xy must have shape {list(level_shape + (2,))}, got {list(target_xy.shape)}")
@@ -133,59 +169,201 @@ def vote_losses_tiled(
         raise ValueError(
             f"valid must be a bool tensor of shape {list(level_shape)}, got {valid.dtype} {list(valid.shape)}"
         )
+    if target_xy.device != votes.device or valid.device != votes.device:
+        raise ValueError("all inputs of vote_losses_tiled must be on the same device")
+    pixels = (
+        pixel_xy.detach().contiguous(),
+        target_xy.detach().reshape(p, levels, 2).to(votes.dtype).contiguous(),
+        valid.reshape(p, levels).contiguous().view(torch.uint8),
+    )
+    vote, distortion = _fused_losses(
+        means2d, conics, opacities, votes, viewmat, K, pixels, None, isect_offsets, flatten_ids, tile_size, options
+    )
+    if single:
+        return {"vote": vote[0], "distortion": distortion[0]}
+    return {"vote": vote, "distortion": distortion}
+
+
+def vote_losses_sampled(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    votes: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    sample: Tensor,
+    voting: Tensor,
+    flat_labels: Tensor,
+    centroids: Tensor,
+    map_width: int,
+    scale: float,
+    isect_offsets: Tensor,
+    flatten_ids: Tensor,
+    tile_size: int,
+    options: Optional[VoteRenderOptions] = None,
+) -> Dict[str, Tensor]:
+    """``vote_losses_tiled`` at pixels drawn from one view's vote maps, their lookup done in the forward
+    kernel: the same values and gradients as ``vote_losses_tiled(..., *vote_maps.pixels_and_targets(
+    voting[sample], map_width, flat_labels, centroids, scale), ...)`` without its ~15 launches.
+
+    Args:
+        means2d, conics, opacities, viewmat, K, isect_offsets, flatten_ids, tile_size, options: as in
+            ``vote_losses_tiled``.
+        votes [N,L,3] float32: world-space votes, differentiable.
+        sample [P] int64: the drawn entries of ``voting`` (in [0, C)).
+        voting [C] int64: flat indices (row * map_width + column) of the view's pixels that carry a
+            vote (``vote_maps.voting_pixels``); C >= 1.
+        flat_labels [L, H*W] int32: mask ids per level; centroids [L, K+1, 2] float32: pixel-index
+            centroids, NaN where a mask has no vote (the datamanager's vote maps).
+        map_width: W of the vote maps; scale: render resolution over the maps' resolution.
+
+    Returns {"vote", "distortion"}: [L] tensors. Values are not checked; indices are clamped into range.
+    """
+    options = options or VoteRenderOptions()
+    levels, single = _checked_levels(options, votes, sample)
+    if single or votes.dtype != torch.float32:
+        raise ValueError(f"vote_losses_sampled takes float32 votes [N, L, 3], got {votes.dtype} {list(votes.shape)}")
+    if sample.ndim != 1 or voting.ndim != 1 or sample.dtype != torch.int64 or voting.dtype != torch.int64:
+        raise ValueError("sample and voting must be 1-D int64 tensors")
+    if voting.numel() == 0:
+        raise ValueError("voting is empty: a view without voting pixels has no vote losses to sample")
+    if flat_labels.ndim != 2 or flat_labels.shape[0] != levels or flat_labels.dtype != torch.int32:
+        raise ValueError(
+            f"flat_labels must be int32 [{levels}, H*W], got {flat_labels.dtype} {list(flat_labels.shape)}"
+        )
+    if (
+        centroids.ndim != 3
+        or centroids.shape[0] != levels
+        or centroids.shape[2] != 2
+        or centroids.dtype != torch.float32
+    ):
+        raise ValueError(f"centroids must be float32 [{levels}, K+1, 2], got {centroids.dtype} {list(centroids.shape)}")
+    if len({t.device for t in (votes, sample, voting, flat_labels, centroids)}) != 1:
+        raise ValueError("all inputs of vote_losses_sampled must be on the same device")
+    p = sample.shape[0]
+    # filled by the forward kernel with the drawn pixels' positions (its backward reads them)
+    pixel_xy = torch.empty(p, 2, dtype=votes.dtype, device=votes.device)
+    sampling = (sample.contiguous(), voting.contiguous(), flat_labels.contiguous(), centroids.contiguous())
+    geometry = (int(flat_labels.shape[1]), int(map_width), int(centroids.shape[1]), float(scale))
+    vote, distortion = _fused_losses(
+        means2d,
+        conics,
+        opacities,
+        votes,
+        viewmat,
+        K,
+        (pixel_xy, pixel_xy, sample),  # target and valid are computed in the kernel: placeholders
+        (sampling, geometry),
+        isect_offsets,
+        flatten_ids,
+        tile_size,
+        options,
+    )
+    return {"vote": vote, "distortion": distortion}
+
+
+def _checked_levels(options: VoteRenderOptions, votes: Tensor, pixels: Tensor) -> Tuple[int, bool]:
+    """(levels, whether votes are [N,3]) after the checks both entry points share."""
+    reason = fused_unavailable_reason(options, votes, pixels)
+    if reason is not None:
+        raise ValueError(f"the fused vote losses cannot run: {reason}; use render_votes_tiled and vote_losses")
+    if votes.ndim not in (2, 3) or votes.shape[-1] != 3 or (votes.ndim == 3 and votes.shape[1] < 1):
+        raise ValueError(f"votes must have shape [N, 3] or [N, L, 3] (one vote per level), got {list(votes.shape)}")
+    single = votes.ndim == 2
+    return (1 if single else votes.shape[1]), single
+
+
+def _fused_losses(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    votes: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    pixels: Tuple[Tensor, Tensor, Tensor],
+    sampled: Optional[Tuple[Tuple[Tensor, ...], Tuple[int, int, int, float]]],
+    isect_offsets: Tensor,
+    flatten_ids: Tensor,
+    tile_size: int,
+    options: VoteRenderOptions,
+) -> Tuple[Tensor, Tensor]:
+    """[L] vote and distortion losses; ``pixels`` = (pixel_xy, target, valid) as the kernel reads them
+    (or, when ``sampled``, the position buffer the kernel fills)."""
+    n = votes.shape[0]
+    levels = 1 if votes.ndim == 2 else votes.shape[1]
+    pixel_xy = pixels[0]
+    p = pixel_xy.shape[0]
+    shapes = {"means2d": (means2d, (n, 2)), "conics": (conics, (n, 3)), "opacities": (opacities, (n,))}
+    _check_shapes(n, {**shapes, "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3))})
     floats = (means2d, conics, opacities, votes, viewmat, K, pixel_xy)
     if len({t.dtype for t in floats}) != 1:
         raise ValueError("means2d, conics, opacities, votes, viewmat, K and pixel_xy must share one dtype")
-    if len({t.device for t in floats + (target_xy, valid)}) != 1:
-        raise ValueError("all inputs of vote_losses_tiled must be on the same device")
+    if len({t.device for t in floats}) != 1:
+        raise ValueError("all inputs of the fused vote losses must be on the same device")
     offsets, tiles_high, tiles_wide = _validate_tiles(isect_offsets, flatten_ids, tile_size, None, votes.device)
 
     dist, in_pixels = _DIST[options.distortion]
     if n == 0 or p == 0:
         # nothing to walk: zero losses that stay attached to the graph (zero gradient)
         zero = votes.new_zeros(levels) + votes.sum() * 0.0
-        vote, distortion = zero, zero.clone()
-    else:
-        threshold = _vote_threshold(options)
-        consts = vote_kernel._constants(
-            (
-                threshold,
-                options.alpha_max,
-                max(threshold, COLOUR_STOP_T),
-                ALPHA_MIN,
-                COLOUR_STOP_T,
-                float(options.vote_near_plane),
-            ),
-            votes.dtype,
-            votes.device,
-        )
-        config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel())
-        vote, distortion = _FusedVoteLosses.apply(
-            votes.reshape(n, levels, 3).contiguous(),
-            means2d.detach().contiguous(),
-            conics.detach().contiguous(),
-            opacities.detach().contiguous(),
-            viewmat.detach().contiguous(),
-            K.detach().contiguous(),
-            pixel_xy.detach().contiguous(),
-            target_xy.detach().reshape(p, levels, 2).to(votes.dtype).contiguous(),
-            valid.reshape(p, levels).contiguous().view(torch.uint8),
-            offsets.contiguous(),
-            flatten_ids.contiguous(),
-            consts,
-            config,
-        )
-    if single:
-        return {"vote": vote[0], "distortion": distortion[0]}
-    return {"vote": vote, "distortion": distortion}
+        return zero, zero.clone()
+    threshold = _vote_threshold(options)
+    consts = vote_kernel._constants(
+        (
+            threshold,
+            options.alpha_max,
+            max(threshold, COLOUR_STOP_T),
+            ALPHA_MIN,
+            COLOUR_STOP_T,
+            float(options.vote_near_plane),
+        ),
+        votes.dtype,
+        votes.device,
+    )
+    # the sampling inputs, or placeholders (never read) and zeros when the pixels are given
+    sampling, map_geometry = sampled if sampled is not None else ((offsets,) * 4, (1, 1, 1, 1.0))
+    config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel(), map_geometry)
+    return _FusedVoteLosses.apply(
+        votes.reshape(n, levels, 3).contiguous(),
+        means2d.detach().contiguous(),
+        conics.detach().contiguous(),
+        opacities.detach().contiguous(),
+        viewmat.detach().contiguous(),
+        K.detach().contiguous(),
+        *pixels,
+        *sampling,
+        offsets.contiguous(),
+        flatten_ids.contiguous(),
+        consts,
+        (config, sampled is not None),
+    )
 
 
 class _FusedVoteLosses(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx, votes, means2d, conics, opacities, viewmat, K, pixel_xy, target, valid, offsets, ids, consts, config
+        ctx,
+        votes,
+        means2d,
+        conics,
+        opacities,
+        viewmat,
+        K,
+        pixel_xy,
+        target,
+        valid,
+        sample,
+        voting,
+        labels,
+        centroids,
+        offsets,
+        ids,
+        consts,
+        config_and_sampled,
     ):
-        levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects = config
+        config, sampled = config_and_sampled
+        levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects, map_geometry = config
+        map_pixels, map_width, cent_rows, pix_scale = map_geometry
         p, device, dtype = pixel_xy.shape[0], votes.device, votes.dtype
         cap = vote_kernel.CAP
         walk = torch.empty(3, p, dtype=torch.int64, device=device)  # |M|, run start, last member's position
@@ -211,6 +389,10 @@ class _FusedVoteLosses(torch.autograd.Function):
                 pixel_xy,
                 target,
                 valid,
+                sample,
+                voting,
+                labels,
+                centroids,
                 offsets,
                 ids,
                 consts,
@@ -224,10 +406,15 @@ class _FusedVoteLosses(torch.autograd.Function):
                 tiles_wide,
                 tiles_high,
                 tile_size,
+                map_pixels,
+                map_width,
+                cent_rows,
+                pix_scale,
                 LEVELS=levels,
                 LP=lp,
                 DIST=dist,
                 IN_PIXELS=in_pixels,
+                SAMPLED=sampled,
                 **vote_kernel._walk_options(cap),
             )
             vote_kernel._launch(
@@ -255,8 +442,8 @@ class _FusedVoteLosses(torch.autograd.Function):
     def backward(ctx, g_vote, g_distortion):
         inputs = ctx.saved_tensors
         votes, pixel_xy, denominator = inputs[3], inputs[5], inputs[12]
-        (levels, dist, _in_pixels, _tw, _th, _ts, n_isects), cap = ctx.config
-        none = (None,) * 12
+        (levels, dist, _in_pixels, _tw, _th, _ts, n_isects, _map), cap = ctx.config
+        none = (None,) * 16  # the forward's inputs after votes
         has_vote, has_distortion = g_vote is not None, g_distortion is not None and dist != 0
         if not ctx.needs_input_grad[0] or not (has_vote or has_distortion):
             return (None,) + none
@@ -291,6 +478,9 @@ class _FusedVoteLosses(torch.autograd.Function):
 # variant for every new combination: on a training run that was seconds of JIT in the first hundred vote
 # steps. They only bound loops and clamp ids, so the hint buys nothing here.
 _VARYING_INTS = ("n_pixels", "n_isects", "n_gauss")
+# The same for what changes with the camera or the view (the tile grid, the vote maps' size and rows), and
+# the tile size, so that start_warm_up's one-tile scene compiles the variant every training step runs.
+_VIEW_INTS = ("tiles_wide", "tiles_high", "tile_size", "map_pixels", "map_width", "cent_rows")
 
 if triton is not None:
     _program_pixel = vote_kernel._program_pixel
@@ -311,7 +501,7 @@ if triton is not None:
         q = tl.where((q + 1.0) * size <= x, q + 1.0, q)
         return tl.where(q * size > x, q - 1.0, q)
 
-    @triton.jit(do_not_specialize=_VARYING_INTS)
+    @triton.jit(do_not_specialize=_VARYING_INTS + _VIEW_INTS)
     def _fused_fwd_kernel(
         means_ptr,
         conics_ptr,
@@ -322,6 +512,10 @@ if triton is not None:
         pix_ptr,
         target_ptr,
         valid_ptr,
+        sample_ptr,
+        voting_ptr,
+        labels_ptr,
+        cent_ptr,
         offsets_ptr,
         ids_ptr,
         consts_ptr,
@@ -335,15 +529,42 @@ if triton is not None:
         tiles_wide,
         tiles_high,
         tile_size,
+        map_pixels,
+        map_width,
+        cent_rows,
+        pix_scale,
         LEVELS: tl.constexpr,
         LP: tl.constexpr,
         DIST: tl.constexpr,
         IN_PIXELS: tl.constexpr,
+        SAMPLED: tl.constexpr,
         BLOCK: tl.constexpr,
         CAP: tl.constexpr,
         PB: tl.constexpr,
     ):
         pid, pix, walk = _program_pixel(pix_ptr, consts_ptr)
+        lvl = tl.arange(0, LP)
+        lvl_ok = lvl < LEVELS
+        if SAMPLED:
+            # vote_maps.pixels_and_targets for this program's drawn pixel, same float32 operations; the
+            # position goes to pix_ptr for the backward and replaces the one _program_pixel read there (not
+            # written yet: the load is unused and dropped)
+            flat = tl.load(voting_ptr + tl.load(sample_ptr + pid)).to(tl.int64)
+            flat = tl.minimum(tl.maximum(flat, 0), map_pixels - 1)
+            row_index = flat // map_width
+            px = ((flat - row_index * map_width).to(tl.float32) + 0.5) * pix_scale
+            py = (row_index.to(tl.float32) + 0.5) * pix_scale
+            tl.store(pix_ptr + 2 * pid, px)
+            tl.store(pix_ptr + 2 * pid + 1, py)
+            pix = (px, py, pix[2], pix[3])
+            label = tl.load(labels_ptr + lvl * map_pixels + flat, mask=lvl_ok, other=0).to(tl.int64)
+            label = tl.minimum(tl.maximum(label, 0), cent_rows - 1)
+            centroid_x = tl.load(cent_ptr + (lvl * cent_rows + label) * 2, mask=lvl_ok, other=0.0)
+            centroid_y = tl.load(cent_ptr + (lvl * cent_rows + label) * 2 + 1, mask=lvl_ok, other=0.0)
+            # finite centroid <=> the pixel votes at that level (NaN and inf give NaN here)
+            sampled_valid = lvl_ok & ((centroid_x - centroid_x) == 0.0)
+            sampled_target_x = (centroid_x + 0.5) * pix_scale
+            sampled_target_y = (centroid_y + 0.5) * pix_scale
         px, py, _alpha_max, _alpha_min = pix
         near = tl.load(consts_ptr + 5)
 
@@ -360,8 +581,6 @@ if triton is not None:
         end = tl.where(in_grid, tl.minimum(tl.maximum(end, start), n_isects), start)
 
         lane = tl.arange(0, BLOCK).to(tl.int64)
-        lvl = tl.arange(0, LP)
-        lvl_ok = lvl < LEVELS
         r20 = tl.load(view_ptr + 8)
         r21 = tl.load(view_ptr + 9)
         r22 = tl.load(view_ptr + 10)
@@ -416,9 +635,14 @@ if triton is not None:
         proj_x = u * k00 + w * k01 + tl.load(k_ptr + 2)
         proj_y = u * k10 + w * k11 + tl.load(k_ptr + 5)
         # vote loss (Eq. 10) at the used levels: valid and a non-empty voting set
-        used = (tl.load(valid_ptr + pid * LEVELS + lvl, mask=lvl_ok, other=0) != 0) & (count > 0)
-        target_x = tl.load(target_ptr + pid * (2 * LEVELS) + 2 * lvl, mask=used, other=0.0)
-        target_y = tl.load(target_ptr + pid * (2 * LEVELS) + 2 * lvl + 1, mask=used, other=0.0)
+        if SAMPLED:
+            used = sampled_valid & (count > 0)
+            target_x = tl.where(used, sampled_target_x, 0.0)
+            target_y = tl.where(used, sampled_target_y, 0.0)
+        else:
+            used = (tl.load(valid_ptr + pid * LEVELS + lvl, mask=lvl_ok, other=0) != 0) & (count > 0)
+            target_x = tl.load(target_ptr + pid * (2 * LEVELS) + 2 * lvl, mask=used, other=0.0)
+            target_y = tl.load(target_ptr + pid * (2 * LEVELS) + 2 * lvl + 1, mask=used, other=0.0)
         error_x = proj_x - target_x
         error_y = proj_y - target_y
         error = tl.where(used, tl.abs(error_x) + tl.abs(error_y), 0.0)

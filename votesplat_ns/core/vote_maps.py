@@ -360,3 +360,24 @@ def voting_pixels(vote_labels: torch.Tensor, vote_centroids: torch.Tensor) -> to
     flat_labels = vote_labels.reshape(vote_labels.shape[0], -1).long()
     # finiteness tested on the [L, K+1] table, then looked up per pixel
     return torch.isfinite(vote_centroids[..., 0])[level_index, flat_labels].any(dim=0).nonzero().squeeze(1)
+
+
+def pixels_and_targets(
+    pixel_index: torch.Tensor, width: int, flat_labels: torch.Tensor, centroids: torch.Tensor, scale: float
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pixel centres [P,2] of the flat pixel indices ``pixel_index`` [P] (row * width + column), their
+    2D votes per level [P,L,2] (continuous frame, scaled to the render resolution) and whether each
+    level carries a vote there [P,L]. (``vote_fused.vote_losses_sampled`` does this lookup in its kernel.)
+
+    flat_labels [L, H*W] mask labels (0 = no mask), centroids [L, K+1, 2] pixel-index centroids
+    (NaN: no vote, e.g. row 0 and masks cut by the image border under ``border_masks=mask_only``).
+    """
+    rows = torch.div(pixel_index, width, rounding_mode="floor")
+    cols = pixel_index - rows * width
+    pixel_xy = (torch.stack([cols, rows], dim=-1).float() + 0.5) * scale
+    pixel_labels = flat_labels[:, pixel_index].long()  # [L, P]
+    level_index = torch.arange(flat_labels.shape[0], device=pixel_index.device)[:, None]
+    target_xy = (centroids[level_index, pixel_labels] + 0.5) * scale  # [L, P, 2]
+    # finite target <=> finite centroid: tested on the [L, K+1] table, then looked up per pixel
+    valid = torch.isfinite(centroids[..., 0])[level_index, pixel_labels]
+    return pixel_xy, target_xy.transpose(0, 1), valid.transpose(0, 1)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from copy import deepcopy
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -80,6 +81,10 @@ from votesplat_ns.ns.data_checks import (  # noqa: F401 (re-exported: callers im
 )
 from votesplat_ns.ns.mask_settings import SamOptions
 from votesplat_ns.ns.retrofit import retrofit_reference
+
+# Threads that prepare the training views' vote batches in the background (training's own thread keeps
+# running; two keep the GIL mostly free for it).
+PREFETCH_THREADS = 2
 
 
 @dataclass
@@ -182,6 +187,8 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         self._vote_keys: Optional[List[str]] = None
         # per train view: the batch tensors at the last requested resolution (an LRU of vote_maps_in_memory views)
         self._in_memory: "OrderedDict[int, Dict[str, torch.Tensor]]" = OrderedDict()
+        # per train view not yet in _in_memory: its batch being prepared in the background (from the first step)
+        self._prefetch: Optional[Dict[int, "Future[Dict[str, torch.Tensor]]"]] = None
         # the pipeline hands train_dataset.metadata to the model, which sizes its offsets by it
         self.train_dataset.metadata["vote_levels"] = self.config.resolved_levels()
         # a retrofit from a PLY (model.retrofit_from) finds the file's frame with these frames and views
@@ -287,7 +294,23 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         # Host tensors: the model copies them to its device only on the steps that vote
         # (vote_every_n_steps), instead of ~4 MB host-to-device on every step.
         data.update(self.host_vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
+        if self._prefetch is None:
+            self._start_prefetch()
         return camera, data
+
+    def _start_prefetch(self) -> None:
+        """Prepares the vote batches of the training views in background threads, at their cached images'
+        resolution: reading, undistorting and pinning a view costs ms to 0.2 s of CPU, which would
+        otherwise stall the step that first visits it (cv2, numpy and torch release the GIL for it)."""
+        self._prefetch = {}
+        views = [index for index in range(len(self.cached_train)) if index not in self._in_memory]
+        pool = ThreadPoolExecutor(max_workers=PREFETCH_THREADS, thread_name_prefix="vote-maps")
+        for index in views[: max(0, self.config.vote_maps_in_memory - len(self._in_memory))]:
+            image = self.cached_train[index]["image"]
+            self._prefetch[index] = pool.submit(
+                self._vote_batch_tensors, index, int(image.shape[0]), int(image.shape[1])
+            )
+        pool.shutdown(wait=False)  # the threads end when the queue is done
 
     def vote_batch(
         self, index: int, height: Optional[int] = None, width: Optional[int] = None
@@ -307,25 +330,28 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
             height, width = int(camera.height.item()), int(camera.width.item())
         cached = self._in_memory.get(index)
         if cached is None or tuple(cached["vote_labels"].shape[1:]) != (height, width):
-            # reading, resizing or undistorting a view costs ms to 0.2 s of CPU: keep the result
-            vote_maps = self.vote_maps_for_train_view(index, height, width)
-            labels = torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32))
-            centroids = torch.from_numpy(vote_maps.padded_centroids())
-            cached = {
-                "vote_labels": labels,
-                "vote_centroids": centroids,
-                "vote_pixels": voting_pixels(labels, centroids),
-            }
-            if torch.device(self.device).type == "cuda":
-                # page-locked: the model's non_blocking copy is then asynchronous (a pageable copy makes
-                # the host wait for the GPU's queue on every vote step)
-                cached = {name: tensor.pin_memory() for name, tensor in cached.items()}
+            prefetched = self._prefetch.pop(index, None) if self._prefetch else None
+            cached = prefetched.result() if prefetched is not None else None  # re-raises the worker's error
+            if cached is None or tuple(cached["vote_labels"].shape[1:]) != (height, width):
+                cached = self._vote_batch_tensors(index, height, width)
             self._in_memory[index] = cached
             while len(self._in_memory) > max(0, self.config.vote_maps_in_memory):
                 self._in_memory.popitem(last=False)
         else:
             self._in_memory.move_to_end(index)
         return dict(cached)
+
+    def _vote_batch_tensors(self, index: int, height: int, width: int) -> Dict[str, torch.Tensor]:
+        """The batch tensors of train view ``index`` at ``height`` x ``width`` (pinned on CUDA)."""
+        vote_maps = self.vote_maps_for_train_view(index, height, width)
+        labels = torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32))
+        centroids = torch.from_numpy(vote_maps.padded_centroids())
+        tensors = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
+        if torch.device(self.device).type == "cuda":
+            # page-locked: the model's non_blocking copy is then asynchronous (a pageable copy makes
+            # the host wait for the GPU's queue on every vote step)
+            tensors = {name: tensor.pin_memory() for name, tensor in tensors.items()}
+        return tensors
 
 
 def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:

@@ -14,6 +14,7 @@ path config.yml files of earlier runs name).
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Union
 
@@ -27,7 +28,8 @@ from torch.nn import Parameter
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
 from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
-from votesplat_ns.core.vote_fused import use_fused, vote_losses_tiled
+from votesplat_ns.core.vote_fused import start_warm_up, use_fused, vote_losses_sampled
+from votesplat_ns.core.vote_maps import pixels_and_targets
 from votesplat_ns.core.vote_render import DIVERGED_VOTES, VoteRender, render_votes_tiled, vote_losses
 from votesplat_ns.ns.compat import UnavailableMetric
 from votesplat_ns.ns.model_config import VoteSplatModelConfig
@@ -48,26 +50,6 @@ VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
 # The fused vote losses do not read the host, so they cannot raise on diverged votes each step; the
 # model reads their finiteness this often instead (a NaN loss otherwise trains on silently).
 FUSED_FINITE_CHECK_EVERY = 100
-
-
-def _pixels_and_targets(
-    pixel_index: torch.Tensor, width: int, flat_labels: torch.Tensor, centroids: torch.Tensor, scale: float
-) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Pixel centres [P,2], their 2D votes per level [P,L,2] (continuous frame, scaled to the
-    render resolution) and whether each level carries a vote there [P,L].
-
-    flat_labels [L, H*W] mask labels (0 = no mask), centroids [L, K+1, 2] pixel-index centroids
-    (NaN: no vote, e.g. row 0 and masks cut by the image border under ``border_masks=mask_only``).
-    """
-    rows = torch.div(pixel_index, width, rounding_mode="floor")
-    cols = pixel_index - rows * width
-    pixel_xy = (torch.stack([cols, rows], dim=-1).float() + 0.5) * scale
-    pixel_labels = flat_labels[:, pixel_index].long()  # [L, P]
-    level_index = torch.arange(flat_labels.shape[0], device=pixel_index.device)[:, None]
-    target_xy = (centroids[level_index, pixel_labels] + 0.5) * scale  # [L, P, 2]
-    # finite target <=> finite centroid: tested on the [L, K+1] table, then looked up per pixel
-    valid = torch.isfinite(centroids[..., 0])[level_index, pixel_labels]
-    return pixel_xy, target_xy.transpose(0, 1), valid.transpose(0, 1)
 
 
 def _raise_if_diverged(vote_loss: torch.Tensor) -> None:
@@ -112,6 +94,7 @@ class VoteSplatModel(SplatfactoModel):
         self.vote_options = self.config.vote_render_options()
         # (batch, its vote losses): computed in get_metrics_dict, used by get_loss_dict of the same batch
         self._early_vote_losses: Tuple[Optional[Dict], Dict[str, torch.Tensor]] = (None, {})
+        self._kernel_warm_up: Optional[threading.Thread] = None  # compiling the fused kernels (CUDA)
         self.viewer_state = VoteSplatViewerState(self)
 
     @property
@@ -185,6 +168,7 @@ class VoteSplatModel(SplatfactoModel):
             # the trainer asks for callbacks right after loading a checkpoint (ns-train --load-dir)
             self.adopt_optimizers(training_callback_attributes.optimizers)
         self.continue_support_counts()
+        self._start_kernel_warm_up()
         callbacks = super().get_training_callbacks(training_callback_attributes)
         trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
@@ -411,30 +395,34 @@ class VoteSplatModel(SplatfactoModel):
         scale = 1.0 / self._get_downscale_factor()
         flat_labels = labels.reshape(labels.shape[0], -1)
         # One pixel sample and one walk for all levels: membership depends only on geometry. Uniform
-        # among the pixels that carry a vote; a view with none samples any pixels, none of which is
-        # valid: both losses are then 0 and still connected to the offsets.
+        # among the pixels that carry a vote.
         size = (self.config.vote_pixels_per_step,)
-        if voting.numel():
-            pixel_index = voting[torch.randint(voting.numel(), size, device=self.device)]
-        else:
-            pixel_index = torch.randint(flat_labels.shape[1], size, device=self.device)
-        pixel_xy, target_xy, valid = _pixels_and_targets(pixel_index, labels.shape[-1], flat_labels, centroids, scale)
         votes = self._votes()
-        if use_fused(self.vote_options, votes, pixel_xy):
-            # The Triton backend with the default switches: render and losses in three launches, no host
-            # read (so no value checks: the targets are finite wherever valid, and a diverged vote gives a
-            # NaN loss instead of an error).
+        if not voting.numel():
+            # a view without any vote: both losses are 0, still connected to the offsets
+            zero = votes.sum() * 0.0
+            return zero, zero.clone()
+        sample = torch.randint(voting.numel(), size, device=self.device)
+        if use_fused(self.vote_options, votes, voting):
+            if self._kernel_warm_up is not None:
+                self._kernel_warm_up.join()  # the kernels it compiled are then in Triton's cache
+                self._kernel_warm_up = None
+            # The Triton backend with the default switches: the pixel lookup, render and losses in three
+            # launches, no host read (so no value checks: a diverged vote gives a NaN loss, not an error).
             info = self.info
-            losses = vote_losses_tiled(
+            losses = vote_losses_sampled(
                 info["means2d"][0],
                 info["conics"][0],
                 info["opacities"][0],
                 votes,
                 info["viewmats"][0],
                 info["Ks"][0],
-                pixel_xy,
-                target_xy,
-                valid,
+                sample,
+                voting,
+                flat_labels,
+                centroids,
+                labels.shape[-1],
+                scale,
                 info["isect_offsets"][0],
                 info["flatten_ids"],
                 info["tile_size"],
@@ -444,11 +432,21 @@ class VoteSplatModel(SplatfactoModel):
                 # one host read every FUSED_FINITE_CHECK_EVERY steps, so diverged votes still stop training
                 _raise_if_diverged(losses["vote"])
         else:
+            pixel_xy, target_xy, valid = pixels_and_targets(
+                voting[sample], labels.shape[-1], flat_labels, centroids, scale
+            )
             # Targets are finite wherever valid (valid is their finiteness) and render_votes_tiled checks the
             # votes, so vote_losses' own input checks (a host read every step) would never fire.
             render = self.render_votes(pixel_xy, votes)
             losses = vote_losses(render, target_xy, valid, self.vote_options, check_inputs=False)
         return losses["vote"].sum(), losses["distortion"].sum()
+
+    def _start_kernel_warm_up(self) -> None:
+        """On CUDA, compiles the fused vote kernels in the background while the first steps run (the first
+        vote step would otherwise wait for the compiler); that step joins the thread."""
+        probe = torch.zeros(1, self.num_vote_levels, 3, device=self.device)
+        if self._kernel_warm_up is None and probe.is_cuda and use_fused(self.vote_options, probe, probe):
+            self._kernel_warm_up = start_warm_up(self.num_vote_levels, self.vote_options, probe.device)
 
     def _votes(self) -> torch.Tensor:
         """[N, L, 3] world-space votes p + dp (p without gradient unless votes_move_geometry)."""
@@ -486,7 +484,7 @@ class VoteSplatModel(SplatfactoModel):
         labels, centroids, voting = self._vote_maps(batch)
         self.get_outputs(camera.to(self.device))
         flat_labels = labels.reshape(labels.shape[0], -1)
-        pixel_xy, target_xy, valid = _pixels_and_targets(voting, labels.shape[-1], flat_labels, centroids, 1.0)
+        pixel_xy, target_xy, valid = pixels_and_targets(voting, labels.shape[-1], flat_labels, centroids, 1.0)
         render = self.render_votes(pixel_xy)
         used = valid & (render.count > 0)[:, None]  # [P, L]
         error = (render.projected_vote - target_xy).abs().sum(-1)  # [P, L]
