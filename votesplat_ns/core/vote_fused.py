@@ -415,10 +415,7 @@ class _FusedVoteLosses(torch.autograd.Function):
                 DIST=dist,
                 IN_PIXELS=in_pixels,
                 SAMPLED=sampled,
-                BLOCK=vote_kernel.BLOCK,
-                CAP=cap,
-                PB=vote_kernel.PAIR_BLOCK,
-                num_warps=vote_kernel.NUM_WARPS,
+                **vote_kernel._walk_options(cap),
             )
             vote_kernel._launch(
                 _fused_reduce_kernel,
@@ -433,8 +430,9 @@ class _FusedVoteLosses(torch.autograd.Function):
                 RB=REDUCE_BLOCK,
                 num_warps=4,
             )
+        # in the order of the backward kernel's leading arguments
         ctx.save_for_backward(
-            votes, means2d, conics, opacities, viewmat, pixel_xy, ids, consts, walk, members, depths, terms, denominator
+            means2d, conics, opacities, votes, viewmat, pixel_xy, ids, consts, walk, members, depths, terms, denominator
         )
         ctx.config = (config, cap)
         ctx.set_materialize_grads(False)
@@ -442,21 +440,8 @@ class _FusedVoteLosses(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_vote, g_distortion):
-        (
-            votes,
-            means2d,
-            conics,
-            opacities,
-            viewmat,
-            pixel_xy,
-            ids,
-            consts,
-            walk,
-            members,
-            depths,
-            terms,
-            denominator,
-        ) = ctx.saved_tensors
+        inputs = ctx.saved_tensors
+        votes, pixel_xy, denominator = inputs[3], inputs[5], inputs[12]
         (levels, dist, _in_pixels, _tw, _th, _ts, n_isects, _map), cap = ctx.config
         none = (None,) * 16  # the forward's inputs after votes
         has_vote, has_distortion = g_vote is not None, g_distortion is not None and dist != 0
@@ -468,19 +453,7 @@ class _FusedVoteLosses(torch.autograd.Function):
             vote_kernel._launch(
                 _fused_bwd_kernel,
                 (p,),
-                means2d,
-                conics,
-                opacities,
-                votes,
-                viewmat,
-                pixel_xy,
-                ids,
-                consts,
-                walk,
-                members,
-                depths,
-                terms,
-                denominator,
+                *inputs,
                 # with strides: the gradient of a sum arrives expanded (stride 0), and copying it is a launch
                 g_vote if has_vote else denominator,
                 g_vote.stride(0) if has_vote else 0,
@@ -495,10 +468,7 @@ class _FusedVoteLosses(torch.autograd.Function):
                 DIST=dist,
                 HAS_VOTE=has_vote,
                 HAS_DIST=has_distortion,
-                BLOCK=vote_kernel.BLOCK,
-                CAP=cap,
-                PB=vote_kernel.PAIR_BLOCK,
-                num_warps=vote_kernel.NUM_WARPS,
+                **vote_kernel._walk_options(cap),
             )
         return (g_votes,) + none
 
@@ -513,29 +483,15 @@ _VARYING_INTS = ("n_pixels", "n_isects", "n_gauss")
 _VIEW_INTS = ("tiles_wide", "tiles_high", "tile_size", "map_pixels", "map_width", "cent_rows")
 
 if triton is not None:
-    _store_member_depths = vote_kernel._store_member_depths
-    _compact_spread = vote_kernel._compact_spread
+    _program_pixel = vote_kernel._program_pixel
+    _walk_block = vote_kernel._walk_block
+    _entry_alpha = vote_kernel._entry_alpha
+    _entry_depths = vote_kernel._entry_depths
+    _compact = vote_kernel._compact
+    _member_spread = vote_kernel._member_spread
     _compact_signs = vote_kernel._compact_signs
-
-    @triton.jit
-    def _split_alpha(means_ptr, conics_ptr, opac_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min, n_gauss):
-        """``vote_kernel._block_alpha`` on separate means2d / conics / opacities, ids clamped into [0, N)."""
-        inside = offs < stop
-        gid = tl.load(ids_ptr + offs, mask=inside, other=0).to(tl.int64)
-        gid = tl.minimum(tl.maximum(gid, 0), n_gauss - 1)
-        mx = tl.load(means_ptr + 2 * gid, mask=inside, other=0.0)
-        my = tl.load(means_ptr + 2 * gid + 1, mask=inside, other=0.0)
-        ca = tl.load(conics_ptr + 3 * gid, mask=inside, other=0.0)
-        cb = tl.load(conics_ptr + 3 * gid + 1, mask=inside, other=0.0)
-        cc = tl.load(conics_ptr + 3 * gid + 2, mask=inside, other=0.0)
-        opacity = tl.load(opac_ptr + gid, mask=inside, other=0.0)
-        dx = mx - px
-        dy = my - py
-        # the operation order of vote_render._alpha
-        sigma = cb * dx * dy + 0.5 * (dx * dx * ca + dy * dy * cc)
-        alpha = tl.minimum(opacity * tl.exp(-tl.maximum(sigma, 0.0)), alpha_max)
-        visible = inside & (sigma >= 0.0) & (alpha >= alpha_min)
-        return gid, alpha, visible
+    _run_signs = vote_kernel._run_signs
+    _sign = vote_kernel._sign
 
     @triton.jit
     def _floor_div(x, size):
@@ -544,17 +500,6 @@ if triton is not None:
         q = tl.floor(x / size)
         q = tl.where((q + 1.0) * size <= x, q + 1.0, q)
         return tl.where(q * size > x, q - 1.0, q)
-
-    @triton.jit
-    def _block_depths(votes_ptr, gid, ok, lvl, LEVELS: tl.constexpr, r0, r1, r2, t2):
-        """[B, LP] camera depths of the votes of Gaussians ``gid`` (0 where not ``ok``), and their x, y, z."""
-        mask = ok[:, None] & (lvl < LEVELS)[None, :]
-        base = gid[:, None] * (LEVELS * 3) + lvl[None, :] * 3
-        x = tl.load(votes_ptr + base, mask=mask, other=0.0)
-        y = tl.load(votes_ptr + base + 1, mask=mask, other=0.0)
-        z = tl.load(votes_ptr + base + 2, mask=mask, other=0.0)
-        depth = tl.where(mask, x * r0 + y * r1 + z * r2 + t2, 0.0)
-        return depth, x, y, z
 
     @triton.jit(do_not_specialize=_VARYING_INTS + _VIEW_INTS)
     def _fused_fwd_kernel(
@@ -597,12 +542,13 @@ if triton is not None:
         CAP: tl.constexpr,
         PB: tl.constexpr,
     ):
-        pid = tl.program_id(0).to(tl.int64)
+        pid, pix, walk = _program_pixel(pix_ptr, consts_ptr)
         lvl = tl.arange(0, LP)
         lvl_ok = lvl < LEVELS
         if SAMPLED:
             # vote_maps.pixels_and_targets for this program's drawn pixel, same float32 operations; the
-            # position goes to pix_ptr for the backward
+            # position goes to pix_ptr for the backward and replaces the one _program_pixel read there (not
+            # written yet: the load is unused and dropped)
             flat = tl.load(voting_ptr + tl.load(sample_ptr + pid)).to(tl.int64)
             flat = tl.minimum(tl.maximum(flat, 0), map_pixels - 1)
             row_index = flat // map_width
@@ -610,6 +556,7 @@ if triton is not None:
             py = (row_index.to(tl.float32) + 0.5) * pix_scale
             tl.store(pix_ptr + 2 * pid, px)
             tl.store(pix_ptr + 2 * pid + 1, py)
+            pix = (px, py, pix[2], pix[3])
             label = tl.load(labels_ptr + lvl * map_pixels + flat, mask=lvl_ok, other=0).to(tl.int64)
             label = tl.minimum(tl.maximum(label, 0), cent_rows - 1)
             centroid_x = tl.load(cent_ptr + (lvl * cent_rows + label) * 2, mask=lvl_ok, other=0.0)
@@ -618,14 +565,7 @@ if triton is not None:
             sampled_valid = lvl_ok & ((centroid_x - centroid_x) == 0.0)
             sampled_target_x = (centroid_x + 0.5) * pix_scale
             sampled_target_y = (centroid_y + 0.5) * pix_scale
-        else:
-            px = tl.load(pix_ptr + 2 * pid)
-            py = tl.load(pix_ptr + 2 * pid + 1)
-        threshold = tl.load(consts_ptr)
-        alpha_max = tl.load(consts_ptr + 1)
-        open_above = tl.load(consts_ptr + 2)
-        alpha_min = tl.load(consts_ptr + 3)
-        colour_stop = tl.load(consts_ptr + 4)
+        px, py, _alpha_max, _alpha_min = pix
         near = tl.load(consts_ptr + 5)
 
         # the pixel's tile run (vote_render._pixel_runs): empty outside the grid (NaN compares False)
@@ -645,6 +585,8 @@ if triton is not None:
         r21 = tl.load(view_ptr + 9)
         r22 = tl.load(view_ptr + 10)
         t2 = tl.load(view_ptr + 11)
+        geo = (means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss)
+        zsrc = (votes_ptr, r20, r21, r22, t2)
         member_row = members_ptr + pid * CAP
         depth_row = depths_ptr + pid * (LEVELS * CAP)
 
@@ -658,28 +600,16 @@ if triton is not None:
         pos = start
         walking = pos < end
         while walking:
-            offs = pos + lane
-            gid, alpha, visible = _split_alpha(
-                means_ptr, conics_ptr, opac_ptr, ids_ptr, offs, end, px, py, alpha_max, alpha_min, n_gauss
+            gid, _alpha, member, _t_before, t, last, pos, walking = _walk_block(
+                geo, False, pos, end, pix, walk, t, last, BLOCK
             )
-            keep = 1.0 - tl.where(visible, alpha, 0.0)
-            t_after = t * tl.cumprod(keep, axis=0)
-            t_before = t_after / keep
-            member = visible & (t_after > colour_stop) & (t_before > threshold)
-            last = tl.maximum(last, tl.max(tl.where(member, offs, -1), axis=0))
-            depth, x, y, z = _block_depths(votes_ptr, gid, member, lvl, LEVELS, r20, r21, r22, t2)
+            depth, x, y, z = _entry_depths(zsrc, True, 3, gid, member, lvl, LEVELS)
             sx += tl.sum(x, axis=0)
             sy += tl.sum(y, axis=0)
             sz += tl.sum(z, axis=0)
             zacc += tl.sum(depth, axis=0)
-            slot = count + tl.cumsum(member.to(tl.int32), axis=0) - 1
+            slot, count = _compact(depth_row, depth, member, count, lvl, LEVELS, CAP, DIST)
             tl.store(member_row + slot, gid.to(tl.int32), mask=member & (slot < CAP))
-            if DIST != 0:
-                _store_member_depths(depth_row, depth, member, count, lvl, LEVELS, CAP)
-            count += tl.sum(member.to(tl.int32), axis=0)
-            t = tl.min(t_after, axis=0)
-            pos += BLOCK
-            walking = (pos < end) & (t > open_above)
 
         n_members = tl.maximum(count, 1).to(px.dtype)
         # uniform mean (Eq. 8), to the camera, projected (Eq. 9): vote_render._finish / project_to_pixels
@@ -717,8 +647,8 @@ if triton is not None:
         error_y = proj_y - target_y
         error = tl.where(used, tl.abs(error_x) + tl.abs(error_y), 0.0)
         # its gradient with respect to each member's vote (1 / |M| of the mean's): sign(0) = 0 as torch's abs
-        sign_x = tl.where(error_x > 0.0, 1.0, tl.where(error_x < 0.0, -1.0, 0.0))
-        sign_y = tl.where(error_y > 0.0, 1.0, tl.where(error_y < 0.0, -1.0, 0.0))
+        sign_x = _sign(error_x)
+        sign_y = _sign(error_y)
         g_u = k00 * sign_x + k10 * sign_y
         g_w = k01 * sign_x + k11 * sign_y
         g_cam_x = g_u / zc
@@ -736,46 +666,8 @@ if triton is not None:
         distortion = tl.zeros([LP], dtype=px.dtype)
         factor = tl.zeros([LP], dtype=px.dtype)
         if DIST != 0:
-            # the members' depths were written by other threads of this program
-            tl.debug_barrier()
-            spread = tl.zeros([LP], dtype=px.dtype)
-            if count <= CAP:
-                spread = _compact_spread(depth_row, count, mean_z, lvl, LEVELS, CAP, DIST, PB)
-            else:
-                # more than CAP members: M = the visible entries in [start, last], by pairs of run blocks
-                stop = last + 1
-                for p0 in range(start, stop, BLOCK):
-                    offs_i = p0 + lane
-                    gid_i, _a, vis_i = _split_alpha(
-                        means_ptr, conics_ptr, opac_ptr, ids_ptr, offs_i, stop, px, py, alpha_max, alpha_min, n_gauss
-                    )
-                    z_i, _x, _y, _z = _block_depths(votes_ptr, gid_i, vis_i, lvl, LEVELS, r20, r21, r22, t2)
-                    if DIST == 2:
-                        deviation = tl.where(vis_i[:, None] & lvl_ok[None, :], z_i - mean_z[None, :], 0.0)
-                        spread += tl.sum(deviation * deviation, axis=0)
-                    if DIST == 1:
-                        for q0 in range(p0, stop, BLOCK):
-                            offs_j = q0 + lane
-                            gid_j, _a2, vis_j = _split_alpha(
-                                means_ptr,
-                                conics_ptr,
-                                opac_ptr,
-                                ids_ptr,
-                                offs_j,
-                                stop,
-                                px,
-                                py,
-                                alpha_max,
-                                alpha_min,
-                                n_gauss,
-                            )
-                            z_j, _x2, _y2, _z2 = _block_depths(votes_ptr, gid_j, vis_j, lvl, LEVELS, r20, r21, r22, t2)
-                            pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
-                            for level in range(LEVELS):
-                                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
-                                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
-                                gap = tl.where(pair, tl.abs(zi[:, None] - zj[None, :]), 0.0)
-                                spread += tl.where(lvl == level, tl.sum(tl.sum(gap, axis=1), axis=0), 0.0)
+            runs = (geo, pix, zsrc, start, last + 1)
+            spread = _member_spread(depth_row, count, mean_z, runs, lvl, LEVELS, False, True, 3, DIST, BLOCK, CAP, PB)
             if DIST == 1:
                 distortion = spread
                 factor = spread * 0.0 + 1.0
@@ -907,49 +799,23 @@ if triton is not None:
                     )
             else:
                 # more than CAP members: walk [start, last] again; its visible entries are the members
-                px = tl.load(pix_ptr + 2 * pid)
-                py = tl.load(pix_ptr + 2 * pid + 1)
-                alpha_max = tl.load(consts_ptr + 1)
-                alpha_min = tl.load(consts_ptr + 3)
+                _pid, pix, _walk = _program_pixel(pix_ptr, consts_ptr)
+                geo = (means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss)
+                zsrc = (votes_ptr, r20, r21, r22, t2)
                 start = tl.load(walk_ptr + n_pixels + pid)
                 stop = tl.load(walk_ptr + 2 * n_pixels + pid) + 1
+                runs = (geo, pix, zsrc, start, stop)
                 lane = tl.arange(0, BLOCK).to(tl.int64)
                 for p0 in range(start, stop, BLOCK):
                     offs_i = p0 + lane
-                    gid, _a, vis_i = _split_alpha(
-                        means_ptr, conics_ptr, opac_ptr, ids_ptr, offs_i, stop, px, py, alpha_max, alpha_min, n_gauss
-                    )
-                    z_i, _x, _y, _z = _block_depths(votes_ptr, gid, vis_i, lvl, LEVELS, r20, r21, r22, t2)
+                    gid, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, False, offs_i, stop, pix)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, True, 3, gid, vis_i, lvl, LEVELS)
                     s = tl.zeros([BLOCK, LP], dtype=denominator.dtype)
                     if HAS_DIST:
                         if DIST == 2:
                             s = z_i - mean_z[None, :]
                         if DIST == 1:
-                            for q0 in range(start, stop, BLOCK):
-                                offs_j = q0 + lane
-                                gid_j, _a2, vis_j = _split_alpha(
-                                    means_ptr,
-                                    conics_ptr,
-                                    opac_ptr,
-                                    ids_ptr,
-                                    offs_j,
-                                    stop,
-                                    px,
-                                    py,
-                                    alpha_max,
-                                    alpha_min,
-                                    n_gauss,
-                                )
-                                z_j, _x2, _y2, _z2 = _block_depths(
-                                    votes_ptr, gid_j, vis_j, lvl, LEVELS, r20, r21, r22, t2
-                                )
-                                for level in range(LEVELS):
-                                    zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
-                                    zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
-                                    gap = zi[:, None] - zj[None, :]
-                                    sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
-                                    sign = tl.where(vis_j[None, :], sign, 0.0)
-                                    s += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                            s = _run_signs(z_i, runs, lvl, LEVELS, False, True, 3, BLOCK)
                     _scatter_vote_grads(
                         g_votes_ptr, gid, vis_i, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
                     )

@@ -34,6 +34,11 @@ What a kernel program does (one program per sampled pixel):
   the suffix sum of g_w * w over later members, through which their transmittance depends
   on this alpha.
 
+The jit helpers (the alpha of a run entry, a block of the walk, the member depths, the spread and
+the sign sums with their past-``CAP`` paths) also serve :mod:`votesplat_ns.core.vote_fused`'s
+kernels: the geometry comes packed [N, 6] here and as separate tensors there, the depths from the
+vote table here and from the world votes and ``viewmat`` there. Both clamp ids into [0, N).
+
 A program's work is a few blocks of gathers, so at training sizes the torch ops around the
 two launches (input checks, vote table, normalisation, losses) are expected to cost about as
 much as the kernels (an estimate: bench-vote measures the whole pass).
@@ -164,6 +169,11 @@ def _launch(kernel, grid, *args, **kwargs) -> None:
     kernel[grid](*args, **kwargs)
 
 
+def _walk_options(cap: int) -> dict:
+    """The launch options the walking kernels share: walk width, scratch slots, pair tile side, warps."""
+    return {"BLOCK": BLOCK, "CAP": cap, "PB": PAIR_BLOCK, "num_warps": NUM_WARPS}
+
+
 def _pow2(x: int) -> int:
     return 1 << max(0, (int(x) - 1).bit_length())
 
@@ -201,16 +211,14 @@ class _VoteSums(torch.autograd.Function):
                     depth_sum,
                     spread,
                     depths,
+                    geometry.shape[0],
                     LEVELS=levels,
                     LP=_pow2(levels),
                     D1=width,
                     LDP=_pow2(levels * width),
                     ALPHA_T=alpha_t,
                     DIST=dist,
-                    BLOCK=BLOCK,
-                    CAP=CAP,
-                    PB=PAIR_BLOCK,
-                    num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
+                    **_walk_options(CAP),
                 )
         ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths)
         ctx.cap = CAP
@@ -254,6 +262,7 @@ class _VoteSums(torch.autograd.Function):
                 g_table,
                 g_geometry,
                 depths,
+                geometry.shape[0],
                 LEVELS=levels,
                 LP=_pow2(levels),
                 D1=width,
@@ -261,10 +270,7 @@ class _VoteSums(torch.autograd.Function):
                 ALPHA_T=alpha_t,
                 DIST=dist,
                 GEOMETRY_GRAD=geometry_grad,
-                BLOCK=BLOCK,
-                CAP=ctx.cap,
-                PB=PAIR_BLOCK,
-                num_warps=NUM_WARPS,  # pyright: ignore[reportCallIssue]  (a launch option of triton's grid call)
+                **_walk_options(ctx.cap),
             )
         return (
             g_geometry if geometry_grad else None,
@@ -281,21 +287,47 @@ class _VoteSums(torch.autograd.Function):
 if triton is not None:
 
     @triton.jit
-    def _block_alpha(geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min):
-        """gsplat's alpha at (px, py) for run entries ``offs`` (those >= stop are out), and visibility."""
+    def _program_pixel(pix_ptr, consts_ptr):
+        """This program's pixel: its index, ``pix`` = (px, py, alpha_max, alpha_min) as ``_entry_alpha``
+        takes it, and ``walk`` = (threshold, open_above, colour_stop) (``_constants``' order)."""
+        pid = tl.program_id(0).to(tl.int64)
+        pix = (
+            tl.load(pix_ptr + 2 * pid),
+            tl.load(pix_ptr + 2 * pid + 1),
+            tl.load(consts_ptr + 1),
+            tl.load(consts_ptr + 3),
+        )
+        return pid, pix, (tl.load(consts_ptr), tl.load(consts_ptr + 2), tl.load(consts_ptr + 4))
+
+    @triton.jit
+    def _entry_alpha(geo, PACKED: tl.constexpr, offs, stop, pix):
+        """gsplat's alpha at the pixel ``pix`` for run entries ``offs`` (those >= stop are out), and visibility.
+
+        ``geo`` = (means2d, conics, opacities, flatten_ids, N) pointers and N, ids clamped into [0, N): with
+        PACKED the three point into the geometry table [N, 6] (mx, my, a, b, c, opacity) at columns 0, 2 and 5,
+        else to separate [N, 2], [N, 3], [N] tensors. Returns gid, alpha, visible and, for the geometry's
+        gradient, dx, dy, the conic (a, b, c), exp(-sigma) and the unclamped alpha."""
+        means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss = geo
+        px, py, alpha_max, alpha_min = pix
+        M_STRIDE: tl.constexpr = 6 if PACKED else 2
+        C_STRIDE: tl.constexpr = 6 if PACKED else 3
+        O_STRIDE: tl.constexpr = 6 if PACKED else 1
         inside = offs < stop
         gid = tl.load(ids_ptr + offs, mask=inside, other=0).to(tl.int64)
-        base = gid * 6
-        mx = tl.load(geom_ptr + base, mask=inside, other=0.0)
-        my = tl.load(geom_ptr + base + 1, mask=inside, other=0.0)
-        ca = tl.load(geom_ptr + base + 2, mask=inside, other=0.0)
-        cb = tl.load(geom_ptr + base + 3, mask=inside, other=0.0)
-        cc = tl.load(geom_ptr + base + 4, mask=inside, other=0.0)
-        opacity = tl.load(geom_ptr + base + 5, mask=inside, other=0.0)
+        gid = tl.minimum(tl.maximum(gid, 0), n_gauss - 1)
+        mx = tl.load(means_ptr + M_STRIDE * gid, mask=inside, other=0.0)
+        my = tl.load(means_ptr + M_STRIDE * gid + 1, mask=inside, other=0.0)
+        ca = tl.load(conics_ptr + C_STRIDE * gid, mask=inside, other=0.0)
+        cb = tl.load(conics_ptr + C_STRIDE * gid + 1, mask=inside, other=0.0)
+        cc = tl.load(conics_ptr + C_STRIDE * gid + 2, mask=inside, other=0.0)
+        opacity = tl.load(opac_ptr + O_STRIDE * gid, mask=inside, other=0.0)
         dx = mx - px
         dy = my - py
-        # the operation order of vote_render._alpha
-        sigma = cb * dx * dy + 0.5 * (dx * dx * ca + dy * dy * cc)
+        # the operation order of vote_render._alpha, with explicit fmas (as _entry_depths): every copy of this
+        # block (the walk, the re-walks, each layout the compiler puts it in) must find the same members, and
+        # the compiler may contract mul + add differently per copy. The order is the one it chose before;
+        # the interpreter rounds each step: cb * dx * dy + 0.5 * (dx * dx * ca + dy * dy * cc).
+        sigma = tl.fma(cb * dx, dy, 0.5 * tl.fma(dx * dx, ca, dy * dy * cc))
         falloff = tl.exp(-tl.maximum(sigma, 0.0))
         raw = opacity * falloff
         alpha = tl.minimum(raw, alpha_max)
@@ -303,47 +335,145 @@ if triton is not None:
         return gid, alpha, visible, dx, dy, ca, cb, cc, falloff, raw
 
     @triton.jit
-    def _store_member_depths(depth_row_ptr, depth, member, before, lvl, LEVELS: tl.constexpr, CAP: tl.constexpr):
-        """Write the members' depths [BLOCK, LP] of one walk block to slots ``before`` + rank in the block
-        of the pixel's [LEVELS, CAP] scratch row (members past CAP are dropped: the caller knows from |M|)."""
-        slot = before + tl.cumsum(member.to(tl.int32), axis=0) - 1
-        keep = member & (slot < CAP)
-        tl.store(
-            depth_row_ptr + lvl[None, :] * CAP + slot[:, None],
-            depth,
-            mask=keep[:, None] & (lvl < LEVELS)[None, :],
-        )
+    def _transmittance(t, alpha, visible):
+        """1 - alpha of a block's entries (1 where not visible), and the transmittance behind and in front of
+        each, from the transmittance ``t`` in front of the block (module docstring: exact to an ulp)."""
+        keep = 1.0 - tl.where(visible, alpha, 0.0)
+        t_after = t * tl.cumprod(keep, axis=0)
+        return keep, t_after, t_after / keep
 
     @triton.jit
-    def _compact_spread(
-        depth_row_ptr, m, mean, lvl, LEVELS: tl.constexpr, CAP: tl.constexpr, DIST: tl.constexpr, PB: tl.constexpr
+    def _walk_block(geo, PACKED: tl.constexpr, pos, end, pix, walk, t, last, BLOCK: tl.constexpr):
+        """The block of the front-to-back walk at run position ``pos`` (``walk`` from ``_program_pixel``;
+        ``t``: the transmittance in front of the block, ``last``: the last member's position before it): the
+        entries' gid, alpha, membership in M and transmittance in front of them; the transmittance behind the
+        block, the last member's position, the next block's position, and whether to walk on (the run goes on
+        and a later entry can still join M)."""
+        threshold, open_above, colour_stop = walk
+        offs = pos + tl.arange(0, BLOCK).to(tl.int64)
+        gid, alpha, visible, _dx, _dy, _a, _b, _c, _f, _r = _entry_alpha(geo, PACKED, offs, end, pix)
+        _keep, t_after, t_before = _transmittance(t, alpha, visible)
+        member = visible & (t_after > colour_stop) & (t_before > threshold)
+        last = tl.maximum(last, tl.max(tl.where(member, offs, -1), axis=0))
+        t = tl.min(t_after, axis=0)
+        pos += BLOCK
+        return gid, alpha, member, t_before, t, last, pos, (pos < end) & (t > open_above)
+
+    @triton.jit
+    def _entry_depths(zsrc, PROJECT: tl.constexpr, D1: tl.constexpr, gid, ok, lvl, LEVELS: tl.constexpr):
+        """[B, LP] camera depths of every level's vote of Gaussians ``gid`` (0 where not ``ok``), and its x, y, z.
+
+        ``zsrc`` = (vote table [N, LEVELS, D1],): the depth is a row's last column (x, y, z: the depth too);
+        with PROJECT, (world votes [N, LEVELS, 3], r0, r1, r2, t2): viewmat's row 2 takes them to the camera."""
+        mask = ok[:, None] & (lvl < LEVELS)[None, :]
+        at = zsrc[0] + gid[:, None] * (LEVELS * D1) + lvl[None, :] * D1
+        if PROJECT:
+            x = tl.load(at, mask=mask, other=0.0)
+            y = tl.load(at + 1, mask=mask, other=0.0)
+            z = tl.load(at + 2, mask=mask, other=0.0)
+            # Explicit fmas, no mul + add left for the compiler to contract: it contracts per element, and on
+            # sm_90 it fused y * r1 in some lanes of a block and x * r0 in others (the lanes of one layout), so
+            # two computations of one depth differed in the last bit and the sign sums past CAP got
+            # sign(z_i - z_i) = +-1 for a member against itself and split tied votes. This is the order the
+            # compiler chose everywhere in the kernels before these helpers were shared: y * r1 rounded, then
+            # x * r0 and z * r2 fused. The interpreter rounds each step: x * r0 + y * r1 + z * r2 + t2, as before.
+            depth = tl.where(mask, tl.fma(z, zsrc[3], tl.fma(x, zsrc[1], y * zsrc[2])) + zsrc[4], 0.0)
+        else:
+            depth = tl.load(at + (D1 - 1), mask=mask, other=0.0)
+            x = depth
+            y = depth
+            z = depth
+        return depth, x, y, z
+
+    @triton.jit
+    def _sign(x):
+        """sign(x), 0 at 0 as torch's."""
+        return tl.where(x > 0.0, 1.0, tl.where(x < 0.0, -1.0, 0.0))
+
+    @triton.jit
+    def _compact(depth_row_ptr, depth, member, count, lvl, LEVELS: tl.constexpr, CAP: tl.constexpr, DIST: tl.constexpr):
+        """Slots ``count`` (|M| before the block) + rank in the block of one walk block's members in the pixel's
+        scratch rows, and |M| after the block; with a distortion, writes their depths [BLOCK, LP] to the
+        [LEVELS, CAP] depth row (members past CAP are dropped: the caller knows from |M|)."""
+        slot = count + tl.cumsum(member.to(tl.int32), axis=0) - 1
+        if DIST != 0:
+            at = depth_row_ptr + lvl[None, :] * CAP + slot[:, None]
+            tl.store(at, depth, mask=(member & (slot < CAP))[:, None] & (lvl < LEVELS)[None, :])
+        return slot, count + tl.sum(member.to(tl.int32), axis=0)
+
+    @triton.jit
+    def _member_spread(
+        depth_row_ptr,
+        m,
+        mean,
+        runs,
+        lvl,
+        LEVELS: tl.constexpr,
+        PACKED: tl.constexpr,
+        PROJECT: tl.constexpr,
+        D1: tl.constexpr,
+        DIST: tl.constexpr,
+        BLOCK: tl.constexpr,
+        CAP: tl.constexpr,
+        PB: tl.constexpr,
     ):
-        """[LP] spread of the m (<= CAP) compacted member depths of each level: sum_{i<j} |z_i - z_j|
-        (DIST 1) or sum_i (z_i - mean)^2 (DIST 2), in [PB, PB] tiles of contiguous loads."""
-        spread = mean * 0.0
-        r = tl.arange(0, PB)
-        for i0 in range(0, m, PB):
-            ri = i0 + r
-            ok_i = ri < m
-            if DIST == 2:
-                lvl_ok = lvl < LEVELS
-                z = tl.load(
-                    depth_row_ptr + lvl[None, :] * CAP + ri[:, None], mask=ok_i[:, None] & lvl_ok[None, :], other=0.0
-                )
-                deviation = tl.where(ok_i[:, None] & lvl_ok[None, :], z - mean[None, :], 0.0)
-                spread += tl.sum(deviation * deviation, axis=0)
-            if DIST == 1:
-                for level in range(LEVELS):
-                    z_i = tl.load(depth_row_ptr + level * CAP + ri, mask=ok_i, other=0.0)
-                    total = tl.sum(z_i * 0.0, axis=0)
-                    for j0 in range(i0, m, PB):
-                        rj = j0 + r
-                        ok_j = rj < m
-                        z_j = tl.load(depth_row_ptr + level * CAP + rj, mask=ok_j, other=0.0)
-                        pair = ok_j[None, :] & (ri[:, None] < rj[None, :])
-                        gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
-                        total += tl.sum(tl.sum(gap, axis=1), axis=0)
-                    spread += tl.where(lvl == level, total, 0.0)
+        """[LP] spread of the m members' depths of each level: sum_{i<j} |z_i - z_j| (DIST 1) or
+        sum_i (z_i - mean)^2 (DIST 2), 0 without a distortion. Up to CAP members: over the compacted depth row
+        (``_compact``), in [PB, PB] tiles of contiguous loads. Past CAP: M is the visible entries of the run
+        [start, last member] (the transmittance only falls), by pairs of run blocks; ``runs`` = (geo, pix,
+        zsrc, start, stop) for ``_entry_alpha`` / ``_entry_depths``."""
+        spread = tl.zeros([lvl.shape[0]], dtype=mean.dtype)
+        lvl_ok = lvl < LEVELS
+        if DIST != 0:
+            # the members' depths were written by other threads of this program
+            tl.debug_barrier()
+            if m <= CAP:
+                spread = mean * 0.0
+                r = tl.arange(0, PB)
+                for i0 in range(0, m, PB):
+                    ri = i0 + r
+                    ok_i = ri < m
+                    if DIST == 2:
+                        at = depth_row_ptr + lvl[None, :] * CAP + ri[:, None]
+                        z = tl.load(at, mask=ok_i[:, None] & lvl_ok[None, :], other=0.0)
+                        deviation = tl.where(ok_i[:, None] & lvl_ok[None, :], z - mean[None, :], 0.0)
+                        spread += tl.sum(deviation * deviation, axis=0)
+                    if DIST == 1:
+                        for level in range(LEVELS):
+                            z_i = tl.load(depth_row_ptr + level * CAP + ri, mask=ok_i, other=0.0)
+                            total = tl.sum(z_i * 0.0, axis=0)
+                            for j0 in range(i0, m, PB):
+                                rj = j0 + r
+                                ok_j = rj < m
+                                z_j = tl.load(depth_row_ptr + level * CAP + rj, mask=ok_j, other=0.0)
+                                pair = ok_j[None, :] & (ri[:, None] < rj[None, :])
+                                gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
+                                total += tl.sum(tl.sum(gap, axis=1), axis=0)
+                            spread += tl.where(lvl == level, total, 0.0)
+            else:
+                geo, pix, zsrc, start, stop = runs
+                lane = tl.arange(0, BLOCK).to(tl.int64)
+                for p0 in range(start, stop, BLOCK):
+                    offs_i = p0 + lane
+                    gid_i, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, PACKED, offs_i, stop, pix)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_i, vis_i, lvl, LEVELS)
+                    if DIST == 2:
+                        deviation = tl.where(vis_i[:, None] & lvl_ok[None, :], z_i - mean[None, :], 0.0)
+                        spread += tl.sum(deviation * deviation, axis=0)
+                    if DIST == 1:
+                        for q0 in range(p0, stop, BLOCK):
+                            offs_j = q0 + lane
+                            gid_j, _a2, vis_j, _dx2, _dy2, _ca2, _cb2, _cc2, _f2, _r2 = _entry_alpha(
+                                geo, PACKED, offs_j, stop, pix
+                            )
+                            z_j, _x2, _y2, _z2 = _entry_depths(zsrc, PROJECT, D1, gid_j, vis_j, lvl, LEVELS)
+                            pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
+                            for level in range(LEVELS):
+                                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
+                                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
+                                gap = tl.abs(zi[:, None] - zj[None, :])  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                                total = tl.sum(tl.sum(tl.where(pair, gap, 0.0), axis=1), axis=0)
+                                spread += tl.where(lvl == level, total, 0.0)
         return spread
 
     @triton.jit
@@ -369,13 +499,46 @@ if triton is not None:
                 rj = j0 + r
                 ok_j = rj < m
                 z_j = tl.load(depth_row_ptr + level * CAP + rj, mask=ok_j, other=0.0)
-                gap = z_i[:, None] - z_j[None, :]
-                sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
-                total += tl.sum(tl.where(ok_j[None, :], sign, 0.0), axis=1)
+                total += tl.sum(tl.where(ok_j[None, :], _sign(z_i[:, None] - z_j[None, :]), 0.0), axis=1)
             signs += tl.where(lvl[None, :] == level, total[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
         return signs
 
     @triton.jit
+    def _run_signs(
+        z_i,
+        runs,
+        lvl,
+        LEVELS: tl.constexpr,
+        PACKED: tl.constexpr,
+        PROJECT: tl.constexpr,
+        D1: tl.constexpr,
+        BLOCK: tl.constexpr,
+    ):
+        """``_compact_signs`` past CAP members, for entries of depths ``z_i`` [B, LP]: the members are the visible
+        entries of the run (``runs`` = (geo, pix, zsrc, start, stop) as in ``_member_spread``).
+
+        Rows of entries that are not members get a sum too: the callers' scatters mask them. No mask of the rows
+        here: on sm_90 one moved the entries' alpha and depths into the [B, B] sign tile's layout (several
+        lanes per value, computed again there) instead of converting the row sums, as the kernels did before
+        these helpers were shared."""
+        geo, pix, zsrc, start, stop = runs
+        signs = tl.zeros([z_i.shape[0], lvl.shape[0]], dtype=z_i.dtype)
+        lane = tl.arange(0, BLOCK).to(tl.int64)
+        for q0 in range(start, stop, BLOCK):
+            offs_j = q0 + lane
+            gid_j, _a, vis_j, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, PACKED, offs_j, stop, pix)
+            z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_j, vis_j, lvl, LEVELS)
+            for level in range(LEVELS):
+                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
+                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
+                sign = _sign(zi[:, None] - zj[None, :])  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                sign = tl.where(vis_j[None, :], sign, 0.0)
+                signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+        return signs
+
+    # n_gauss changes as the scene densifies and only clamps ids: not specialised on (Triton would compile a
+    # variant for each new divisibility by 16), as vote_fused's per-step integers
+    @triton.jit(do_not_specialize=("n_gauss",))
     def _vote_fwd_kernel(
         geom_ptr,
         table_ptr,
@@ -391,6 +554,7 @@ if triton is not None:
         zsum_ptr,
         spread_ptr,
         depths_ptr,
+        n_gauss,
         LEVELS: tl.constexpr,
         LP: tl.constexpr,
         D1: tl.constexpr,
@@ -401,22 +565,18 @@ if triton is not None:
         CAP: tl.constexpr,
         PB: tl.constexpr,
     ):
-        pid = tl.program_id(0).to(tl.int64)
-        px = tl.load(pix_ptr + 2 * pid)
-        py = tl.load(pix_ptr + 2 * pid + 1)
+        pid, pix, walk = _program_pixel(pix_ptr, consts_ptr)
+        px = pix[0]
         start = tl.load(start_ptr + pid).to(tl.int64)
         end = tl.load(end_ptr + pid).to(tl.int64)
-        threshold = tl.load(consts_ptr)
-        alpha_max = tl.load(consts_ptr + 1)
-        open_above = tl.load(consts_ptr + 2)
-        alpha_min = tl.load(consts_ptr + 3)
-        colour_stop = tl.load(consts_ptr + 4)
+        geo = (geom_ptr, geom_ptr + 2, geom_ptr + 5, ids_ptr, n_gauss)
         LD1: tl.constexpr = LEVELS * D1
         lane = tl.arange(0, BLOCK).to(tl.int64)
         cols = tl.arange(0, LDP)
         col_ok = cols < LD1
         lvl = tl.arange(0, LP)
         lvl_ok = lvl < LEVELS
+        depth_row = depths_ptr + pid * (LEVELS * CAP)
 
         one = px * 0.0 + 1.0
         t = one
@@ -428,15 +588,9 @@ if triton is not None:
         pos = start
         walking = pos < end
         while walking:
-            offs = pos + lane
-            gid, alpha, visible, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
-                geom_ptr, ids_ptr, offs, end, px, py, alpha_max, alpha_min
+            gid, alpha, member, t_before, t, last, pos, walking = _walk_block(
+                geo, True, pos, end, pix, walk, t, last, BLOCK
             )
-            keep = 1.0 - tl.where(visible, alpha, 0.0)
-            t_after = t * tl.cumprod(keep, axis=0)
-            t_before = t_after / keep
-            member = visible & (t_after > colour_stop) & (t_before > threshold)
-            last = tl.maximum(last, tl.max(tl.where(member, offs, -1), axis=0))
             if ALPHA_T:
                 w = tl.where(member, alpha * t_before, 0.0)
             else:
@@ -446,60 +600,13 @@ if triton is not None:
                 table_ptr + gid[:, None] * LD1 + cols[None, :], mask=member[:, None] & col_ok[None, :], other=0.0
             )
             vacc += tl.sum(w[:, None] * rows, axis=0)
-            depth = tl.load(
-                table_ptr + gid[:, None] * LD1 + lvl[None, :] * D1 + (D1 - 1),
-                mask=member[:, None] & lvl_ok[None, :],
-                other=0.0,
-            )
+            depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, member, lvl, LEVELS)
             zacc += tl.sum(depth, axis=0)
-            if DIST != 0:
-                _store_member_depths(depths_ptr + pid * (LEVELS * CAP), depth, member, count, lvl, LEVELS, CAP)
-            count += tl.sum(member.to(tl.int32), axis=0)
-            t = tl.min(t_after, axis=0)
-            pos += BLOCK
-            walking = (pos < end) & (t > open_above)
+            _slot, count = _compact(depth_row, depth, member, count, lvl, LEVELS, CAP, DIST)
 
-        stop = last + 1
-        spread = tl.zeros([LP], dtype=px.dtype)
         mean = zacc / tl.maximum(count, 1).to(px.dtype)
-        if DIST != 0:
-            # the members' depths were written by other threads of this program
-            tl.debug_barrier()
-            if count <= CAP:
-                spread = _compact_spread(depths_ptr + pid * (LEVELS * CAP), count, mean, lvl, LEVELS, CAP, DIST, PB)
-            else:
-                # more than CAP members: M = the visible entries in [start, last], by pairs of run blocks
-                if DIST == 2:
-                    for p0 in range(start, stop, BLOCK):
-                        offs = p0 + lane
-                        gid, _al, visible, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
-                            geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min
-                        )
-                        depth = tl.load(
-                            table_ptr + gid[:, None] * LD1 + lvl[None, :] * D1 + (D1 - 1),
-                            mask=visible[:, None] & lvl_ok[None, :],
-                            other=0.0,
-                        )
-                        deviation = tl.where(visible[:, None] & lvl_ok[None, :], depth - mean[None, :], 0.0)
-                        spread += tl.sum(deviation * deviation, axis=0)
-                if DIST == 1:
-                    for p0 in range(start, stop, BLOCK):
-                        offs_i = p0 + lane
-                        gid_i, _al, vis_i, _dx, _dy, _a, _b, _c, _f, _r = _block_alpha(
-                            geom_ptr, ids_ptr, offs_i, stop, px, py, alpha_max, alpha_min
-                        )
-                        for q0 in range(p0, stop, BLOCK):
-                            offs_j = q0 + lane
-                            gid_j, _al2, vis_j, _dx2, _dy2, _a2, _b2, _c2, _f2, _r2 = _block_alpha(
-                                geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
-                            )
-                            pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
-                            for level in range(LEVELS):
-                                z_i = tl.load(table_ptr + gid_i * LD1 + level * D1 + (D1 - 1), mask=vis_i, other=0.0)
-                                z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
-                                gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
-                                spread += tl.where(lvl == level, tl.sum(tl.sum(gap, axis=1), axis=0), 0.0)
-
+        runs = (geo, pix, (table_ptr,), start, last + 1)
+        spread = _member_spread(depth_row, count, mean, runs, lvl, LEVELS, True, False, D1, DIST, BLOCK, CAP, PB)
         tl.store(count_ptr + pid, count)
         tl.store(last_ptr + pid, last)
         tl.store(wsum_ptr + pid, wsum)
@@ -507,7 +614,7 @@ if triton is not None:
         tl.store(zsum_ptr + pid * LEVELS + lvl, zacc, mask=lvl_ok)
         tl.store(spread_ptr + pid * LEVELS + lvl, spread, mask=lvl_ok)
 
-    @triton.jit
+    @triton.jit(do_not_specialize=("n_gauss",))
     def _vote_bwd_kernel(
         geom_ptr,
         table_ptr,
@@ -524,6 +631,7 @@ if triton is not None:
         g_table_ptr,
         g_geom_ptr,
         depths_ptr,
+        n_gauss,
         LEVELS: tl.constexpr,
         LP: tl.constexpr,
         D1: tl.constexpr,
@@ -535,14 +643,14 @@ if triton is not None:
         CAP: tl.constexpr,
         PB: tl.constexpr,
     ):
-        pid = tl.program_id(0).to(tl.int64)
-        px = tl.load(pix_ptr + 2 * pid)
-        py = tl.load(pix_ptr + 2 * pid + 1)
+        pid, pix, _walk = _program_pixel(pix_ptr, consts_ptr)
+        px = pix[0]
+        alpha_max = pix[2]
         start = tl.load(start_ptr + pid).to(tl.int64)
         stop = tl.load(last_ptr + pid) + 1
         count = tl.load(count_ptr + pid)
-        alpha_max = tl.load(consts_ptr + 1)
-        alpha_min = tl.load(consts_ptr + 3)
+        geo = (geom_ptr, geom_ptr + 2, geom_ptr + 5, ids_ptr, n_gauss)
+        runs = (geo, pix, (table_ptr,), start, stop)
         LD1: tl.constexpr = LEVELS * D1
         lane = tl.arange(0, BLOCK).to(tl.int64)
         cols = tl.arange(0, LDP)
@@ -560,13 +668,9 @@ if triton is not None:
         t = one
         for p0 in range(start, stop, BLOCK):
             offs = p0 + lane
-            gid, alpha, visible, dx, dy, ca, cb, cc, falloff, raw = _block_alpha(
-                geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min
-            )
-            keep = 1.0 - tl.where(visible, alpha, 0.0)
+            gid, alpha, visible, _dx, _dy, _a, _b, _c, _f, _r = _entry_alpha(geo, True, offs, stop, pix)
             if ALPHA_T:
-                t_after = t * tl.cumprod(keep, axis=0)
-                t_before = t_after / keep
+                _keep, t_after, t_before = _transmittance(t, alpha, visible)
                 w = tl.where(visible, alpha * t_before, 0.0)
                 g_rows = w[:, None] * g_row[None, :]
             else:
@@ -580,37 +684,17 @@ if triton is not None:
             depth_mask = visible[:, None] & lvl_ok[None, :]
             depth_ptrs = gid[:, None] * LD1 + lvl[None, :] * D1 + (D1 - 1)
             if DIST == 2:
-                depth = tl.load(table_ptr + depth_ptrs, mask=depth_mask, other=0.0)
+                depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, visible, lvl, LEVELS)
                 g_depth = 2.0 * (depth - mean[None, :]) * g_spread[None, :]
                 tl.atomic_add(g_table_ptr + depth_ptrs, g_depth, mask=depth_mask, sem="relaxed")
             if DIST == 1:
                 if count <= CAP:
-                    signs = _compact_signs(
-                        table_ptr + gid * LD1 + (D1 - 1),
-                        visible,
-                        depths_ptr + pid * (LEVELS * CAP),
-                        count,
-                        lvl,
-                        LEVELS,
-                        D1,
-                        CAP,
-                        PB,
-                    )
+                    depth_row = depths_ptr + pid * (LEVELS * CAP)
+                    z_ptrs = table_ptr + gid * LD1 + (D1 - 1)
+                    signs = _compact_signs(z_ptrs, visible, depth_row, count, lvl, LEVELS, D1, CAP, PB)
                 else:
-                    # more than CAP members: pairs with the run's visible entries up to the last member
-                    signs = tl.zeros([BLOCK, LP], dtype=px.dtype)
-                    for q0 in range(start, stop, BLOCK):
-                        offs_j = q0 + lane
-                        gid_j, _al2, vis_j, _dx2, _dy2, _a2, _b2, _c2, _f2, _r2 = _block_alpha(
-                            geom_ptr, ids_ptr, offs_j, stop, px, py, alpha_max, alpha_min
-                        )
-                        for level in range(LEVELS):
-                            z_i = tl.load(table_ptr + gid * LD1 + level * D1 + (D1 - 1), mask=visible, other=0.0)
-                            z_j = tl.load(table_ptr + gid_j * LD1 + level * D1 + (D1 - 1), mask=vis_j, other=0.0)
-                            gap = z_i[:, None] - z_j[None, :]
-                            sign = tl.where(gap > 0.0, 1.0, tl.where(gap < 0.0, -1.0, 0.0))
-                            sign = tl.where(visible[:, None] & vis_j[None, :], sign, 0.0)
-                            signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                    depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, visible, lvl, LEVELS)
+                    signs = _run_signs(depth, runs, lvl, LEVELS, True, False, D1, BLOCK)
                 tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask, sem="relaxed")
             if ALPHA_T:
                 t = tl.min(t_after, axis=0)
@@ -625,9 +709,7 @@ if triton is not None:
             blocks = (stop - start + BLOCK - 1) // BLOCK
             for k in range(0, blocks):
                 offs = start + (blocks - 1 - k) * BLOCK + lane
-                gid, alpha, visible, dx, dy, ca, cb, cc, falloff, raw = _block_alpha(
-                    geom_ptr, ids_ptr, offs, stop, px, py, alpha_max, alpha_min
-                )
+                gid, alpha, visible, dx, dy, ca, cb, cc, falloff, raw = _entry_alpha(geo, True, offs, stop, pix)
                 keep = 1.0 - tl.where(visible, alpha, 0.0)
                 running = tl.cumprod(keep, axis=0)
                 t_start = t_end / tl.min(running, axis=0)  # pyright: ignore[reportOperatorIssue]  (triton tensors)
