@@ -1,6 +1,7 @@
 """Vote cache: hits, misses on changed inputs, atomic writes, resuming, damaged entries."""
 
 import os
+import threading
 import warnings
 from pathlib import Path
 
@@ -220,3 +221,41 @@ def test_nothing_is_written_until_an_entry_is_made(tmp_path):
     with pytest.raises(ValueError, match="cannot start"):
         VoteCache(tmp_path / "cache", Failing()).build_all(views, progress=False)
     assert not (tmp_path / "cache").exists()
+
+
+class ThreadedThresholdSource(ThresholdMaskSource):
+    """The same masks from a source that declares itself thread-safe; records the threads it ran on."""
+
+    thread_safe = True
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.threads = set()
+
+    def masks_for_image(self, image, image_path, frame_index):
+        self.threads.add(threading.get_ident())
+        if self.fail_on and Path(image_path).name == self.fail_on:
+            raise ValueError(f"unreadable masks for {Path(image_path).name}")
+        return super().masks_for_image(image, image_path, frame_index)
+
+
+def test_thread_safe_sources_build_in_threads_with_the_same_entries(tmp_path):
+    """A file-reading source builds views in worker threads: the same keys and entries as one at a time, and
+    a view's error reaches the caller and leaves no entry for that view."""
+    views = write_views(tmp_path / "images", count=6)
+    sequential = VoteCache(tmp_path / "one", ThresholdMaskSource())
+    keys = sequential.build_all(views, progress=False)
+    threaded_source = ThreadedThresholdSource()
+    threaded = VoteCache(tmp_path / "many", threaded_source)
+    assert threaded.build_all(views, progress=False) == keys
+    assert threading.get_ident() not in threaded_source.threads  # workers, not the caller's thread
+    assert sorted(threaded_source.calls) == sorted(Path(path).name for _, path in views)
+    for index, path in views:
+        a, b = sequential.get(index, path), threaded.get(index, path)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        for table_a, table_b in zip(a.centroids, b.centroids):
+            np.testing.assert_array_equal(table_a, table_b)
+    failing = VoteCache(tmp_path / "fail", ThreadedThresholdSource(fail_on="frame_003.png"))
+    with pytest.raises(ValueError, match="frame_003.png"):
+        failing.build_all(views, progress=False)
+    assert failing.load(failing.view_key(views[3][1], 3)) is None

@@ -15,6 +15,9 @@ class MaskSource(abc.ABC):
     """Makes one label image per level for an image."""
 
     levels: Tuple[str, ...]
+    # Whether masks_for_image may run for several views at once in threads (sources that read files);
+    # a model-backed source (SAM on a GPU) keeps the default and is called one view at a time.
+    thread_safe: bool = False
 
     @abc.abstractmethod
     def masks_for_image(self, image: np.ndarray, image_path: PathLike, frame_index: int) -> List[np.ndarray]:

@@ -53,6 +53,8 @@ class FolderMaskSource(MaskSource):
     e.g. ``.ipynb_checkpoints``) and ``__pycache__``.
     """
 
+    thread_safe = True  # reads label files only
+
     def __init__(self, root: PathLike, levels: Optional[Sequence[str]] = None):
         self.root = Path(root)
         if not self.root.is_dir():
@@ -109,6 +111,8 @@ class DatasetMaskSource(MaskSource):
     label images relative to the dataset root, 0 = background. An image is matched to its frame
     by path, or by file name when nerfstudio reads a downscaled copy (``images_2/<name>``).
     """
+
+    thread_safe = True  # reads label files only
 
     def __init__(self, data: PathLike, levels: Sequence[str] = ("instance", "part")):
         data = Path(data)

@@ -28,6 +28,7 @@ import json
 import time
 import warnings
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import BinaryIO, Callable, Dict, List, Optional, Sequence, Tuple, Union
@@ -45,6 +46,8 @@ ImageLoader = Callable[[int, Path], np.ndarray]
 CACHE_FORMAT_VERSION = 1
 _TEMP_MARKER = TEMP_MARKER  # atomic_write names its temporary files with it
 _STALE_TEMP_SECONDS = 3600.0
+# Views built at once by a source that reads files (build_all)
+BUILD_THREADS = 4
 
 
 @dataclass(frozen=True)
@@ -263,7 +266,9 @@ class VoteCache:
     ) -> List[str]:
         """Make every missing entry (with a progress bar) and return the views' keys in order.
 
-        Entries already present and readable are reused, so an interrupted build resumes.
+        Entries already present and readable are reused, so an interrupted build resumes. Sources that
+        read files (``MaskSource.thread_safe``) build BUILD_THREADS views at a time: decoding images and
+        label files and writing entries release the GIL.
         """
         self._remove_stale_temp_files()
         keys = [self.view_key(Path(path), index) for index, path in views]
@@ -271,11 +276,21 @@ class VoteCache:
         if missing:
             text = description or f"Making vote maps ({self.source.name} masks)"
             steps = _progress(missing, text, enabled=progress)
+            threads = BUILD_THREADS if self.source.thread_safe and len(missing) > 1 else 1
+
+            def build(i: int) -> None:
+                index, path = views[i]
+                self._build(keys[i], index, Path(path), image_loader)
+
+            pool = ThreadPoolExecutor(max_workers=threads) if threads > 1 else None
             try:
-                for i in steps:
-                    index, path = views[i]
-                    self._build(keys[i], index, Path(path), image_loader)
+                # in order, so the progress bar advances and the first error is raised as it happens
+                done = pool.map(build, missing) if pool is not None else map(build, missing)
+                for _ in zip(steps, done):
+                    pass
             finally:
+                if pool is not None:
+                    pool.shutdown(cancel_futures=True)
                 # stop the progress display now: closed at interpreter exit instead, it fails with its own traceback
                 close = getattr(steps, "close", None)
                 if close is not None:
