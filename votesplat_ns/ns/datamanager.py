@@ -191,6 +191,8 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         self._prefetch: Optional[Dict[int, "Future[Dict[str, torch.Tensor]]"]] = None
         # the pipeline hands train_dataset.metadata to the model, which sizes its offsets by it
         self.train_dataset.metadata["vote_levels"] = self.config.resolved_levels()
+        # whether this datamanager feeds ns-train (the model then prepares its vote kernels as it is built)
+        self.train_dataset.metadata["vote_training"] = test_mode == "val"
         # a retrofit from a PLY (model.retrofit_from) finds the file's frame with these frames and views
         self.train_dataset.metadata["retrofit_reference"] = functools.partial(retrofit_reference, self)
         if test_mode == "val":  # ns-train: make all masks now, before training starts

@@ -95,6 +95,9 @@ class VoteSplatModel(SplatfactoModel):
         # (batch, its vote losses): computed in get_metrics_dict, used by get_loss_dict of the same batch
         self._early_vote_losses: Tuple[Optional[Dict], Dict[str, torch.Tensor]] = (None, {})
         self._kernel_warm_up: Optional[threading.Thread] = None  # compiling the fused kernels (CUDA)
+        if (self.kwargs.get("metadata") or {}).get("vote_training"):
+            # now, so the compiler's GIL-bound part overlaps the trainer's set-up (image caching) rather than steps
+            self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
         self.viewer_state = VoteSplatViewerState(self)
 
     @property
@@ -168,7 +171,8 @@ class VoteSplatModel(SplatfactoModel):
             # the trainer asks for callbacks right after loading a checkpoint (ns-train --load-dir)
             self.adopt_optimizers(training_callback_attributes.optimizers)
         self.continue_support_counts()
-        self._start_kernel_warm_up()
+        if self._kernel_warm_up is None:
+            self._start_kernel_warm_up(self.device)
         callbacks = super().get_training_callbacks(training_callback_attributes)
         trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
@@ -441,11 +445,13 @@ class VoteSplatModel(SplatfactoModel):
             losses = vote_losses(render, target_xy, valid, self.vote_options, check_inputs=False)
         return losses["vote"].sum(), losses["distortion"].sum()
 
-    def _start_kernel_warm_up(self) -> None:
-        """On CUDA, compiles the fused vote kernels in the background while the first steps run (the first
-        vote step would otherwise wait for the compiler); that step joins the thread."""
-        probe = torch.zeros(1, self.num_vote_levels, 3, device=self.device)
-        if self._kernel_warm_up is None and probe.is_cuda and use_fused(self.vote_options, probe, probe):
+    def _start_kernel_warm_up(self, device: torch.device) -> None:
+        """On CUDA, compiles the fused vote kernels in the background while training sets up and starts (the
+        first vote step would otherwise wait for the compiler); that step joins the thread."""
+        if device.type != "cuda":
+            return
+        probe = torch.zeros(1, self.num_vote_levels, 3, device=device)
+        if use_fused(self.vote_options, probe, probe):
             self._kernel_warm_up = start_warm_up(self.num_vote_levels, self.vote_options, probe.device)
 
     def _votes(self) -> torch.Tensor:
