@@ -25,9 +25,7 @@ from nerfstudio.models.splatfacto import SplatfactoModel, get_viewmat
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
-from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
 from votesplat_ns.core.vote_fused import start_warm_up, use_fused, vote_losses_sampled
 from votesplat_ns.core.vote_maps import pixels_and_targets
 from votesplat_ns.core.vote_render import DIVERGED_VOTES, VoteRender, render_votes_tiled, vote_losses
@@ -35,7 +33,7 @@ from votesplat_ns.ns.compat import UnavailableMetric
 from votesplat_ns.ns.model_config import VoteSplatModelConfig
 from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
-from votesplat_ns.ns.retrofit import resolve_frame
+from votesplat_ns.ns.retrofit_source import retrofit_gaussians
 from votesplat_ns.ns.run import (  # noqa: F401 (re-exported: tests and benchmarks import them from here)
     SPLAT_PARAM_NAMES,
     gaussians_from_ply_arrays,
@@ -106,60 +104,19 @@ class VoteSplatModel(SplatfactoModel):
         return self.config.retrofit_from is not None
 
     def _load_retrofit_source(self) -> None:
-        source = Path(self.config.retrofit_from)
-        if not source.exists():
-            # Fine when a trained retrofit run is being loaded (its own checkpoint follows);
-            # ns-train stops in get_training_callbacks with a clear message.
+        loaded = retrofit_gaussians(
+            Path(self.config.retrofit_from),
+            self.config.sh_degree,
+            self.config.retrofit_frame,
+            self.kwargs,
+            tuple(self.gauss_params["features_rest"].shape[1:]),
+        )
+        if loaded is None:
             return
-        if source.suffix.lower() == ".ply":
-            gaussians = self._gaussians_from_ply(source)
-            if gaussians is None:
-                return
-        else:
-            gaussians = load_gaussians(latest_checkpoint(source))
-        expected_rest = self.gauss_params["features_rest"].shape[1:]
-        if gaussians["features_rest"].shape[1:] != expected_rest:
-            raise VoteSplatInputError(
-                f"{source} has SH features of shape {tuple(gaussians['features_rest'].shape[1:])}, the model expects "
-                f"{tuple(expected_rest)}: pass the --pipeline.model.sh-degree it was trained with"
-            )
+        gaussians, self.retrofit_source_frame = loaded
         for name in SPLAT_PARAM_NAMES:
             self.gauss_params[name] = Parameter(gaussians[name].to(self.gauss_params[name].device), requires_grad=False)
         self.retrofitted = True
-
-    def _gaussians_from_ply(self, source: Path) -> Optional[Dict[str, torch.Tensor]]:
-        """The Gaussians of a 3DGS PLY, checked and moved into the training frame (None: a checkpoint will follow)."""
-        flag = "--pipeline.model.retrofit-from"
-        make_reference = (self.kwargs.get("metadata") or {}).get("retrofit_reference")
-        if make_reference is None:
-            raise VoteSplatInputError(
-                f"{flag} {source}: a PLY needs votesplat's datamanager, whose cameras and images tell the PLY's frame"
-            )
-        reference = make_reference()
-        if reference.test_mode != "val":
-            return None  # a trained run is loaded to evaluate, view or export it: its checkpoint replaces the Gaussians
-        try:
-            arrays, sh_degree = read_3dgs_ply(source)
-        except GaussianPlyError as err:
-            raise VoteSplatInputError(f"{flag} {err}") from None
-        if sh_degree != self.config.sh_degree:
-            raise VoteSplatInputError(
-                f"{flag} {source} has SH degree {sh_degree} ({arrays['features_rest'].shape[1] * 3} f_rest properties), "
-                f"the model is set to {self.config.sh_degree}: pass --pipeline.model.sh-degree {sh_degree}"
-            )
-        device = torch.device(self.kwargs.get("device") or "cpu")
-        gaussians = {name: value.to(device) for name, value in gaussians_from_ply_arrays(arrays).items()}
-        frame, moved, fits = resolve_frame(
-            gaussians, reference, self.config.retrofit_frame, source, rasterize, sh_degree
-        )
-        self.retrofit_source_frame = frame
-        moved["features_dc"] = splatfacto_dc_from_ply(moved["features_dc"], sh_degree)
-        fit = next(f for f in fits if frame == f.name or frame in f.same_as)
-        CONSOLE.log(
-            f"Retrofit from {source}: {moved['means'].shape[0]} Gaussians in frame '{frame}' "
-            f"({fit.in_view_share:.1%} in the training views, {fit.psnr:.1f} dB PSNR at {len(reference.views()[1])} views)"
-        )
-        return {name: value.cpu() for name, value in moved.items()}
 
     def get_training_callbacks(self, training_callback_attributes):
         if self.vote_only and not self.retrofitted:
