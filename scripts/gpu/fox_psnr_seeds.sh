@@ -1,6 +1,6 @@
 #!/bin/bash
 # The fox's PSNR spread across seeds: splatfacto and votesplat (votes every step, and the default every 4th
-# step) at seeds 1 and 2, six trainings side by side on one GPU, each scored by ns-eval. Run on the device
+# step) at the seeds in $SEEDS (default "1 2"), side by side on one GPU, each scored by ns-eval. Run on the device
 # after `bash scripts/gpu/run.sh setup` (it writes /tmp/ns_launch.py), with .gpu/fox carried:
 #   bash scripts/gpu/run.sh setup && bash scripts/gpu/fox_psnr_seeds.sh
 export PYTHONPATH=$PWD:/tmp/site PATH=/tmp/site/bin:$PATH TORCH_EXTENSIONS_DIR=/tmp/torch_extensions \
@@ -17,7 +17,7 @@ one() {  # name method seed extra...
   timeout 120 python3 /tmp/ns_launch.py eval --load-config $R/$name/$method/run/config.yml --output-path $R/eval_$name.json >> $R/$name.log 2>&1
   python3 -c "import json,sys; d=json.load(open('$R/eval_$name.json'))['results']; print('$name', round(d['psnr'],3), round(d['ssim'],4))" || echo "$name failed"
 }
-for s in 1 2; do
+for s in ${SEEDS:-1 2}; do
   one sf_s$s splatfacto $s &
   one every1_s$s votesplat $s --pipeline.model.vote-every-n-steps 1 &
   one every4_s$s votesplat $s &
