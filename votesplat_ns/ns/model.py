@@ -34,13 +34,7 @@ from votesplat_ns.ns.model_config import VoteSplatModelConfig
 from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit_source import retrofit_gaussians
-from votesplat_ns.ns.run import (  # noqa: F401 (re-exported: tests and benchmarks import them from here)
-    SPLAT_PARAM_NAMES,
-    gaussians_from_ply_arrays,
-    latest_checkpoint,
-    load_gaussians,
-    splatfacto_dc_from_ply,
-)
+from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, gaussians_from_ply_arrays, latest_checkpoint, load_gaussians  # noqa: F401 (re-exported: tests and benchmarks import them from here)
 from votesplat_ns.ns.viewer import VoteSplatViewerState
 from votesplat_ns.ns.vote_init import start_offsets_lifted
 
@@ -128,8 +122,6 @@ class VoteSplatModel(SplatfactoModel):
             # the trainer asks for callbacks right after loading a checkpoint (ns-train --load-dir)
             self.adopt_optimizers(training_callback_attributes.optimizers)
         self.continue_support_counts()
-        if self._kernel_warm_up is None:
-            self._start_kernel_warm_up(self.device)
         callbacks = super().get_training_callbacks(training_callback_attributes)
         trainer, pipeline = training_callback_attributes.trainer, training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
@@ -404,7 +396,8 @@ class VoteSplatModel(SplatfactoModel):
 
     def _start_kernel_warm_up(self, device: torch.device) -> None:
         """On CUDA, compiles the fused vote kernels in the background while training sets up and starts (the
-        first vote step would otherwise wait for the compiler); that step joins the thread."""
+        first vote step would otherwise wait for the compiler); that step joins the thread. Started once, as
+        the model is built for ns-train (a model built otherwise compiles at its first vote step)."""
         if device.type != "cuda":
             return
         probe = torch.zeros(1, self.num_vote_levels, 3, device=device)
