@@ -12,7 +12,9 @@ Times, on random Gaussians seen by one camera:
     torch code and the fused Triton kernels (``votesplat_ns.core.vote_kernel``),
     the latter once per ``--kernel-configs`` block width x warps; and "triton-fused":
     ``votesplat_ns.core.vote_fused.vote_losses_tiled``, the render and the losses in three Triton
-    launches (what the model runs with the Triton backend and its default switches).
+    launches; "triton-sampled": ``vote_fused.vote_losses_sampled``, what a training step runs on
+    CUDA with the default switches: the pixels drawn (one ``randint``) among the voting pixels of
+    block-shaped vote maps and looked up in the forward kernel ([N, L, 3] votes at every L).
 Prints a markdown table of median milliseconds, peak extra GPU memory, both
 also as a ratio to the RGB pass, and per step the host reads
 (device-to-host syncs) and torch calls made from Python in the forward pass
@@ -45,6 +47,9 @@ from torch.overrides import TorchFunctionMode
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+TRITON_BACKENDS = ("triton", "triton-fused", "triton-sampled")
+
+
 def chunk_arg(value: str) -> Optional[int]:
     return None if value == "auto" else int(value)
 
@@ -68,10 +73,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--backends",
         nargs="+",
-        choices=["torch", "triton", "triton-fused"],
-        default=["torch", "triton", "triton-fused"],
+        choices=["torch", *TRITON_BACKENDS],
+        default=["torch", *TRITON_BACKENDS],
         help="vote pass implementations to time (VoteRenderOptions.backend; triton-fused: vote_fused."
-        "vote_losses_tiled, render and losses fused); the triton ones need CUDA",
+        "vote_losses_tiled, render and losses fused; triton-sampled: vote_fused.vote_losses_sampled, the "
+        "training step's path); the triton ones need CUDA",
     )
     parser.add_argument(
         "--kernel-configs",
@@ -95,6 +101,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         action="store_true",
         help="also profile each timed vote step (torch.profiler, 5 steps): GPU kernel time and launches per step "
         "against the wall time, and the kernels that take the most GPU time",
+    )
+    parser.add_argument(
+        "--host-profile",
+        action="store_true",
+        help="also run each timed Triton vote step 200 times under cProfile and print the Python functions "
+        "with the most own time per step: where the host time between the kernels goes",
     )
     parser.add_argument(
         "--device", choices=["cuda", "cpu"], default="cuda", help="cpu: pure-torch rasteriser, for checking the script"
@@ -171,7 +183,7 @@ class CallCounter(TorchFunctionMode):
 def main(argv=None) -> int:
     args = parse_args(argv)
     cache = None
-    triton_backends = {"triton", "triton-fused"}.intersection(args.backends)
+    triton_backends = set(TRITON_BACKENDS).intersection(args.backends)
     if args.device == "cuda" and triton_backends and "TRITON_CACHE_DIR" not in os.environ:
         # an empty Triton cache, so the first call's time is the kernels' full JIT build
         from votesplat_ns.core.ply_io import make_temp_dir
@@ -199,16 +211,16 @@ def _run(args: argparse.Namespace) -> int:
         from votesplat_ns.core.rasterize_torch import rasterize_torch as rasterization
 
     from votesplat_ns.core import vote_kernel
-    from votesplat_ns.core.vote_fused import vote_losses_tiled
+    from votesplat_ns.core.vote_fused import vote_losses_sampled, vote_losses_tiled
     from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
 
     backends = list(args.backends)
-    for backend in ("triton", "triton-fused"):
+    for backend in TRITON_BACKENDS:
         if backend in backends and vote_kernel.unavailable_reason(device) is not None:
             print(f"skipping the {backend} backend: {vote_kernel.unavailable_reason(device)}")
             backends.remove(backend)
     variants = [("torch", None)] if "torch" in backends else []
-    for backend in ("triton", "triton-fused"):
+    for backend in TRITON_BACKENDS:
         if backend not in backends:
             continue
         for config in args.kernel_configs:
@@ -247,7 +259,9 @@ def _run(args: argparse.Namespace) -> int:
 
     with torch.no_grad():
         _, _, info = rasterize()
+    host_profiles = []
     max_levels = max(args.levels)
+    vote_maps = {levels: block_vote_maps(args.width, args.height, levels, device) for levels in args.levels}
     offsets = torch.zeros(args.num_gaussians, max_levels, 3, device=device, requires_grad=True)
     rows = []
     compile_rows = []
@@ -267,7 +281,7 @@ def _run(args: argparse.Namespace) -> int:
             for chunk in (args.chunks if backend == "torch" else ["-"])
         ]
         for backend, config, chunk in runs:
-            fused = backend == "triton-fused"
+            fused = backend in ("triton-fused", "triton-sampled")
             options = VoteRenderOptions(distortion=args.distortion, backend="triton" if fused else backend)
             if config is not None:
                 vote_kernel.BLOCK, vote_kernel.NUM_WARPS = config
@@ -296,6 +310,30 @@ def _run(args: argparse.Namespace) -> int:
             for levels in args.levels:
 
                 def one_call_step(levels=levels):
+                    if backend == "triton-sampled":
+                        votes = params["means"].detach()[:, None, :] + offsets[:, :levels]
+                        labels, centroids, voting = vote_maps[levels]
+                        sample = torch.randint(voting.numel(), (pixels,), device=device, generator=g)
+                        losses = vote_losses_sampled(
+                            info["means2d"][0],
+                            info["conics"][0],
+                            info["opacities"][0],
+                            votes,
+                            viewmat,
+                            K,
+                            sample,
+                            voting,
+                            labels,
+                            centroids,
+                            args.width,
+                            1.0,
+                            info["isect_offsets"][0],
+                            info["flatten_ids"],
+                            info["tile_size"],
+                            options,
+                        )
+                        (losses["vote"].sum() + 0.1 * losses["distortion"].sum()).backward()
+                        return
                     if levels == 1:
                         votes, target, mask = params["means"].detach() + offsets[:, 0], target_xy[:, 0], valid[:, 0]
                     else:
@@ -331,7 +369,7 @@ def _run(args: argparse.Namespace) -> int:
                         total = total + losses["vote"] + 0.1 * losses["distortion"]
                     total.backward()
 
-                if levels == 1:
+                if levels == 1 and backend != "triton-sampled":
                     steps = [("votes [N,3]", one_call_step)]
                 else:
                     steps = [("votes [N,L,3], one call", one_call_step)]
@@ -348,6 +386,8 @@ def _run(args: argparse.Namespace) -> int:
                     ms, mib = measure(step, args.warmup, args.repeats, device)
                     if args.profile:
                         profiles.append((f"{backend_label}: {label}", levels, pixels, ms, profile_step(step, device)))
+                    if args.host_profile and backend != "torch":
+                        host_profiles.append((f"{backend_label}: {label}", levels, pixels, host_profile(step, device)))
                     with CallCounter() as counter:
                         step()
                     counts = (counter.host_reads, counter.calls)
@@ -385,6 +425,12 @@ def _run(args: argparse.Namespace) -> int:
             f"| {label} | {levels} | {pixels} | {'auto' if chunk is None else chunk} | {ms:.2f} | {ms / rgb_ms:.2f} "
             f"| {_mib(mib)} | {memory_ratio} | {reads} | {calls} | {mean_count:.1f} | {max_count} |"
         )
+    for label, levels, pixels, (step_us, top) in host_profiles:
+        print(
+            f"\nhost profile of {label}, {levels} levels, {pixels} px: {step_us:.0f} us per step of Python; own time:"
+        )
+        for name, us, calls in top:
+            print(f"  {us:7.1f} us  {calls:5.1f}x  {name}")
     for label, levels, pixels, ms, (kernel_ms, launches, top) in profiles:
         print(
             f"\nprofile of {label}, {levels} levels, {pixels} px: wall {ms:.2f} ms, GPU kernels {kernel_ms:.2f} ms "
@@ -393,6 +439,62 @@ def _run(args: argparse.Namespace) -> int:
         for name, kms, calls in top:
             print(f"  {kms:7.3f} ms  {calls:5.1f}x  {name[:110]}")
     return 0
+
+
+def host_profile(step: Callable[[], None], device: torch.device, steps: int = 200):
+    """(Python wall us per step under cProfile, the 15 functions with the most own time as (name, us per step,
+    calls per step)); the GPU is synchronised once per step so queued kernels do not throttle the host."""
+    import cProfile
+    import pstats
+
+    step()
+    profiler = cProfile.Profile()
+    start = time.perf_counter()
+    profiler.enable()
+    for _ in range(steps):
+        step()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+    profiler.disable()
+    wall_us = (time.perf_counter() - start) * 1e6 / steps
+    stats = pstats.Stats(profiler).stats  # {(file, line, name): (calls, primitive calls, own s, cumulative s, ...)}
+    rows = sorted(stats.items(), key=lambda kv: -kv[1][2])[:15]
+    top = [
+        (f"{Path(f).name}:{line} {name}", own * 1e6 / steps, calls / steps)
+        for (f, line, name), (calls, _, own, *_rest) in rows
+    ]
+    return wall_us, top
+
+
+def block_vote_maps(width: int, height: int, levels: int, device: torch.device, seed: int = 3):
+    """(flat labels [L, H*W] int32, centroids [L, K+1, 2] float32, voting pixels [C] int64) of square masks:
+    level l tiles the image with squares of side 96 / 2^l px (at most a quarter of the shorter side), a fifth of them left without a mask (label 0),
+    each mask's centroid the middle of its square (pixel-index frame; NaN in row 0 and for unmasked squares)."""
+    from votesplat_ns.core.vote_maps import voting_pixels
+
+    g = torch.Generator().manual_seed(seed)
+    rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    label_maps, centroid_tables = [], []
+    for level in range(levels):
+        side = max(4, min(96, min(width, height) // 4) >> level)
+        wide = -(-width // side)
+        count = wide * -(-height // side)
+        labels = (rows // side) * wide + cols // side + 1
+        masked = torch.rand(count + 1, generator=g) >= 0.2
+        masked[0] = False
+        label_maps.append(torch.where(masked[labels], labels, 0))
+        square = torch.arange(count)
+        middle = torch.stack([(square % wide) * side, (square // wide) * side], dim=1).float() + (side - 1) / 2
+        table = torch.cat([torch.full((1, 2), math.nan), middle])
+        table[~masked] = math.nan
+        centroid_tables.append(table)
+    rows_max = max(len(t) for t in centroid_tables)
+    centroids = torch.full((levels, rows_max, 2), math.nan)
+    for level, table in enumerate(centroid_tables):
+        centroids[level, : len(table)] = table
+    labels = torch.stack(label_maps).to(torch.int32)
+    voting = voting_pixels(labels, centroids)
+    return labels.reshape(levels, -1).to(device), centroids.to(device), voting.to(device)
 
 
 def profile_step(step: Callable[[], None], device: torch.device, steps: int = 5):

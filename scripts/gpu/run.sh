@@ -66,6 +66,8 @@ EVAL_RESERVE_S=${EVAL_RESERVE_S:-45}
 GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_vote_kernel.py tests/test_rasterize_torch.py tests/test_viewer.py"}
 # Triton kernel variants (walk block width x warps per program) that bench-vote times next to the torch vote pass
 KERNEL_CONFIGS=${KERNEL_CONFIGS:-"32x2 32x4 16x1 64x4"}
+# the vote pass implementations bench-vote times: the training step's path (triton-sampled) by default
+BENCH_VOTE_BACKENDS=${BENCH_VOTE_BACKENDS:-"torch triton-fused triton-sampled"}
 BENCH_VOTE_ARGS=${BENCH_VOTE_ARGS:-}                      # extra bench_vote_render.py flags, e.g. --profile --levels 2
 SYNTH_DOWNSCALE=${SYNTH_DOWNSCALE:-1}
 FOX=${FOX:-.gpu/fox}
@@ -299,7 +301,7 @@ stage_bench_vote() {
     log "bench_vote_render --num-gaussians $1 --width $2 --height $3" | tee -a "$OUT/bench_vote.log"
     # shellcheck disable=SC2086
     timeout "$(limit_s)" "$PY" benchmarks/bench_vote_render.py --num-gaussians "$1" --width "$2" --height "$3" \
-      --backends torch triton --kernel-configs $KERNEL_CONFIGS $BENCH_VOTE_ARGS 2>&1 | tee -a "$OUT/bench_vote.log"
+      --backends $BENCH_VOTE_BACKENDS --kernel-configs $KERNEL_CONFIGS $BENCH_VOTE_ARGS 2>&1 | tee -a "$OUT/bench_vote.log"
     [ "${PIPESTATUS[0]}" = 0 ] || rc=1
   done
   return "$rc"
