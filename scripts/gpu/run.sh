@@ -84,7 +84,7 @@ SWEEP_SCENES=${SWEEP_SCENES:-}
 SWEEP_ARGS=${SWEEP_ARGS:-}
 QUALITY_ARGS=${QUALITY_ARGS:-}                            # extra benchmarks/quality.py flags, e.g. --vote-every 4
 SITE=${SITE:-/tmp/site}                                  # carried wheels are installed here
-RUNS=/tmp/votesplat_runs
+RUNS=${RUNS:-/tmp/votesplat_runs}  # set it (and OUT) apart to run two run.sh side by side
 OUT=${OUT:-/tmp/votesplat_gpu_out}
 mkdir -p "$OUT" "$RUNS"
 
