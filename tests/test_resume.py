@@ -37,9 +37,12 @@ VOTE_ERROR_TOLERANCE_PX = 0.3
 PSNR_TOLERANCE_DB = 1.0
 
 
-def make_trainer(output_dir: Path, steps: int, name: str, load_dir: Optional[Path] = None, **overrides):
+def make_trainer(
+    output_dir: Path, steps: int, name: str, load_dir: Optional[Path] = None, vote_start: int = 0, **overrides
+):
+    """A CPU trainer of the demo scene on BUDGET, densifying every 10 steps from step 10."""
     trainer = setup_trainer_in_process(
-        DEMO_SCENE, output_dir, steps, 0, "cpu", name, load_dir=load_dir, **{**BUDGET, **overrides}
+        DEMO_SCENE, output_dir, steps, vote_start, "cpu", name, load_dir=load_dir, **{**BUDGET, **overrides}
     )
     # splatfacto pauses densification for (training views + refine_every) steps after each opacity reset,
     # step 0 included; a run this short densifies only without that pause

@@ -6,28 +6,15 @@ backgrounds, densification's split samples) stay those of a run without votes.""
 from __future__ import annotations
 
 import torch
-from conftest import DEMO_SCENE
+from test_resume import make_trainer
 
-from votesplat_ns.ns.method import setup_trainer_in_process
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES
 
 STEPS = 22  # densifies at steps 10 and 20
-# CPU budget: 1/4 resolution (32 px), 256 vote pixels per step, densify every 10 steps from step 10
-BUDGET = dict(
-    num_downscales=2,
-    resolution_schedule=100_000,
-    vote_pixels_per_step=256,
-    vote_every_n_steps=1,
-    warmup_length=10,
-    refine_every=10,
-    foreground_min_masked_share=None,
-)
 
 
 def train(output_dir, name: str, vote_start: int) -> dict:
-    trainer = setup_trainer_in_process(DEMO_SCENE, output_dir, STEPS, vote_start, "cpu", name, **BUDGET)
-    # a run this short densifies only without splatfacto's pause after the step-0 opacity reset
-    trainer.pipeline.model.strategy.pause_refine_after_reset = 0
+    trainer = make_trainer(output_dir, STEPS, name, vote_start=vote_start)
     initial_count = trainer.pipeline.model.num_points
     trainer.train()
     params = {name: param.detach().clone() for name, param in trainer.pipeline.model.gauss_params.items()}
