@@ -29,3 +29,10 @@ def test_votes_leave_the_colour_training_unchanged(tmp_path):
     assert not torch.equal(voting["params"]["vote_offsets"], silent["params"]["vote_offsets"])
     for name in SPLAT_PARAM_NAMES:
         assert torch.equal(voting["params"][name], silent["params"][name]), name
+
+    # the vote stream is seeded with the run's seed: the same run again draws the same pixels, so the same
+    # Gaussians vote at every step (equal support counts); the offsets agree up to the order of torch's
+    # multi-threaded CPU sums (bitwise with one thread)
+    again = train(tmp_path, "voting_again", vote_start=0)
+    assert torch.equal(again["params"]["vote_support"], voting["params"]["vote_support"])
+    torch.testing.assert_close(again["params"]["vote_offsets"], voting["params"]["vote_offsets"], rtol=0, atol=1e-6)
