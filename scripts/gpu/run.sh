@@ -108,7 +108,7 @@ limit_s() { local left; left=$(seconds_left); [ "$left" -gt "${1:-10}" ] && echo
 # LPIPS never downloads AlexNet (the machine has no internet; it is NaN unless the weights are
 # in torch's hub cache), and peak torch GPU memory + wall time go to $VOTESPLAT_RUN_STATS.
 write_launcher() {
-  cat >/tmp/ns_launch.py.tmp <<'PY'
+  cat >/tmp/ns_launch.py.$$ <<'PY'
 import atexit, json, os, sys, time
 
 start = time.time()
@@ -154,7 +154,7 @@ else:
 with offline_lpips():
     entrypoint()
 PY
-  mv /tmp/ns_launch.py.tmp /tmp/ns_launch.py
+  mv /tmp/ns_launch.py.$$ /tmp/ns_launch.py  # its own temporary: run.sh may run several times at once
 }
 
 # ------------------------------------------------------------------------------------ setup

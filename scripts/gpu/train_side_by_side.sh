@@ -1,0 +1,66 @@
+#!/bin/bash
+# Trainings side by side on one GPU, each through run.sh (its flags, launcher, step timer and ns-eval), so that
+# the runs compared share the machine's state (one after the other, run order alone moved a ratio by ±0.05).
+# Run on the device after `bash scripts/gpu/run.sh setup`, with the data carried:
+#   bash scripts/gpu/train_side_by_side.sh synthetic build/family_test/family_2054    # cost: two pairs at seed 42
+#   SEEDS="3 4 5" TRAININGS="splatfacto splatfacto every1" bash scripts/gpu/train_side_by_side.sh fox   # PSNR
+# STAGE: run.sh's train-<stage> (synthetic [DATA] or fox). SEEDS (default "42 42"): one group of trainings per
+# entry, at that --machine.seed. TRAININGS (default "splatfacto votesplat"), the trainings of a group:
+# splatfacto, votesplat (with VOTESPLAT_TRAIN_ARGS, default votes every step), every1 or every4 (votesplat
+# voting every step / every 4th step). Splatfacto twice at one seed measures gsplat's run-to-run noise (its
+# backward adds gradients atomically). STEPS (3000) and EXTRA_TRAIN_ARGS (default: full resolution from the
+# start) as for run.sh; four trainings at once slow every step, so read absolute per-step increments, not ratios.
+# Prints each training's eval PSNR and, per group, benchmarks/step_times.py on its first two trainings; copies
+# the step times to $OUT/side_<stage>_g<group>_<k>_<training>.json (8 files come back from a call).
+stage=${1:?train_side_by_side.sh: pass synthetic [DATA] or fox}; shift
+export STEPS=${STEPS:-3000} VOTESPLAT_STEP_TIMES=1
+EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-"--pipeline.model.num-downscales 0"}
+OUT=${OUT:-/tmp/votesplat_gpu_out}
+for training in ${TRAININGS:-splatfacto votesplat}; do  # all checked before any starts
+  case $training in splatfacto|votesplat|every1|every4) ;;
+    *) echo "TRAININGS: unknown training $training (splatfacto, votesplat, every1, every4)" >&2; exit 2 ;;
+  esac
+done
+work=/tmp/train_side_by_side
+rm -rf "$work"
+group=0
+for seed in ${SEEDS:-42 42}; do
+  group=$((group + 1)) k=0
+  for training in ${TRAININGS:-splatfacto votesplat}; do
+    k=$((k + 1)) method=votesplat vote_args=
+    case $training in
+      splatfacto) method=splatfacto ;;
+      votesplat) vote_args=${VOTESPLAT_TRAIN_ARGS:-"--pipeline.model.vote-every-n-steps 1"} ;;
+      every1) vote_args="--pipeline.model.vote-every-n-steps 1" ;;
+      every4) vote_args="--pipeline.model.vote-every-n-steps 4" ;;
+    esac
+    dir=$work/g$group/${k}_$training
+    mkdir -p "$dir"
+    RUNS=$dir/runs OUT=$dir METHODS=$method VOTESPLAT_TRAIN_ARGS=$vote_args \
+      EXTRA_TRAIN_ARGS="$EXTRA_TRAIN_ARGS --machine.seed $seed" \
+      bash scripts/gpu/run.sh "train-$stage" "$@" >"$dir/run.log" 2>&1 &
+  done
+done
+wait
+for g in $(seq "$group"); do
+  echo "== group $g"
+  steps=()
+  for dir in "$work/g$g"/*/; do
+    dir=${dir%/} name=${dir##*/}
+    python3 - "$dir/train_$stage.json" "g$g/$name" <<'PY'
+import json, sys
+path, name = sys.argv[1:]
+try:
+    (entry,) = json.load(open(path))["methods"].values()
+    print(f"{name}: {entry['status']}, eval PSNR {(entry.get('eval') or {}).get('psnr', float('nan')):.3f}")
+except (OSError, ValueError, KeyError) as err:
+    print(f"{name}: no result ({err!r}; see {path.rsplit('/', 1)[0]}/run.log)")
+PY
+    for file in "$dir"/steps_*.json; do
+      [ -f "$file" ] || continue
+      cp "$file" "$OUT/side_${stage}_g${g}_$name.json" && steps+=("$OUT/side_${stage}_g${g}_$name.json")
+    done
+  done
+  [ "${#steps[@]}" -ge 2 ] && python3 benchmarks/step_times.py "${steps[0]}" "${steps[1]}" \
+    --ranges 0:1 1:20 20:500 500:520 520:"$STEPS" | grep -v '^      '
+done
