@@ -310,53 +310,25 @@ def _run(args: argparse.Namespace) -> int:
             for levels in args.levels:
 
                 def one_call_step(levels=levels):
-                    if backend == "triton-sampled":
+                    geometry = (info["means2d"][0], info["conics"][0], info["opacities"][0])
+                    tiles = (info["isect_offsets"][0], info["flatten_ids"], info["tile_size"], options)
+                    single = levels == 1 and backend != "triton-sampled"  # the sampled losses take [N, L, 3] only
+                    if single:
+                        votes = params["means"].detach() + offsets[:, 0]
+                    else:
                         votes = params["means"].detach()[:, None, :] + offsets[:, :levels]
+                    if backend == "triton-sampled":  # the training step: draw, then look up in the kernel
                         labels, centroids, voting = vote_maps[levels]
                         sample = torch.randint(voting.numel(), (pixels,), device=device, generator=g)
-                        losses = vote_losses_sampled(
-                            info["means2d"][0],
-                            info["conics"][0],
-                            info["opacities"][0],
-                            votes,
-                            viewmat,
-                            K,
-                            sample,
-                            voting,
-                            labels,
-                            centroids,
-                            args.width,
-                            1.0,
-                            info["isect_offsets"][0],
-                            info["flatten_ids"],
-                            info["tile_size"],
-                            options,
-                        )
-                        (losses["vote"].sum() + 0.1 * losses["distortion"].sum()).backward()
-                        return
-                    if levels == 1:
-                        votes, target, mask = params["means"].detach() + offsets[:, 0], target_xy[:, 0], valid[:, 0]
+                        maps = (sample, voting, labels, centroids, args.width, 1.0)
+                        losses = vote_losses_sampled(*geometry, votes, viewmat, K, *maps, *tiles)
                     else:
-                        votes = params["means"].detach()[:, None, :] + offsets[:, :levels]
-                        target, mask = target_xy[:, :levels], valid[:, :levels]
-                    if fused:
-                        losses = vote_losses_tiled(
-                            info["means2d"][0],
-                            info["conics"][0],
-                            info["opacities"][0],
-                            votes,
-                            viewmat,
-                            K,
-                            pixel_xy,
-                            target,
-                            mask,
-                            info["isect_offsets"][0],
-                            info["flatten_ids"],
-                            info["tile_size"],
-                            options,
-                        )
-                    else:
-                        losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
+                        target = target_xy[:, 0] if single else target_xy[:, :levels]
+                        mask = valid[:, 0] if single else valid[:, :levels]
+                        if fused:
+                            losses = vote_losses_tiled(*geometry, votes, viewmat, K, pixel_xy, target, mask, *tiles)
+                        else:
+                            losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
                     (losses["vote"].sum() + 0.1 * losses["distortion"].sum()).backward()
 
                 def separate_calls_step(levels=levels):
