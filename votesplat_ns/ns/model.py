@@ -87,8 +87,8 @@ class VoteSplatModel(SplatfactoModel):
         # (batch, its vote losses): computed in get_metrics_dict, used by get_loss_dict of the same batch
         self._early_vote_losses: Tuple[Optional[Dict], Dict[str, torch.Tensor]] = (None, {})
         self._kernel_warm_up: Optional[threading.Thread] = None  # compiling the fused kernels (CUDA)
-        # (device, generator): made on the model's device at the first draw
-        self._vote_pixel_generator: Tuple[Optional[torch.device], Optional[torch.Generator]] = (None, None)
+        # made at the first draw, on the device the pipeline has moved the model to by then
+        self._vote_pixel_generator: Optional[torch.Generator] = None
         if (self.kwargs.get("metadata") or {}).get("vote_training"):
             # now, so the compiler's GIL-bound part overlaps the trainer's set-up (image caching) rather than steps
             self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
@@ -400,13 +400,10 @@ class VoteSplatModel(SplatfactoModel):
         """The vote pixels' own random stream, seeded with ns-train's seed (--machine.seed). Drawing them from
         torch's default stream would shift splatfacto's draws (random backgrounds, densification's split
         samples): a run that votes would train other colours than one that does not."""
-        device = self.device
-        made_for, generator = self._vote_pixel_generator
-        if generator is None or made_for != device:
-            generator = torch.Generator(device=device)
-            generator.manual_seed(torch.initial_seed())
-            self._vote_pixel_generator = (device, generator)
-        return generator
+        if self._vote_pixel_generator is None:
+            self._vote_pixel_generator = torch.Generator(device=self.device)
+            self._vote_pixel_generator.manual_seed(torch.initial_seed())
+        return self._vote_pixel_generator
 
     def _start_kernel_warm_up(self, device: torch.device) -> None:
         """On CUDA, compiles the fused vote kernels in the background while training sets up and starts (the
