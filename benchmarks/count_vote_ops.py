@@ -409,7 +409,12 @@ def model_step(levels: int, n: int, width: int, height: int, pixels: int):
     centroids = torch.stack([torch.cat([t, torch.full((size - len(t), 2), float("nan"))]) for t in centroids])
     batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
 
-    def step():
+    def step(seed: Optional[int] = None):
+        """The vote loss terms (vote + 0.05 distortion); ``seed``: first restart the torch seed and the model's vote
+        pixel draws there, as in a run seeded with it (the draws come from the model's own generator)."""
+        if seed is not None:
+            torch.manual_seed(seed)
+            model._vote_pixel_generator = None  # made again at the next draw, from the seed
         model.gauss_params["vote_offsets"].grad = None
         vote, distortion = model.vote_loss_terms(batch)
         return vote + 0.05 * distortion
@@ -505,15 +510,12 @@ def main(argv=None) -> int:
                 # the model takes the default walk width of its device; "GPU walk" uses the GPU's
                 vote_render.AUTO_PAIRS_PER_STEP_CPU = pairs
                 try:
-                    torch.manual_seed(0)
-                    step().backward()
-                    torch.manual_seed(0)
-                    counter = count_step(step)
+                    step(seed=0).backward()
+                    counter = count_step(lambda: step(seed=0))
                     label = f"model vote step L={levels}, {walk}"
                     lines.append(table_row(label, counter))
                     results[label] = summary(counter)
                     if args.repeats:
-                        torch.manual_seed(0)
                         ms = median_ms(step, args.repeats)
                         results[label]["median_ms"] = ms
                         times.append(f"{label}: {ms:.1f} ms")
