@@ -101,6 +101,11 @@ def both_paths(scene, votes, pixel_xy, target, valid, lists, options, weights=(1
     return results
 
 
+# DEVICES' CUDA entry (with its skip mark): the entries are pytest.param objects, which never equal "cuda"
+CUDA_ONLY = [d for d in DEVICES if d.values == ("cuda",)]
+assert len(CUDA_ONLY) == 1
+
+
 def assert_paths_agree(results, rtol=1e-9, atol=1e-9):
     ((vote, distortion), grad), ((fused_vote, fused_distortion), fused_grad) = results
     assert fused_vote.shape == vote.shape and fused_distortion.shape == distortion.shape
@@ -336,7 +341,7 @@ def compiled_variants(kernel) -> int:
     return sum(len(next(part for part in cache if isinstance(part, dict))) for cache in kernel.device_caches.values())
 
 
-@pytest.mark.parametrize("device", [d for d in DEVICES if d == "cuda"])
+@pytest.mark.parametrize("device", CUDA_ONLY)
 def test_fused_kernels_compile_once_for_any_list_length(device):
     """A training step's tile-list length changes every step: after the first step, lengths of every
     remainder mod 16 reuse the compiled kernels (no per-step JIT)."""
@@ -360,7 +365,7 @@ def test_fused_kernels_compile_once_for_any_list_length(device):
     assert [compiled_variants(kernel) for kernel in kernels] == before
 
 
-@pytest.mark.parametrize("device", [d for d in DEVICES if d == "cuda"])
+@pytest.mark.parametrize("device", CUDA_ONLY)
 @pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
 def test_warm_up_compiles_what_a_training_step_launches(distortion, device):
     """start_warm_up's thread compiles the variants of the three fused kernels that a training step's
