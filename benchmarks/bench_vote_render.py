@@ -262,7 +262,11 @@ def _run(args: argparse.Namespace) -> int:
     host_profiles = []
     max_levels = max(args.levels)
     vote_maps = {levels: block_vote_maps(args.width, args.height, levels, device) for levels in args.levels}
-    offsets = torch.zeros(args.num_gaussians, max_levels, 3, device=device, requires_grad=True)
+    # one offsets leaf per level count, as a model of that many levels has (a slice of one [N, 4, 3] leaf
+    # would add the slice's backward, a zero fill and a copy, to the timed step)
+    level_offsets = {
+        levels: torch.zeros(args.num_gaussians, levels, 3, device=device, requires_grad=True) for levels in args.levels
+    }
     rows = []
     compile_rows = []
     profiles = []
@@ -313,26 +317,27 @@ def _run(args: argparse.Namespace) -> int:
                     geometry = (info["means2d"][0], info["conics"][0], info["opacities"][0])
                     tiles = (info["isect_offsets"][0], info["flatten_ids"], info["tile_size"], options)
                     single = levels == 1 and backend != "triton-sampled"  # the sampled losses take [N, L, 3] only
-                    if single:
-                        votes = params["means"].detach() + offsets[:, 0]
-                    else:
-                        votes = params["means"].detach()[:, None, :] + offsets[:, :levels]
+                    offsets = level_offsets[levels]
+                    means = params["means"].detach()
                     if backend == "triton-sampled":  # the training step: draw, then look up in the kernel
                         labels, centroids, voting = vote_maps[levels]
                         sample = torch.randint(voting.numel(), (pixels,), device=device, generator=g)
                         maps = (sample, voting, labels, centroids, args.width, 1.0)
-                        losses = vote_losses_sampled(*geometry, votes, viewmat, K, *maps, *tiles)
+                        losses = vote_losses_sampled(*geometry, means, offsets, viewmat, K, *maps, *tiles, (1.0, 0.1))
+                        losses["total"].backward()
+                        return
+                    votes = means + offsets[:, 0] if single else means[:, None, :] + offsets
+                    target = target_xy[:, 0] if single else target_xy[:, :levels]
+                    mask = valid[:, 0] if single else valid[:, :levels]
+                    if fused:
+                        losses = vote_losses_tiled(*geometry, votes, viewmat, K, pixel_xy, target, mask, *tiles)
                     else:
-                        target = target_xy[:, 0] if single else target_xy[:, :levels]
-                        mask = valid[:, 0] if single else valid[:, :levels]
-                        if fused:
-                            losses = vote_losses_tiled(*geometry, votes, viewmat, K, pixel_xy, target, mask, *tiles)
-                        else:
-                            losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
+                        losses = vote_losses(vote_forward(votes), target, mask, options, check_inputs=False)
                     (losses["vote"].sum() + 0.1 * losses["distortion"].sum()).backward()
 
                 def separate_calls_step(levels=levels):
                     total = 0.0
+                    offsets = level_offsets[levels]
                     for level in range(levels):
                         votes = params["means"].detach() + offsets[:, level]
                         losses = vote_losses(

@@ -410,14 +410,15 @@ def model_step(levels: int, n: int, width: int, height: int, pixels: int):
     batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
 
     def step(seed: Optional[int] = None):
-        """The vote loss terms (vote + 0.05 distortion); ``seed``: first restart the torch seed and the model's vote
-        pixel draws there, as in a run seeded with it (the draws come from the model's own generator)."""
+        """The model's vote loss (vote + 0.05 distortion, the default weights); ``seed``: first restart the torch
+        seed and the model's vote pixel draws there, as in a run seeded with it (the draws come from the model's
+        own generator)."""
         if seed is not None:
             torch.manual_seed(seed)
             model._vote_pixel_generator = None  # made again at the next draw, from the seed
         model.gauss_params["vote_offsets"].grad = None
-        vote, distortion = model.vote_loss_terms(batch)
-        return vote + 0.05 * distortion
+        loss, _terms = model.vote_loss_terms(batch)
+        return loss
 
     return model, step
 

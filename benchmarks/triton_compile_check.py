@@ -109,22 +109,32 @@ def grid_launches():
         d = f if dist else i32  # the member depths' buffer, the members' own without a distortion
         fwd = dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, **walk)
         # vote_losses_tiled: the sampling pointers are placeholders (the tile offsets), its map ints 1 and 1.0
-        tiled = [f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, d, f]
-        out.append(entry("_fused_fwd_kernel", tiled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=False)))
+        # (the vote means pointer is the votes' own placeholder there)
+        tiled = [f, f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, d, f]
+        out.append(entry("_fused_fwd_kernel", tiled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=False, PROJECT=1)))
         if fp == "fp32":  # vote_losses_sampled takes float32 only
             # the target and valid pointers are placeholders too (the position buffer, the draws)
-            sampled = [f, f, f, f, f, f, f, f, i64, i64, i64, i32, f, i32, i32, f, i64, i32, d, f]
-            out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=True)))
-        fused_bwd = [f, f, f, f, f, f, i32, f, i64, i32, d, f, f, f, "i32", f, "i32", f] + ["i32"] * 3
-        flags = dict(HAS_VOTE=True, HAS_DIST=dist != 0)
-        out.append(entry("_fused_bwd_kernel", fused_bwd, dict(LEVELS=levels, LP=lp, DIST=dist, **flags, **walk)))
+            sampled = [f, f, f, f, f, f, f, f, f, i64, i64, i64, i32, f, i32, i32, f, i64, i32, d, f]
+            out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=True, PROJECT=2)))
+        fused_bwd = [f, f, f, f, f, f, f, i32, f, i64, i32, d, f, f, f, "i32", f, "i32", f, "fp32", "fp32", f]
+        fused_bwd += ["i32"] * 3
+        for flags in (
+            dict(HAS_VOTE=True, HAS_DIST=dist != 0, HAS_TOTAL=False, PROJECT=1),  # vote_losses_tiled
+            dict(HAS_VOTE=False, HAS_DIST=False, HAS_TOTAL=True, PROJECT=2),  # a training step
+        ):
+            bwd_constexprs = dict(LEVELS=levels, LP=lp, DIST=dist, **flags, **walk)
+            out.append(entry("_fused_bwd_kernel", fused_bwd, bwd_constexprs))
         for alpha_t, d1 in itertools.product((False, True), (3, 4)):
             c = dict(LEVELS=levels, LP=lp, D1=d1, LDP=vk._pow2(levels * d1), ALPHA_T=alpha_t, DIST=dist, **walk)
             out.append(entry("_vote_fwd_kernel", [f, f, f, i64, i64, i32, f, i32, i64, f, f, f, f, f, "i32"], c))
             bwd = [f, f, f, i64, i64, i32, f, i32, f, f, f, f, f, f, f, "i32"]
             out.append(entry("_vote_bwd_kernel", bwd, dict(c, GEOMETRY_GRAD=alpha_t)))
     out.append(
-        entry("_fused_reduce_kernel", ["*" + fp, "*" + fp, "*" + fp, "*" + fp, "i32"], dict(LEVELS=2, LP=2, RB=1024))
+        entry(
+            "_fused_reduce_kernel",
+            ["*" + fp] * 6 + ["fp32", "fp32", "i32"],
+            dict(LEVELS=2, LP=2, RB=1024),
+        )
     )
     return out
 

@@ -384,11 +384,17 @@ def test_warm_up_compiles_what_a_training_step_launches(distortion, device):
     centroids = torch.rand(levels, 3, 2, device=device) * WIDTH
     voting = torch.arange(HEIGHT * WIDTH, device=device)
     sample = torch.randint(voting.numel(), (64,), device=device)
-    args = (scene["means2d"], scene["conics"], scene["opacities"], votes, scene["viewmat"], scene["K"], sample)
-    losses = vote_fused.vote_losses_sampled(
-        *args, voting, labels, centroids, WIDTH, 1.0, offsets, flatten_ids, TILE, options
+    means = torch.zeros(len(votes), 3, device=device)
+    args = (scene["means2d"], scene["conics"], scene["opacities"], means, votes, scene["viewmat"], scene["K"], sample)
+    support = (
+        torch.zeros(len(votes), levels, device=device),
+        torch.full((len(votes), levels), -1, dtype=torch.int32, device=device),
+        7,
     )
-    (2.0 * losses["vote"].sum() + 0.5 * losses["distortion"].sum()).backward()
+    losses = vote_fused.vote_losses_sampled(
+        *args, voting, labels, centroids, WIDTH, 1.0, offsets, flatten_ids, TILE, options, (2.0, 0.5), support
+    )
+    losses["total"].backward()
     assert votes.grad is not None and votes.grad.abs().sum() > 0
     assert [compiled_variants(kernel) for kernel in kernels] == before
 
@@ -399,9 +405,14 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
     equal to the torch path's, with no host read; other switches keep the separate path."""
     model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
     results = {}
+    support = model.gauss_params["vote_support"]
     for backend in ("torch", "triton"):
         monkeypatch.setenv(BACKEND_ENV, backend)
         step(seed=0).backward()  # warm-up
+        model.record_vote_support()
+        with torch.no_grad():
+            support.zero_()
+        model._support_stamps = None  # the warm-up's step counted with this step's stamp
         counter = count_ops.OpCounter()
         with counter:
             loss = step(seed=0)
@@ -409,10 +420,16 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
                 loss.backward()
         grad = model.gauss_params["vote_offsets"].grad
         assert grad is not None
-        results[backend] = (loss.detach(), grad.clone(), counter)
-    (loss, grad, _), (fused_loss, fused_grad, counter) = results["torch"], results["triton"]
+        model.record_vote_support()  # the fused backward counted it already: nothing added
+        results[backend] = (loss.detach(), grad.clone(), counter, support.detach().clone())
+    (loss, grad, _, counts), (fused_loss, fused_grad, counter, fused_counts) = results["torch"], results["triton"]
     torch.testing.assert_close(fused_loss, loss, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(fused_grad, grad, rtol=1e-4, atol=1e-6)
+    # the support: what the torch path counts (entries with a gradient), and where the fused count has more,
+    # members whose summed gradient cancelled to an exact 0 (L1 signs; the fused backward counts members)
+    extra = fused_counts != counts
+    assert counts.sum() > 0 and (fused_counts[extra] == 1).all() and (counts[extra] == 0).all()
+    assert (grad[extra] == 0).all()
     assert grad.abs().sum() > 0
     assert dict(counter.triton_names) == {"_fused_fwd_kernel": 1, "_fused_reduce_kernel": 1, "_fused_bwd_kernel": 1}
     assert counter.total_syncs == 0, dict(counter.syncs)
@@ -447,11 +464,13 @@ def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, 
     + [(1.0, "l1_pixels", 4)],
 )
 def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, cap, device, monkeypatch):
-    """vote_losses_sampled (pixel and target lookup in the forward kernel) gives the values and vote
-    gradients of vote_maps.pixels_and_targets followed by vote_losses_tiled, for the same draw: the same
-    float32 operations (bitwise under the interpreter; on the H100 the gradients differ by ~1 ulp). Vote
-    maps at 1/scale of the render size, masks without a vote included. ``cap`` 4: most voting sets
-    overflow the scratch row, so the backward walks the run again from the positions the forward wrote."""
+    """vote_losses_sampled (pixel and target lookup in the forward kernel, votes = means + offsets formed
+    there, the weighted total made by the reduction) gives the values and the offsets' and means' gradients
+    of vote_maps.pixels_and_targets followed by vote_losses_tiled on ``means[:, None] + offsets`` and the
+    weighted sum in torch, for the same draw: the same float32 operations (bitwise under the interpreter; on
+    the H100 the gradients differ by ~1 ulp). Vote maps at 1/scale of the render size, masks without a vote
+    included. ``cap`` 4: most voting sets overflow the scratch row, so the backward walks the run again from
+    the positions the forward wrote."""
     small_blocks(monkeypatch, cap=cap)
     levels, masks = 2, 6
     scene, level_votes, _, lists = scene_of_size(50)
@@ -469,25 +488,79 @@ def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, ca
     sample = torch.cat([torch.tensor([0, voting.numel() - 1]), torch.randint(voting.numel(), (40,), generator=g)])
     labels, centroids, voting, sample = (t.to(device) for t in (labels, centroids, voting, sample))
     options = VoteRenderOptions(distortion=distortion)
-    results = []
+    means = (0.5 * votes[:, 0]).contiguous()
+    vote_offsets = votes - means[:, None]
+    n = len(votes)
+    support = (torch.zeros(n, levels, device=device), torch.full((n, levels), -1, dtype=torch.int32, device=device))
+    results, totals, mean_grads = [], [], []
     for sampled in (False, True):
-        leaf = votes.clone().requires_grad_()
-        args = (scene["means2d"], scene["conics"], scene["opacities"], leaf, scene["viewmat"], scene["K"])
+        means_leaf, leaf = means.clone().requires_grad_(), vote_offsets.clone().requires_grad_()
+        geometry = (scene["means2d"], scene["conics"], scene["opacities"])
+        view = (scene["viewmat"], scene["K"])
         if sampled:
+            maps = (sample, voting, labels, centroids, map_width, scale)
             losses = vote_fused.vote_losses_sampled(
-                *args, sample, voting, labels, centroids, map_width, scale, offsets, flatten_ids, TILE, options
+                *geometry,
+                means_leaf,
+                leaf,
+                *view,
+                *maps,
+                offsets,
+                flatten_ids,
+                TILE,
+                options,
+                (1.3, 0.7),
+                (*support, 5),
             )
+            total = losses["total"]
+            torch.testing.assert_close(losses["terms"].sum(), total.detach())
+            assert not losses["terms"].requires_grad and total.shape == ()
         else:
             looked_up = pixels_and_targets(voting[sample], map_width, labels, centroids, scale)
-            losses = vote_fused.vote_losses_tiled(*args, *looked_up, offsets, flatten_ids, TILE, options)
-        (1.3 * losses["vote"].sum() + 0.7 * losses["distortion"].sum()).backward()
-        assert leaf.grad is not None
+            level_votes = means_leaf[:, None] + leaf
+            losses = vote_fused.vote_losses_tiled(
+                *geometry, level_votes, *view, *looked_up, offsets, flatten_ids, TILE, options
+            )
+            total = 1.3 * losses["vote"].sum() + 0.7 * losses["distortion"].sum()
+        total.backward()
+        assert leaf.grad is not None and means_leaf.grad is not None
         results.append(((losses["vote"].detach(), losses["distortion"].detach()), leaf.grad))
+        totals.append(total.detach())
+        mean_grads.append(means_leaf.grad)
     if device == "cpu":  # the interpreter: the same operations give the same bits
         assert_paths_agree(results, rtol=0, atol=0)
+        torch.testing.assert_close(mean_grads[1], mean_grads[0], rtol=0, atol=0)
     else:  # compiled, the two variants may contract other multiply-adds: vote gradients ~1 ulp apart
         assert_paths_agree(results, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(mean_grads[1], mean_grads[0], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(totals[1], totals[0])
     assert results[1][1].abs().sum() > 0 and (results[1][0][0] > 0).all()
+    # the support the backward counted: the entries that got a gradient, once per stamp
+    counted = results[1][1].ne(0).any(-1).float()
+    # the support the backward counted: per level, the members of the voting sets of the pixels that vote
+    # there, once per stamp (the torch path, one pixel at a time: a pixel's members all get its gradient;
+    # summed over pixels, the L1 signs can cancel to an exact 0, and such a member still counts)
+    members = torch.zeros(n, levels, dtype=torch.bool)
+    pixel_xy, target_xy, valid = pixels_and_targets(voting[sample], map_width, labels, centroids, scale)
+    torch_options = VoteRenderOptions(**{**options.__dict__, "backend": "torch"})
+    for pixel in range(len(sample)):
+        leaf = votes.clone().requires_grad_()
+        at = slice(pixel, pixel + 1)
+        tiles = dict(isect_offsets=offsets, flatten_ids=flatten_ids, tile_size=TILE)
+        render = call(render_votes_tiled, {**scene, "votes": leaf}, pixel_xy[at], torch_options, **tiles)
+        vote_losses(render, target_xy[at], valid[at], options, check_inputs=False)["vote"].sum().backward()
+        assert leaf.grad is not None
+        members |= leaf.grad.ne(0).any(-1).cpu()
+    counted = members.float().to(device)
+    assert counted.sum() > 0 and torch.equal(support[0], counted)
+    assert (results[1][1].ne(0).any(-1) <= members.to(device)).all()  # every entry with a gradient is a member
+    for stamp, expected in ((5, counted), (6, 2 * counted)):
+        leaf = vote_offsets.clone().requires_grad_()
+        losses = vote_fused.vote_losses_sampled(
+            *geometry, means, leaf, *view, *maps, offsets, flatten_ids, TILE, options, (1.3, 0.7), (*support, stamp)
+        )
+        losses["total"].backward()
+        assert torch.equal(support[0], expected), stamp  # step 5 again: nothing new; step 6: each once more
 
 
 def test_sampled_losses_reject_bad_inputs():
@@ -503,17 +576,22 @@ def test_sampled_losses_reject_bad_inputs():
     if vote_kernel.unavailable_reason(votes.device) is not None:
         pytest.skip("the Triton kernels cannot run here")
     for bad, match in [
-        (dict(votes=votes.double()), "float32 votes"),
+        (dict(offsets=votes.double()), "float32 offsets"),
+        (dict(means=votes[:-1, 0]), "means must be float32"),
         (dict(voting=voting[:0]), "voting is empty"),
         (dict(labels=labels.long()), "flat_labels must be int32"),
         (dict(centroids=centroids[:1]), "centroids must be float32"),
         (dict(sample=sample.int()), "1-D int64"),
     ]:
-        given = {**dict(votes=votes, sample=sample, voting=voting, labels=labels, centroids=centroids), **bad}
+        given = {
+            **dict(means=votes[:, 0], offsets=votes, sample=sample, voting=voting, labels=labels, centroids=centroids),
+            **bad,
+        }
         with pytest.raises(ValueError, match=match):
             vote_fused.vote_losses_sampled(
                 *args,
-                given["votes"],
+                given["means"],
+                given["offsets"],
                 *view,
                 given["sample"],
                 given["voting"],

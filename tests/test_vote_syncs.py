@@ -124,9 +124,9 @@ def test_model_view_without_masks_gives_zero_connected_losses(count_ops, vote_mo
     model.gauss_params["vote_offsets"].grad = None
     batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
     assert batch["vote_pixels"].numel() == 0
-    vote, distortion = model.vote_loss_terms(batch)
-    (vote + distortion).backward()
-    assert vote.item() == 0.0 and distortion.item() == 0.0
+    loss, terms = model.vote_loss_terms(batch)
+    loss.backward()
+    assert loss.item() == 0.0 and not terms.any()
     grad = model.gauss_params["vote_offsets"].grad
     assert grad is not None and not grad.any()
 
@@ -148,10 +148,11 @@ def test_vote_losses_computed_with_the_metrics_are_the_loss_dicts(count_ops, mon
     batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
     other = dict(batch)
 
-    model.get_metrics_dict({}, batch)
+    metrics = model.get_metrics_dict({}, batch)
     early = model.get_loss_dict({}, batch)
-    assert len(calls) == 1 and set(early) == {"vote_loss", "vote_distortion"}
-    assert early["vote_loss"].requires_grad
+    assert len(calls) == 1 and set(early) == {"vote"} and set(metrics) == {"vote_l1", "vote_distortion"}
+    assert early["vote"].requires_grad and not metrics["vote_l1"].requires_grad
+    torch.testing.assert_close(metrics["vote_l1"] + metrics["vote_distortion"], early["vote"].detach())
     model.get_metrics_dict({}, batch)
     late = model.get_loss_dict({}, other)  # not the batch the metrics saw: computed again
     assert len(calls) == 3 and calls[-1] is other and set(late) == set(early)

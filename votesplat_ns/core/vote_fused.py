@@ -83,7 +83,7 @@ def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bo
 
 def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device) -> threading.Thread:
     """Compiles the kernels of ``vote_losses_sampled`` (forward, reduction, backward) for ``levels``
-    [N, L, 3] float32 votes and ``options`` on CUDA ``device`` in a background thread, by running them
+    [N, L, 3] float32 offsets, ``options`` and a support count on CUDA ``device`` in a background thread, by running them
     on a one-Gaussian scene on a side stream: otherwise the first vote step of a training compiles them
     on the spot (~5 s on an H100 host). Join the thread before the first real call; a failure here is
     left to that call, which compiles (and reports) by itself."""
@@ -95,13 +95,14 @@ def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device)
                 def f32(values) -> Tensor:
                     return torch.tensor(values, dtype=torch.float32, device=device)
 
-                votes = f32([0.0, 0.0, 2.0]).repeat(1, levels, 1).requires_grad_()
+                offsets = torch.zeros(1, levels, 3, dtype=torch.float32, device=device, requires_grad=True)
                 # the argument dtypes of a training step: gsplat's int32 tile lists, int64 pixel draws
                 losses = vote_losses_sampled(
                     f32([[8.0, 8.0]]),
                     f32([[1.0, 0.0, 1.0]]),
                     f32([0.5]),
-                    votes,
+                    f32([[0.0, 0.0, 2.0]]),
+                    offsets,
                     torch.eye(4, dtype=torch.float32, device=device),
                     f32([[8.0, 0.0, 8.0], [0.0, 8.0, 8.0], [0.0, 0.0, 1.0]]),
                     torch.zeros(2, dtype=torch.int64, device=device),
@@ -114,8 +115,14 @@ def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device)
                     torch.zeros(1, dtype=torch.int32, device=device),
                     16,
                     options,
+                    (1.0, 0.5),
+                    (
+                        torch.zeros(1, levels, dtype=torch.float32, device=device),
+                        torch.full((1, levels), -1, dtype=torch.int32, device=device),
+                        0,
+                    ),
                 )
-                (losses["vote"].sum() + losses["distortion"].sum()).backward()
+                losses["total"].backward()
                 torch.cuda.current_stream(device).synchronize()
         except Exception:  # noqa: BLE001 (the first real call compiles and raises on its own)
             pass
@@ -176,8 +183,21 @@ def vote_losses_tiled(
         target_xy.detach().reshape(p, levels, 2).to(votes.dtype).contiguous(),
         valid.reshape(p, levels).contiguous().view(torch.uint8),
     )
-    vote, distortion = _fused_losses(
-        means2d, conics, opacities, votes, viewmat, K, pixels, None, isect_offsets, flatten_ids, tile_size, options
+    vote, distortion, _total, _weighted = _fused_losses(
+        means2d,
+        conics,
+        opacities,
+        (votes, None),
+        viewmat,
+        K,
+        pixels,
+        None,
+        isect_offsets,
+        flatten_ids,
+        tile_size,
+        options,
+        (1.0, 1.0),
+        None,
     )
     if single:
         return {"vote": vote[0], "distortion": distortion[0]}
@@ -188,7 +208,8 @@ def vote_losses_sampled(
     means2d: Tensor,
     conics: Tensor,
     opacities: Tensor,
-    votes: Tensor,
+    means: Tensor,
+    offsets: Tensor,
     viewmat: Tensor,
     K: Tensor,
     sample: Tensor,
@@ -201,28 +222,49 @@ def vote_losses_sampled(
     flatten_ids: Tensor,
     tile_size: int,
     options: Optional[VoteRenderOptions] = None,
+    weights: Tuple[float, float] = (1.0, 1.0),
+    support: Optional[Tuple[Tensor, Tensor, int]] = None,
 ) -> Dict[str, Tensor]:
     """``vote_losses_tiled`` at pixels drawn from one view's vote maps, their lookup done in the forward
-    kernel: the same values and gradients as ``vote_losses_tiled(..., *vote_maps.pixels_and_targets(
-    voting[sample], map_width, flat_labels, centroids, scale), ...)`` without its ~15 launches.
+    kernel, with the votes ``means[:, None] + offsets`` formed in the kernels: the same values and gradients
+    as ``vote_losses_tiled(..., means[:, None] + offsets, ..., *vote_maps.pixels_and_targets(voting[sample],
+    map_width, flat_labels, centroids, scale), ...)`` without its ~15 launches, and with the weighted sum a
+    training step minimises made by the reduction (a step's small torch ops and their backward nodes, not
+    the kernels, were most of its cost).
 
     Args:
         means2d, conics, opacities, viewmat, K, isect_offsets, flatten_ids, tile_size, options: as in
             ``vote_losses_tiled``.
-        votes [N,L,3] float32: world-space votes, differentiable.
+        means [N,3] float32: the Gaussians' world positions (a gradient reaches them only if they require one).
+        offsets [N,L,3] float32: the vote offsets, differentiable; the votes are ``means[:, None] + offsets``.
         sample [P] int64: the drawn entries of ``voting`` (in [0, C)).
         voting [C] int64: flat indices (row * map_width + column) of the view's pixels that carry a
             vote (``vote_maps.voting_pixels``); C >= 1.
         flat_labels [L, H*W] int32: mask ids per level; centroids [L, K+1, 2] float32: pixel-index
             centroids, NaN where a mask has no vote (the datamanager's vote maps).
         map_width: W of the vote maps; scale: render resolution over the maps' resolution.
+        weights: (w_vote, w_distortion) of "total".
+        support: (counts [N,L] float32, stamps [N,L] int32, stamp): the backward also adds 1 to counts[i, l]
+            where Gaussian i's level-l offset gets a gradient from some pixel (its level-l coefficient there
+            is non-zero), once per ``stamp``: it swaps ``stamp`` into stamps[i, l] and counts where another
+            value was there. With a new stamp each step, counts[i, l] becomes the number of steps in which
+            the offset got a gradient, as ``counts += offsets.grad.ne(0).any(-1)`` after the step would
+            count, without those three launches.
 
-    Returns {"vote", "distortion"}: [L] tensors. Values are not checked; indices are clamped into range.
+    Returns {"vote", "distortion"}: [L] tensors as ``vote_losses_tiled``'s; "total": the differentiable scalar
+    w_vote * vote.sum() + w_distortion * distortion.sum(); "terms": [2] its two terms, without a gradient (for
+    logging: reading them costs no launch). Values are not checked; indices are clamped into range.
     """
     options = options or VoteRenderOptions()
-    levels, single = _checked_levels(options, votes, sample)
-    if single or votes.dtype != torch.float32:
-        raise ValueError(f"vote_losses_sampled takes float32 votes [N, L, 3], got {votes.dtype} {list(votes.shape)}")
+    levels, single = _checked_levels(options, offsets, sample)
+    if single or offsets.dtype != torch.float32:
+        raise ValueError(
+            f"vote_losses_sampled takes float32 offsets [N, L, 3], got {offsets.dtype} {list(offsets.shape)}"
+        )
+    if tuple(means.shape) != (offsets.shape[0], 3) or means.dtype != torch.float32:
+        raise ValueError(
+            f"means must be float32 [{offsets.shape[0]}, 3] (one per offset row), got {means.dtype} {list(means.shape)}"
+        )
     if sample.ndim != 1 or voting.ndim != 1 or sample.dtype != torch.int64 or voting.dtype != torch.int64:
         raise ValueError("sample and voting must be 1-D int64 tensors")
     if voting.numel() == 0:
@@ -238,18 +280,27 @@ def vote_losses_sampled(
         or centroids.dtype != torch.float32
     ):
         raise ValueError(f"centroids must be float32 [{levels}, K+1, 2], got {centroids.dtype} {list(centroids.shape)}")
-    if len({t.device for t in (votes, sample, voting, flat_labels, centroids)}) != 1:
+    if len({t.device for t in (means, offsets, sample, voting, flat_labels, centroids)}) != 1:
         raise ValueError("all inputs of vote_losses_sampled must be on the same device")
+    if support is not None:
+        counts, stamps, _stamp = support
+        level_shape = tuple(offsets.shape[:2])
+        if tuple(counts.shape) != level_shape or counts.dtype != torch.float32 or not counts.is_contiguous():
+            raise ValueError(f"support counts must be contiguous float32 {list(level_shape)}")
+        if tuple(stamps.shape) != level_shape or stamps.dtype != torch.int32 or not stamps.is_contiguous():
+            raise ValueError(f"support stamps must be contiguous int32 {list(level_shape)}")
+        if counts.device != offsets.device or stamps.device != offsets.device:
+            raise ValueError("support counts and stamps must be on the offsets' device")
     p = sample.shape[0]
     # filled by the forward kernel with the drawn pixels' positions (its backward reads them)
-    pixel_xy = torch.empty(p, 2, dtype=votes.dtype, device=votes.device)
+    pixel_xy = torch.empty(p, 2, dtype=offsets.dtype, device=offsets.device)
     sampling = (sample.contiguous(), voting.contiguous(), flat_labels.contiguous(), centroids.contiguous())
     geometry = (int(flat_labels.shape[1]), int(map_width), int(centroids.shape[1]), float(scale))
-    vote, distortion = _fused_losses(
+    vote, distortion, total, terms = _fused_losses(
         means2d,
         conics,
         opacities,
-        votes,
+        (offsets, means),
         viewmat,
         K,
         (pixel_xy, pixel_xy, sample),  # target and valid are computed in the kernel: placeholders
@@ -258,8 +309,10 @@ def vote_losses_sampled(
         flatten_ids,
         tile_size,
         options,
+        (float(weights[0]), float(weights[1])),
+        support,
     )
-    return {"vote": vote, "distortion": distortion}
+    return {"vote": vote, "distortion": distortion, "total": total, "terms": terms}
 
 
 def _checked_levels(options: VoteRenderOptions, votes: Tensor, pixels: Tensor) -> Tuple[int, bool]:
@@ -277,7 +330,7 @@ def _fused_losses(
     means2d: Tensor,
     conics: Tensor,
     opacities: Tensor,
-    votes: Tensor,
+    votes_and_means: Tuple[Tensor, Optional[Tensor]],
     viewmat: Tensor,
     K: Tensor,
     pixels: Tuple[Tensor, Tensor, Tensor],
@@ -286,9 +339,13 @@ def _fused_losses(
     flatten_ids: Tensor,
     tile_size: int,
     options: VoteRenderOptions,
-) -> Tuple[Tensor, Tensor]:
-    """[L] vote and distortion losses; ``pixels`` = (pixel_xy, target, valid) as the kernel reads them
-    (or, when ``sampled``, the position buffer the kernel fills)."""
+    weights: Tuple[float, float],
+    support: Optional[Tuple[Tensor, Tensor, int]],
+) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """[L] vote and distortion losses, the weighted total and its [2] terms; ``votes_and_means`` = (votes,
+    None), or (offsets, means) for the votes means[:, None] + offsets; ``pixels`` = (pixel_xy, target, valid)
+    as the kernel reads them (or, when ``sampled``, the position buffer the kernel fills)."""
+    votes, means = votes_and_means
     n = votes.shape[0]
     levels = 1 if votes.ndim == 2 else votes.shape[1]
     pixel_xy = pixels[0]
@@ -306,7 +363,7 @@ def _fused_losses(
     if n == 0 or p == 0:
         # nothing to walk: zero losses that stay attached to the graph (zero gradient)
         zero = votes.new_zeros(levels) + votes.sum() * 0.0
-        return zero, zero.clone()
+        return zero, zero.clone(), zero.sum(), votes.new_zeros(2)
     threshold = _vote_threshold(options)
     consts = vote_kernel._constants(
         (
@@ -323,8 +380,10 @@ def _fused_losses(
     # the sampling inputs, or placeholders (never read) and zeros when the pixels are given
     sampling, map_geometry = sampled if sampled is not None else ((offsets,) * 4, (1, 1, 1, 1.0))
     config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel(), map_geometry)
+    votes = votes.reshape(n, levels, 3).contiguous()
     return _FusedVoteLosses.apply(
-        votes.reshape(n, levels, 3).contiguous(),
+        votes,
+        votes if means is None else means.contiguous(),  # unread placeholder without means
         means2d.detach().contiguous(),
         conics.detach().contiguous(),
         opacities.detach().contiguous(),
@@ -335,7 +394,7 @@ def _fused_losses(
         offsets.contiguous(),
         flatten_ids.contiguous(),
         consts,
-        (config, sampled is not None),
+        (config, sampled is not None, means is not None, weights, support),
     )
 
 
@@ -344,6 +403,7 @@ class _FusedVoteLosses(torch.autograd.Function):
     def forward(
         ctx,
         votes,
+        means,
         means2d,
         conics,
         opacities,
@@ -359,9 +419,10 @@ class _FusedVoteLosses(torch.autograd.Function):
         offsets,
         ids,
         consts,
-        config_and_sampled,
+        modes,
     ):
-        config, sampled = config_and_sampled
+        # votes: [N, L, 3] votes, or offsets when split (the votes are means[:, None] + votes)
+        config, sampled, split, (w_vote, w_dist), support = modes
         levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects, map_geometry = config
         map_pixels, map_width, cent_rows, pix_scale = map_geometry
         p, device, dtype = pixel_xy.shape[0], votes.device, votes.dtype
@@ -375,6 +436,8 @@ class _FusedVoteLosses(torch.autograd.Function):
         vote = torch.empty(levels, dtype=dtype, device=device)
         distortion = torch.empty(levels, dtype=dtype, device=device)
         denominator = torch.empty(levels, dtype=dtype, device=device)
+        total = torch.empty((), dtype=dtype, device=device)
+        weighted = torch.empty(2, dtype=dtype, device=device)
         lp = vote_kernel._pow2(levels)
         with vote_kernel._on(device):
             vote_kernel._launch(
@@ -384,6 +447,7 @@ class _FusedVoteLosses(torch.autograd.Function):
                 conics,
                 opacities,
                 votes,
+                means,
                 viewmat,
                 K,
                 pixel_xy,
@@ -415,6 +479,7 @@ class _FusedVoteLosses(torch.autograd.Function):
                 DIST=dist,
                 IN_PIXELS=in_pixels,
                 SAMPLED=sampled,
+                PROJECT=2 if split else 1,
                 **vote_kernel._walk_options(cap),
             )
             vote_kernel._launch(
@@ -424,6 +489,10 @@ class _FusedVoteLosses(torch.autograd.Function):
                 vote,
                 distortion,
                 denominator,
+                total,
+                weighted,
+                w_vote,
+                w_dist,
                 p,
                 LEVELS=levels,
                 LP=lp,
@@ -432,23 +501,42 @@ class _FusedVoteLosses(torch.autograd.Function):
             )
         # in the order of the backward kernel's leading arguments
         ctx.save_for_backward(
-            means2d, conics, opacities, votes, viewmat, pixel_xy, ids, consts, walk, members, depths, terms, denominator
+            means2d,
+            conics,
+            opacities,
+            votes,
+            means,
+            viewmat,
+            pixel_xy,
+            ids,
+            consts,
+            walk,
+            members,
+            depths,
+            terms,
+            denominator,
         )
-        ctx.config = (config, cap)
+        ctx.config = (config, cap, split, (w_vote, w_dist))
+        ctx.support = support  # not saved tensors: the backward kernel adds to the counts in place
+        ctx.mark_non_differentiable(weighted)
         ctx.set_materialize_grads(False)
-        return vote, distortion
+        return vote, distortion, total, weighted
 
     @staticmethod
-    def backward(ctx, g_vote, g_distortion):
+    def backward(ctx, g_vote, g_distortion, g_total, _g_weighted):
         inputs = ctx.saved_tensors
-        votes, pixel_xy, denominator = inputs[3], inputs[5], inputs[12]
-        (levels, dist, _in_pixels, _tw, _th, _ts, n_isects, _map), cap = ctx.config
-        none = (None,) * 16  # the forward's inputs after votes
-        has_vote, has_distortion = g_vote is not None, g_distortion is not None and dist != 0
-        if not ctx.needs_input_grad[0] or not (has_vote or has_distortion):
-            return (None,) + none
+        votes, pixel_xy, denominator = inputs[3], inputs[6], inputs[13]
+        (levels, dist, _in_pixels, _tw, _th, _ts, n_isects, _map), cap, split, (w_vote, w_dist) = ctx.config
+        none = (None,) * 16  # the forward's inputs after votes and means
+        has_vote, has_total = g_vote is not None, g_total is not None
+        has_distortion = g_distortion is not None and dist != 0
+        wants_means = split and ctx.needs_input_grad[1]
+        if not (ctx.needs_input_grad[0] or wants_means) or not (has_vote or has_distortion or has_total):
+            return (None, None) + none
         g_votes = torch.zeros_like(votes)
         p = pixel_xy.shape[0]
+        # the counts and stamps, or placeholders (never read) and a stamp of 0
+        counts, stamps, stamp = ctx.support if ctx.support is not None else (denominator, denominator, 0)
         with vote_kernel._on(votes.device):
             vote_kernel._launch(
                 _fused_bwd_kernel,
@@ -459,7 +547,13 @@ class _FusedVoteLosses(torch.autograd.Function):
                 g_vote.stride(0) if has_vote else 0,
                 g_distortion if has_distortion else denominator,
                 g_distortion.stride(0) if has_distortion else 0,
+                g_total if has_total else denominator,
+                w_vote,
+                w_dist,
                 g_votes,
+                counts,
+                stamps,
+                stamp,
                 p,
                 n_isects,
                 votes.shape[0],
@@ -468,9 +562,14 @@ class _FusedVoteLosses(torch.autograd.Function):
                 DIST=dist,
                 HAS_VOTE=has_vote,
                 HAS_DIST=has_distortion,
+                HAS_TOTAL=has_total,
+                PROJECT=2 if split else 1,
+                COUNT_SUPPORT=ctx.support is not None,
                 **vote_kernel._walk_options(cap),
             )
-        return (g_votes,) + none
+        # d vote / d mean = identity at every level
+        g_means = g_votes.sum(1) if wants_means else None
+        return (g_votes if ctx.needs_input_grad[0] else None, g_means) + none
 
 
 # Integer arguments that change from step to step (tile-list length, Gaussian count, pixel count). Triton
@@ -507,6 +606,7 @@ if triton is not None:
         conics_ptr,
         opac_ptr,
         votes_ptr,
+        vote_means_ptr,
         view_ptr,
         k_ptr,
         pix_ptr,
@@ -538,10 +638,12 @@ if triton is not None:
         DIST: tl.constexpr,
         IN_PIXELS: tl.constexpr,
         SAMPLED: tl.constexpr,
+        PROJECT: tl.constexpr,
         BLOCK: tl.constexpr,
         CAP: tl.constexpr,
         PB: tl.constexpr,
     ):
+        """PROJECT 1: ``votes_ptr`` holds the votes; 2: the offsets, the votes being vote means + offsets."""
         pid, pix, walk = _program_pixel(pix_ptr, consts_ptr)
         lvl = tl.arange(0, LP)
         lvl_ok = lvl < LEVELS
@@ -586,7 +688,7 @@ if triton is not None:
         r22 = tl.load(view_ptr + 10)
         t2 = tl.load(view_ptr + 11)
         geo = (means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss)
-        zsrc = (votes_ptr, r20, r21, r22, t2)
+        zsrc = (votes_ptr, r20, r21, r22, t2, vote_means_ptr)
         member_row = members_ptr + pid * CAP
         depth_row = depths_ptr + pid * (LEVELS * CAP)
 
@@ -603,7 +705,7 @@ if triton is not None:
             gid, _alpha, member, _t_before, t, last, pos, walking = _walk_block(
                 geo, False, pos, end, pix, walk, t, last, BLOCK
             )
-            depth, x, y, z = _entry_depths(zsrc, True, 3, gid, member, lvl, LEVELS)
+            depth, x, y, z = _entry_depths(zsrc, PROJECT, 3, gid, member, lvl, LEVELS)
             sx += tl.sum(x, axis=0)
             sy += tl.sum(y, axis=0)
             sz += tl.sum(z, axis=0)
@@ -667,7 +769,9 @@ if triton is not None:
         factor = tl.zeros([LP], dtype=px.dtype)
         if DIST != 0:
             runs = (geo, pix, zsrc, start, last + 1)
-            spread = _member_spread(depth_row, count, mean_z, runs, lvl, LEVELS, False, True, 3, DIST, BLOCK, CAP, PB)
+            spread = _member_spread(
+                depth_row, count, mean_z, runs, lvl, LEVELS, False, PROJECT, 3, DIST, BLOCK, CAP, PB
+            )
             if DIST == 1:
                 distortion = spread
                 factor = spread * 0.0 + 1.0
@@ -698,9 +802,21 @@ if triton is not None:
 
     @triton.jit(do_not_specialize=("n_pixels",))
     def _fused_reduce_kernel(
-        terms_ptr, vote_ptr, dist_ptr, den_ptr, n_pixels, LEVELS: tl.constexpr, LP: tl.constexpr, RB: tl.constexpr
+        terms_ptr,
+        vote_ptr,
+        dist_ptr,
+        den_ptr,
+        total_ptr,
+        weighted_ptr,
+        w_vote,
+        w_dist,
+        n_pixels,
+        LEVELS: tl.constexpr,
+        LP: tl.constexpr,
+        RB: tl.constexpr,
     ):
-        """Per level: the means of the vote L1 and of the distortion over the used pixels (vote_losses)."""
+        """Per level: the means of the vote L1 and of the distortion over the used pixels (vote_losses); and
+        w_vote * (sum over levels of the first) + w_dist * (of the second), and these two terms."""
         lvl = tl.arange(0, LP)
         lvl_ok = lvl < LEVELS
         rows = tl.arange(0, RB).to(tl.int64)
@@ -716,16 +832,24 @@ if triton is not None:
             distortion += tl.sum(tl.load(at + LEVELS, mask=mask, other=0.0), axis=0)
             used += tl.sum(tl.load(at + 2 * LEVELS, mask=mask, other=0.0), axis=0)
         denominator = tl.maximum(used, 1.0)
-        tl.store(vote_ptr + lvl, error / denominator, mask=lvl_ok)
-        tl.store(dist_ptr + lvl, distortion / denominator, mask=lvl_ok)
+        vote = error / denominator
+        distortion = distortion / denominator
+        tl.store(vote_ptr + lvl, vote, mask=lvl_ok)
+        tl.store(dist_ptr + lvl, distortion, mask=lvl_ok)
         tl.store(den_ptr + lvl, denominator, mask=lvl_ok)
+        vote_term = w_vote * tl.sum(tl.where(lvl_ok, vote, 0.0), axis=0)
+        dist_term = w_dist * tl.sum(tl.where(lvl_ok, distortion, 0.0), axis=0)
+        tl.store(total_ptr, vote_term + dist_term)
+        tl.store(weighted_ptr, vote_term)
+        tl.store(weighted_ptr + 1, dist_term)
 
-    @triton.jit(do_not_specialize=_VARYING_INTS)
+    @triton.jit(do_not_specialize=_VARYING_INTS + ("stamp",))
     def _fused_bwd_kernel(
         means_ptr,
         conics_ptr,
         opac_ptr,
         votes_ptr,
+        vote_means_ptr,
         view_ptr,
         pix_ptr,
         ids_ptr,
@@ -739,7 +863,13 @@ if triton is not None:
         g_vote_stride,
         g_dist_ptr,
         g_dist_stride,
+        g_total_ptr,
+        w_vote,
+        w_dist,
         g_votes_ptr,
+        counts_ptr,
+        stamps_ptr,
+        stamp,
         n_pixels,
         n_isects,
         n_gauss,
@@ -748,6 +878,9 @@ if triton is not None:
         DIST: tl.constexpr,
         HAS_VOTE: tl.constexpr,
         HAS_DIST: tl.constexpr,
+        HAS_TOTAL: tl.constexpr,
+        PROJECT: tl.constexpr,
+        COUNT_SUPPORT: tl.constexpr,
         BLOCK: tl.constexpr,
         CAP: tl.constexpr,
         PB: tl.constexpr,
@@ -762,15 +895,31 @@ if triton is not None:
             g_mean_x = tl.zeros([LP], dtype=denominator.dtype)
             g_mean_y = tl.zeros([LP], dtype=denominator.dtype)
             g_mean_z = tl.zeros([LP], dtype=denominator.dtype)
-            if HAS_VOTE:
-                g_vote = tl.load(g_vote_ptr + lvl * g_vote_stride, mask=lvl_ok, other=0.0) / denominator
+            # the total's gradient reaches each level's vote and distortion times their weight
+            g_total = tl.zeros([LP], dtype=denominator.dtype)
+            if HAS_TOTAL:
+                g_total += tl.load(g_total_ptr)
+            if HAS_VOTE or HAS_TOTAL:
+                g_vote = tl.zeros([LP], dtype=denominator.dtype)
+                if HAS_VOTE:
+                    g_vote += tl.load(g_vote_ptr + lvl * g_vote_stride, mask=lvl_ok, other=0.0)
+                if HAS_TOTAL:
+                    g_vote += w_vote * g_total
+                g_vote = g_vote / denominator
                 g_mean_x = g_vote * tl.load(row + 3 * LEVELS, mask=lvl_ok, other=0.0)
                 g_mean_y = g_vote * tl.load(row + 4 * LEVELS, mask=lvl_ok, other=0.0)
                 g_mean_z = g_vote * tl.load(row + 5 * LEVELS, mask=lvl_ok, other=0.0)
             g_depth = tl.zeros([LP], dtype=denominator.dtype)
-            if HAS_DIST:
-                g_dist = tl.load(g_dist_ptr + lvl * g_dist_stride, mask=lvl_ok, other=0.0) / denominator
+            if DIST != 0 and (HAS_DIST or HAS_TOTAL):
+                g_dist = tl.zeros([LP], dtype=denominator.dtype)
+                if HAS_DIST:
+                    g_dist += tl.load(g_dist_ptr + lvl * g_dist_stride, mask=lvl_ok, other=0.0)
+                if HAS_TOTAL:
+                    g_dist += w_dist * g_total
+                g_dist = g_dist / denominator
                 g_depth = g_dist * tl.load(row + 6 * LEVELS, mask=lvl_ok, other=0.0)
+            # the levels whose members get a gradient from this pixel
+            live = lvl_ok & ((g_mean_x != 0.0) | (g_mean_y != 0.0) | (g_mean_z != 0.0) | (g_depth != 0.0))
             mean_z = tl.load(row + 7 * LEVELS, mask=lvl_ok, other=0.0)
             r20 = tl.load(view_ptr + 8)
             r21 = tl.load(view_ptr + 9)
@@ -784,7 +933,7 @@ if triton is not None:
                     ok = ri < count
                     gid = tl.load(members_ptr + pid * CAP + ri, mask=ok, other=0).to(tl.int64)
                     s = tl.zeros([PB, LP], dtype=denominator.dtype)
-                    if HAS_DIST:
+                    if DIST != 0 and (HAS_DIST or HAS_TOTAL):
                         if DIST == 1:
                             s = _compact_signs(depth_row + ri, ok, depth_row, count, lvl, LEVELS, CAP, CAP, PB)
                         if DIST == 2:
@@ -797,11 +946,13 @@ if triton is not None:
                     _scatter_vote_grads(
                         g_votes_ptr, gid, ok, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
                     )
+                    if COUNT_SUPPORT:
+                        _count_support(counts_ptr, stamps_ptr, stamp, gid, ok, lvl, LEVELS, live)
             else:
                 # more than CAP members: walk [start, last] again; its visible entries are the members
                 _pid, pix, _walk = _program_pixel(pix_ptr, consts_ptr)
                 geo = (means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss)
-                zsrc = (votes_ptr, r20, r21, r22, t2)
+                zsrc = (votes_ptr, r20, r21, r22, t2, vote_means_ptr)
                 start = tl.load(walk_ptr + n_pixels + pid)
                 stop = tl.load(walk_ptr + 2 * n_pixels + pid) + 1
                 runs = (geo, pix, zsrc, start, stop)
@@ -809,16 +960,18 @@ if triton is not None:
                 for p0 in range(start, stop, BLOCK):
                     offs_i = p0 + lane
                     gid, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, False, offs_i, stop, pix)
-                    z_i, _x, _y, _z = _entry_depths(zsrc, True, 3, gid, vis_i, lvl, LEVELS)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, 3, gid, vis_i, lvl, LEVELS)
                     s = tl.zeros([BLOCK, LP], dtype=denominator.dtype)
-                    if HAS_DIST:
+                    if DIST != 0 and (HAS_DIST or HAS_TOTAL):
                         if DIST == 2:
                             s = z_i - mean_z[None, :]
                         if DIST == 1:
-                            s = _run_signs(z_i, runs, lvl, LEVELS, False, True, 3, BLOCK)
+                            s = _run_signs(z_i, runs, lvl, LEVELS, False, PROJECT, 3, BLOCK)
                     _scatter_vote_grads(
                         g_votes_ptr, gid, vis_i, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
                     )
+                    if COUNT_SUPPORT:
+                        _count_support(counts_ptr, stamps_ptr, stamp, gid, vis_i, lvl, LEVELS, live)
 
     @triton.jit
     def _scatter_vote_grads(
@@ -832,3 +985,12 @@ if triton is not None:
         tl.atomic_add(at, g_mean_x[None, :] + term * r20, mask=mask, sem="relaxed")
         tl.atomic_add(at + 1, g_mean_y[None, :] + term * r21, mask=mask, sem="relaxed")
         tl.atomic_add(at + 2, g_mean_z[None, :] + term * r22, mask=mask, sem="relaxed")
+
+    @triton.jit
+    def _count_support(counts_ptr, stamps_ptr, stamp, gid, ok, lvl, LEVELS: tl.constexpr, live):
+        """counts[gid, l] += 1 for members ``gid`` [B] at the ``live`` [LP] levels, unless stamps[gid, l] is
+        already ``stamp`` (counted in this step, by this pixel or another)."""
+        mask = ok[:, None] & live[None, :]
+        at = gid[:, None] * LEVELS + lvl[None, :]
+        before = tl.atomic_xchg(stamps_ptr + at, stamp, mask=mask, sem="relaxed")
+        tl.atomic_add(counts_ptr + at, 1.0, mask=mask & (before != stamp), sem="relaxed")

@@ -364,13 +364,20 @@ if triton is not None:
         """[B, LP] camera depths of every level's vote of Gaussians ``gid`` (0 where not ``ok``), and its x, y, z.
 
         ``zsrc`` = (vote table [N, LEVELS, D1],): the depth is a row's last column (x, y, z: the depth too);
-        with PROJECT, (world votes [N, LEVELS, 3], r0, r1, r2, t2): viewmat's row 2 takes them to the camera."""
+        with PROJECT, (world votes [N, LEVELS, 3], r0, r1, r2, t2): viewmat's row 2 takes them to the camera;
+        PROJECT 2: (offsets [N, LEVELS, 3], r0, r1, r2, t2, means [N, 3]), the votes are means + offsets (the
+        float32 sum torch's ``means[:, None] + offsets`` makes, so the same bits)."""
         mask = ok[:, None] & (lvl < LEVELS)[None, :]
         at = zsrc[0] + gid[:, None] * (LEVELS * D1) + lvl[None, :] * D1
         if PROJECT:
             x = tl.load(at, mask=mask, other=0.0)
             y = tl.load(at + 1, mask=mask, other=0.0)
             z = tl.load(at + 2, mask=mask, other=0.0)
+            if PROJECT == 2:
+                mean_at = zsrc[5] + gid * 3
+                x = tl.where(mask, x + tl.load(mean_at, mask=ok, other=0.0)[:, None], 0.0)
+                y = tl.where(mask, y + tl.load(mean_at + 1, mask=ok, other=0.0)[:, None], 0.0)
+                z = tl.where(mask, z + tl.load(mean_at + 2, mask=ok, other=0.0)[:, None], 0.0)
             # Explicit fmas, no mul + add left for the compiler to contract: it contracts per element, and on
             # sm_90 it fused y * r1 in some lanes of a block and x * r0 in others (the lanes of one layout), so
             # two computations of one depth differed in the last bit and the sign sums past CAP got

@@ -5,8 +5,9 @@ losses); this module only
 - adds ``gauss_params["vote_offsets"]`` [N, L, 3] and ``gauss_params["vote_support"]`` [N, L]
   so splatfacto's densify/prune strategy carries them,
 - runs splatfacto's own ``get_outputs`` (on CPU through our torch rasteriser), and
-- in ``get_loss_dict`` samples pixels that carry a 2D vote and adds the vote and distortion
-  losses, reusing the projection and tile lists of the RGB pass (no second projection).
+- samples pixels that carry a 2D vote and adds the weighted vote and distortion losses as one loss
+  ``"vote"`` (its two terms go to the metrics as ``vote_l1`` and ``vote_distortion``), reusing the
+  projection and tile lists of the RGB pass (no second projection).
 
 Its options are :class:`votesplat_ns.ns.model_config.VoteSplatModelConfig` (re-exported here, the
 path config.yml files of earlier runs name).
@@ -89,6 +90,9 @@ class VoteSplatModel(SplatfactoModel):
         self._kernel_warm_up: Optional[threading.Thread] = None  # compiling the fused kernels (CUDA)
         # made at the first draw, on the device the pipeline has moved the model to by then
         self._vote_pixel_generator: Optional[torch.Generator] = None
+        # [N, L] int32, the step that last counted each support entry (the fused backward counts the support)
+        self._support_stamps: Optional[torch.Tensor] = None
+        self._support_counted = False  # by this step's fused backward: record_vote_support has nothing to add
         if (self.kwargs.get("metadata") or {}).get("vote_training"):
             # now, so the compiler's GIL-bound part overlaps the trainer's set-up (image caching) rather than steps
             self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
@@ -302,11 +306,16 @@ class VoteSplatModel(SplatfactoModel):
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
         # The vote losses are computed here, where the batch first reaches the model, and handed to
         # get_loss_dict: splatfacto's metrics and colour losses read the GPU (PSNR, image copies),
-        # so host work done before them overlaps the colour pass still running on the GPU.
-        self._early_vote_losses = (batch, self._vote_losses(batch))
+        # so host work done before them overlaps the colour pass still running on the GPU. (On a stream of
+        # their own, joined in get_loss_dict, a vote step cost 0.5-0.7 ms more host time: BENCHMARKS.md.)
+        losses, terms = self._vote_losses(batch)
+        self._early_vote_losses = (batch, losses)
         if self.training and self.vote_only:
-            return {"gaussian_count": self.num_points}
-        return super().get_metrics_dict(outputs, batch)
+            metrics = {"gaussian_count": self.num_points}
+        else:
+            metrics = super().get_metrics_dict(outputs, batch)
+        metrics.update(terms)
+        return metrics
 
     def get_image_metrics_and_images(self, outputs, batch):
         metrics, images = super().get_image_metrics_and_images(outputs, batch)
@@ -329,21 +338,25 @@ class VoteSplatModel(SplatfactoModel):
             loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         early_batch, early_losses = self._early_vote_losses
         self._early_vote_losses = (None, {})
-        loss_dict.update(early_losses if early_batch is batch else self._vote_losses(batch))
+        loss_dict.update(early_losses if early_batch is batch else self._vote_losses(batch)[0])
         return loss_dict
 
-    def _vote_losses(self, batch: Dict[str, torch.Tensor]) -> Dict[str, torch.Tensor]:
-        """The weighted vote loss and distortion of this step's batch ({} on steps that do not vote)."""
+    def _vote_losses(self, batch: Dict[str, torch.Tensor]) -> Tuple[Dict[str, torch.Tensor], Dict[str, torch.Tensor]]:
+        """This step's vote loss ({"vote"}: the weighted vote L1 and distortion, one entry so that the trainer's
+        sum of the losses costs one addition for the votes) and its terms for the metrics ({"vote_l1",
+        "vote_distortion"}, without a gradient); ({}, {}) on steps that do not vote."""
         if not (self.votes_active() and "vote_labels" in batch):
-            return {}
-        vote_loss, distortion = self.vote_loss_terms(batch)
-        losses = {"vote_loss": self.config.vote_loss_weight * vote_loss}
+            return {}, {}
+        loss, terms = self.vote_loss_terms(batch)
+        metrics = {"vote_l1": terms[0]}
         if self.config.vote_distortion != "none":
-            losses["vote_distortion"] = self.config.distortion_loss_weight * distortion
-        return losses
+            metrics["vote_distortion"] = terms[1]
+        return {"vote": loss}, metrics
 
     def vote_loss_terms(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
-        """Vote L1 and distortion, summed over levels, on pixels sampled from the vote maps."""
+        """(loss, terms) on pixels sampled from the vote maps: loss = vote_loss_weight * vote L1 +
+        distortion_loss_weight * distortion, each summed over levels; terms [2]: these two weighted terms,
+        without a gradient."""
         labels, centroids, voting = self._vote_maps(batch)
         # splatfacto renders at 1/d of the image resolution early in training; positions in the
         # continuous pixel frame (pixel centre = index + 0.5) scale by exactly 1/d.
@@ -352,24 +365,28 @@ class VoteSplatModel(SplatfactoModel):
         # One pixel sample and one walk for all levels: membership depends only on geometry. Uniform
         # among the pixels that carry a vote.
         size = (self.config.vote_pixels_per_step,)
-        votes = self._votes()
+        offsets = self.gauss_params["vote_offsets"]
+        weights = (self.config.vote_loss_weight, self.config.distortion_loss_weight)
+        if self.config.vote_distortion == "none":
+            weights = (weights[0], 0.0)
         if not voting.numel():
-            # a view without any vote: both losses are 0, still connected to the offsets
-            zero = votes.sum() * 0.0
-            return zero, zero.clone()
+            # a view without any vote: the loss is 0, still connected to the offsets
+            return offsets.sum() * 0.0, offsets.new_zeros(2)
         sample = torch.randint(voting.numel(), size, device=self.device, generator=self._vote_generator())
-        if use_fused(self.vote_options, votes, voting):
+        if use_fused(self.vote_options, offsets, voting):
             if self._kernel_warm_up is not None:
                 self._kernel_warm_up.join()  # the kernels it compiled are then in Triton's cache
                 self._kernel_warm_up = None
             # The Triton backend with the default switches: the pixel lookup, render and losses in three
             # launches, no host read (so no value checks: a diverged vote gives a NaN loss, not an error).
             info = self.info
+            means = self.gauss_params["means"]
             losses = vote_losses_sampled(
                 info["means2d"][0],
                 info["conics"][0],
                 info["opacities"][0],
-                votes,
+                means if self.config.votes_move_geometry else means.detach(),
+                offsets,
                 info["viewmats"][0],
                 info["Ks"][0],
                 sample,
@@ -382,19 +399,30 @@ class VoteSplatModel(SplatfactoModel):
                 info["flatten_ids"],
                 info["tile_size"],
                 self.vote_options,
+                weights,
+                self._support_in_backward(),
             )
             if self.step % FUSED_FINITE_CHECK_EVERY == FUSED_FINITE_CHECK_EVERY - 1:
                 # one host read every FUSED_FINITE_CHECK_EVERY steps, so diverged votes still stop training
                 _raise_if_diverged(losses["vote"])
-        else:
-            pixel_xy, target_xy, valid = pixels_and_targets(
-                voting[sample], labels.shape[-1], flat_labels, centroids, scale
-            )
-            # Targets are finite wherever valid (valid is their finiteness) and render_votes_tiled checks the
-            # votes, so vote_losses' own input checks (a host read every step) would never fire.
-            render = self.render_votes(pixel_xy, votes)
-            losses = vote_losses(render, target_xy, valid, self.vote_options, check_inputs=False)
-        return losses["vote"].sum(), losses["distortion"].sum()
+            return losses["total"], losses["terms"]
+        pixel_xy, target_xy, valid = pixels_and_targets(voting[sample], labels.shape[-1], flat_labels, centroids, scale)
+        # Targets are finite wherever valid (valid is their finiteness) and render_votes_tiled checks the
+        # votes, so vote_losses' own input checks (a host read every step) would never fire.
+        render = self.render_votes(pixel_xy, self._votes())
+        losses = vote_losses(render, target_xy, valid, self.vote_options, check_inputs=False)
+        vote = weights[0] * losses["vote"].sum()
+        distortion = weights[1] * losses["distortion"].sum()
+        return vote + distortion, torch.stack([vote, distortion]).detach()
+
+    def _support_in_backward(self) -> Tuple[torch.Tensor, torch.Tensor, int]:
+        """What the fused backward needs to count this step's vote support (``vote_losses_sampled``'s
+        ``support``): the counts, the stamps (made again when densification changed N) and the step."""
+        counts = self.gauss_params["vote_support"].detach()
+        if self._support_stamps is None or self._support_stamps.shape != counts.shape:
+            self._support_stamps = torch.full(counts.shape, -1, dtype=torch.int32, device=counts.device)
+        self._support_counted = True
+        return counts, self._support_stamps, int(self.step)
 
     def _vote_generator(self) -> torch.Generator:
         """The vote pixels' own random stream, seeded with ns-train's seed (--machine.seed). Drawing them from
@@ -476,9 +504,14 @@ class VoteSplatModel(SplatfactoModel):
     def record_vote_support(self) -> None:
         """Count, per Gaussian and level, the steps in which its offset received a vote gradient.
 
-        A Gaussian gets a vote gradient exactly when it is in the voting set M of a sampled
-        pixel that carries a 2D vote, so support > 0 marks the foreground for clustering.
+        A Gaussian gets a vote gradient when it is in the voting set M of a sampled pixel that
+        carries a 2D vote, so support > 0 marks the foreground for clustering. The fused losses count
+        in their backward (``vote_losses_sampled``'s ``support``) and count that membership itself: a
+        member whose gradients from several pixels cancel to an exact 0 (L1 signs) counts there, not here.
         """
+        if self._support_counted:  # the fused backward has counted it
+            self._support_counted = False
+            return
         grad = self.gauss_params["vote_offsets"].grad
         if grad is not None:
             self.gauss_params["vote_support"].add_(grad.ne(0).any(dim=-1))
