@@ -350,7 +350,8 @@ def render_step(scene, info, pixel_xy, target_xy, valid, offsets, options, chunk
 
 
 def model_step(levels: int, n: int, width: int, height: int, pixels: int):
-    """VoteSplatModel.vote_loss_terms on a CPU-built model with random Gaussians, after project_for_votes."""
+    """VoteSplatModel.vote_loss_terms on a CPU-built model with random Gaussians, after project_for_votes; the
+    step's batch (host tensors, as the datamanager gives them) is ``step.batch``."""
     import warnings
 
     from nerfstudio.data.scene_box import SceneBox
@@ -420,6 +421,7 @@ def model_step(levels: int, n: int, width: int, height: int, pixels: int):
         loss, _terms = model.vote_loss_terms(batch)
         return loss
 
+    step.batch = batch  # pyright: ignore[reportFunctionMemberAccess]
     return model, step
 
 
