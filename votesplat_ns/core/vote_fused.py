@@ -245,11 +245,12 @@ def vote_losses_sampled(
         map_width: W of the vote maps; scale: render resolution over the maps' resolution.
         weights: (w_vote, w_distortion) of "total".
         support: (counts [N,L] float32, stamps [N,L] int32, stamp): the backward also adds 1 to counts[i, l]
-            where Gaussian i's level-l offset gets a gradient from some pixel (its level-l coefficient there
-            is non-zero), once per ``stamp``: it swaps ``stamp`` into stamps[i, l] and counts where another
-            value was there. With a new stamp each step, counts[i, l] becomes the number of steps in which
-            the offset got a gradient, as ``counts += offsets.grad.ne(0).any(-1)`` after the step would
-            count, without those three launches.
+            where Gaussian i is a member of the voting set of a pixel that gives level l a gradient (its
+            level-l coefficient there is non-zero), once per ``stamp``: it swaps ``stamp`` into stamps[i, l]
+            and counts where another value was there. With a new stamp each step, counts[i, l] becomes the
+            number of steps in which the offset got a gradient, as ``counts += offsets.grad.ne(0).any(-1)``
+            after the step would count without those three launches, except that a member whose gradients
+            from several pixels cancel to an exact 0 (L1 signs) counts here.
 
     Returns {"vote", "distortion"}: [L] tensors as ``vote_losses_tiled``'s; "total": the differentiable scalar
     w_vote * vote.sum() + w_distortion * distortion.sum(); "terms": [2] its two terms, without a gradient (for
