@@ -117,13 +117,14 @@ def grid_launches():
             sampled = [f, f, f, f, f, f, f, f, f, i64, i64, i64, i32, f, i32, i32, f, i64, i32, d, f]
             out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=True, PROJECT=2)))
         fused_bwd = [f, f, f, f, f, f, f, i32, f, i64, i32, d, f, f, f, "i32", f, "i32", f, "fp32", "fp32", f]
-        fused_bwd += ["i32"] * 3
-        for flags in (
-            dict(HAS_VOTE=True, HAS_DIST=dist != 0, HAS_TOTAL=False, PROJECT=1),  # vote_losses_tiled
-            dict(HAS_VOTE=False, HAS_DIST=False, HAS_TOTAL=True, PROJECT=2),  # a training step
+        for flags, support in (
+            # vote_losses_tiled: no support count (its counts and stamps are the denominator's placeholder)
+            (dict(HAS_VOTE=True, HAS_DIST=dist != 0, HAS_TOTAL=False, PROJECT=1, COUNT_SUPPORT=False), [f, f]),
+            # a training step: the weighted total's gradient, the support counted
+            (dict(HAS_VOTE=False, HAS_DIST=False, HAS_TOTAL=True, PROJECT=2, COUNT_SUPPORT=True), [f, i32]),
         ):
             bwd_constexprs = dict(LEVELS=levels, LP=lp, DIST=dist, **flags, **walk)
-            out.append(entry("_fused_bwd_kernel", fused_bwd, bwd_constexprs))
+            out.append(entry("_fused_bwd_kernel", fused_bwd + support + ["i32"] * 4, bwd_constexprs))
         for alpha_t, d1 in itertools.product((False, True), (3, 4)):
             c = dict(LEVELS=levels, LP=lp, D1=d1, LDP=vk._pow2(levels * d1), ALPHA_T=alpha_t, DIST=dist, **walk)
             out.append(entry("_vote_fwd_kernel", [f, f, f, i64, i64, i32, f, i32, i64, f, f, f, f, f, "i32"], c))
