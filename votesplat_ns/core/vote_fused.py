@@ -440,16 +440,13 @@ class _FusedVoteLosses(torch.autograd.Function):
         total = torch.empty((), dtype=dtype, device=device)
         weighted = torch.empty(2, dtype=dtype, device=device)
         lp = vote_kernel._pow2(levels)
+        # the leading arguments of both walking kernels (the backward's come from the saved tensors)
+        scene = (means2d, conics, opacities, votes, means, viewmat)
         with vote_kernel._on(device):
             vote_kernel._launch(
                 _fused_fwd_kernel,
                 (p,),
-                means2d,
-                conics,
-                opacities,
-                votes,
-                means,
-                viewmat,
+                *scene,
                 K,
                 pixel_xy,
                 target,
@@ -501,22 +498,7 @@ class _FusedVoteLosses(torch.autograd.Function):
                 num_warps=4,
             )
         # in the order of the backward kernel's leading arguments
-        ctx.save_for_backward(
-            means2d,
-            conics,
-            opacities,
-            votes,
-            means,
-            viewmat,
-            pixel_xy,
-            ids,
-            consts,
-            walk,
-            members,
-            depths,
-            terms,
-            denominator,
-        )
+        ctx.save_for_backward(*scene, pixel_xy, ids, consts, walk, members, depths, terms, denominator)
         ctx.config = (config, cap, split, (w_vote, w_dist))
         ctx.support = support  # not saved tensors: the backward kernel adds to the counts in place
         ctx.mark_non_differentiable(weighted)
