@@ -443,18 +443,22 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
 def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, monkeypatch):
     """The fused losses read nothing on the host, so a NaN vote gives a NaN loss; the model reads the loss's
-    finiteness every FUSED_FINITE_CHECK_EVERY steps and stops with the same one-line error as the torch path."""
+    finiteness on every FUSED_FINITE_CHECK_EVERY-th fused vote step and stops with the same one-line error as
+    the torch path, whatever the trainer steps are (votes every 4th step from 500 never land on a step ending
+    in 99, where a check on the step count once looked: diverged votes then trained on to the end)."""
     from votesplat_ns.ns.model import FUSED_FINITE_CHECK_EVERY
 
     model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
     monkeypatch.setenv(BACKEND_ENV, "triton")
     with torch.no_grad():
         model.gauss_params["vote_offsets"][:5] = float("nan")
-    model.step = 10 * FUSED_FINITE_CHECK_EVERY  # not a checking step: no host read, a NaN loss
-    assert not torch.isfinite(step())
-    model.step = 10 * FUSED_FINITE_CHECK_EVERY - 1
+    model._fused_vote_steps = 10 * FUSED_FINITE_CHECK_EVERY - 2  # the step after is not a checking one
+    model.step = 10 * FUSED_FINITE_CHECK_EVERY - 1  # a step count's checking step: no longer what decides
+    assert not torch.isfinite(step())  # no host read, a NaN loss
+    model.step = 1000  # a vote step of the default schedule (every 4th from 500), as every step here
     with pytest.raises(ValueError, match="vote offsets have diverged"):
         step()
+    assert model._fused_vote_steps == 10 * FUSED_FINITE_CHECK_EVERY
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -41,7 +41,9 @@ from votesplat_ns.ns.vote_init import start_offsets_lifted
 
 VOTE_PARAM_NAMES = ("vote_offsets", "vote_support")
 # The fused vote losses do not read the host, so they cannot raise on diverged votes each step; the
-# model reads their finiteness this often instead (a NaN loss otherwise trains on silently).
+# model reads their finiteness on every this-many-th fused vote step instead (a NaN loss otherwise trains on
+# silently). Counted in vote steps, not trainer steps: a step count would miss every vote step of a schedule
+# whose steps never meet it (votes every 4th step from step 500 never fall on a step ending in 99).
 FUSED_FINITE_CHECK_EVERY = 100
 
 
@@ -93,6 +95,7 @@ class VoteSplatModel(SplatfactoModel):
         # [N, L] int32, the step that last counted each support entry (the fused backward counts the support)
         self._support_stamps: Optional[torch.Tensor] = None
         self._support_counted = False  # by this step's fused backward: record_vote_support has nothing to add
+        self._fused_vote_steps = 0  # run by this model object (the finiteness check's clock)
         if (self.kwargs.get("metadata") or {}).get("vote_training"):
             # now, so the compiler's GIL-bound part overlaps the trainer's set-up (image caching) rather than steps
             self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
@@ -402,8 +405,9 @@ class VoteSplatModel(SplatfactoModel):
                 weights,
                 self._support_in_backward(),
             )
-            if self.step % FUSED_FINITE_CHECK_EVERY == FUSED_FINITE_CHECK_EVERY - 1:
-                # one host read every FUSED_FINITE_CHECK_EVERY steps, so diverged votes still stop training
+            self._fused_vote_steps += 1
+            if self._fused_vote_steps % FUSED_FINITE_CHECK_EVERY == 0:
+                # one host read every FUSED_FINITE_CHECK_EVERY vote steps, so diverged votes still stop training
                 _raise_if_diverged(losses["vote"])
             return losses["total"], losses["terms"]
         pixel_xy, target_xy, valid = pixels_and_targets(voting[sample], labels.shape[-1], flat_labels, centroids, scale)
