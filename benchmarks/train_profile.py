@@ -56,6 +56,13 @@ PHASES = (
     ("votesplat_ns.ns.model", "VoteSplatModel", "vote_loss_terms"),
     ("votesplat_ns.ns.model", "VoteSplatModel", "record_vote_support"),
     ("votesplat_ns.core.vote_fused", None, "vote_losses_tiled"),
+    # the parts of a fused vote step (vote_loss_terms' remainder is the draw and the model's own code)
+    ("votesplat_ns.ns.model", "VoteSplatModel", "_vote_maps"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "_support_in_backward"),
+    ("votesplat_ns.core.vote_fused", None, "vote_losses_sampled"),
+    ("votesplat_ns.core.vote_fused", "_FusedVoteLosses", "forward"),
+    ("votesplat_ns.core.vote_fused", "_FusedVoteLosses", "backward"),
+    ("votesplat_ns.core.vote_kernel", None, "_launch"),
 )
 SYNC_SITE_FRAMES = 3
 
@@ -86,7 +93,10 @@ def _install_phases(wrap: Callable[[Callable, str], Callable] = _wrap) -> None:
         module = importlib.import_module(module_name)
         owner = getattr(module, class_name) if class_name else module
         label = f"## {class_name or module_name.rsplit('.', 1)[-1]}.{name}"
-        setattr(owner, name, wrap(getattr(owner, name), label))
+        wrapped = wrap(getattr(owner, name), label)
+        # an autograd Function's forward and backward are static methods: kept static
+        static = class_name is not None and isinstance(vars(owner).get(name), staticmethod)
+        setattr(owner, name, staticmethod(wrapped) if static else wrapped)
         if class_name is None:  # a module function: rebind it where the model imported it
             model = importlib.import_module("votesplat_ns.ns.model")
             if hasattr(model, name):
