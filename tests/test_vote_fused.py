@@ -561,10 +561,24 @@ def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, ca
     for stamp, expected in ((5, counted), (6, 2 * counted)):
         leaf = vote_offsets.clone().requires_grad_()
         losses = vote_fused.vote_losses_sampled(
-            *geometry, means, leaf, *view, *maps, offsets, flatten_ids, TILE, options, (1.3, 0.7), (*support, stamp)
+            *geometry,
+            means,
+            leaf,
+            *view,
+            *maps,
+            offsets,
+            flatten_ids,
+            TILE,
+            options,
+            (1.3, 0.7),
+            (*support, stamp),
+            check_inputs=stamp == 5,  # a training step's call, without the argument checks: the same results
         )
         losses["total"].backward()
         assert torch.equal(support[0], expected), stamp  # step 5 again: nothing new; step 6: each once more
+        exact = {"rtol": 0, "atol": 0} if device == "cpu" else {"rtol": 1e-5, "atol": 1e-6}
+        torch.testing.assert_close(leaf.grad, results[1][1], **exact)
+        torch.testing.assert_close(losses["total"].detach(), totals[1], **exact)
 
 
 def test_sampled_losses_reject_bad_inputs():

@@ -224,6 +224,7 @@ def vote_losses_sampled(
     options: Optional[VoteRenderOptions] = None,
     weights: Tuple[float, float] = (1.0, 1.0),
     support: Optional[Tuple[Tensor, Tensor, int]] = None,
+    check_inputs: bool = True,
 ) -> Dict[str, Tensor]:
     """``vote_losses_tiled`` at pixels drawn from one view's vote maps, their lookup done in the forward
     kernel, with the votes ``means[:, None] + offsets`` formed in the kernels: the same values and gradients
@@ -251,12 +252,53 @@ def vote_losses_sampled(
             number of steps in which the offset got a gradient, as ``counts += offsets.grad.ne(0).any(-1)``
             after the step would count without those three launches, except that a member whose gradients
             from several pixels cancel to an exact 0 (L1 signs) counts here.
+        check_inputs: False skips the checks of the arguments' shapes, dtypes and devices (and whether the
+            kernels can run: ``use_fused``), for a caller that builds them the same way every step (a training
+            step: the checks are a fair part of its host time); wrong arguments then fail in the kernels.
 
     Returns {"vote", "distortion"}: [L] tensors as ``vote_losses_tiled``'s; "total": the differentiable scalar
     w_vote * vote.sum() + w_distortion * distortion.sum(); "terms": [2] its two terms, without a gradient (for
     logging: reading them costs no launch). Values are not checked; indices are clamped into range.
     """
     options = options or VoteRenderOptions()
+    if check_inputs:
+        _check_sampled_inputs(options, means, offsets, sample, voting, flat_labels, centroids, support)
+    p = sample.shape[0]
+    # filled by the forward kernel with the drawn pixels' positions (its backward reads them)
+    pixel_xy = torch.empty(p, 2, dtype=offsets.dtype, device=offsets.device)
+    sampling = (sample.contiguous(), voting.contiguous(), flat_labels.contiguous(), centroids.contiguous())
+    geometry = (int(flat_labels.shape[1]), int(map_width), int(centroids.shape[1]), float(scale))
+    vote, distortion, total, terms = _fused_losses(
+        means2d,
+        conics,
+        opacities,
+        (offsets, means),
+        viewmat,
+        K,
+        (pixel_xy, pixel_xy, sample),  # target and valid are computed in the kernel: placeholders
+        (sampling, geometry),
+        isect_offsets,
+        flatten_ids,
+        tile_size,
+        options,
+        (float(weights[0]), float(weights[1])),
+        support,
+        check_inputs,
+    )
+    return {"vote": vote, "distortion": distortion, "total": total, "terms": terms}
+
+
+def _check_sampled_inputs(
+    options: VoteRenderOptions,
+    means: Tensor,
+    offsets: Tensor,
+    sample: Tensor,
+    voting: Tensor,
+    flat_labels: Tensor,
+    centroids: Tensor,
+    support: Optional[Tuple[Tensor, Tensor, int]],
+) -> None:
+    """``vote_losses_sampled``'s own argument checks (one line each)."""
     levels, single = _checked_levels(options, offsets, sample)
     if single or offsets.dtype != torch.float32:
         raise ValueError(
@@ -292,28 +334,6 @@ def vote_losses_sampled(
             raise ValueError(f"support stamps must be contiguous int32 {list(level_shape)}")
         if counts.device != offsets.device or stamps.device != offsets.device:
             raise ValueError("support counts and stamps must be on the offsets' device")
-    p = sample.shape[0]
-    # filled by the forward kernel with the drawn pixels' positions (its backward reads them)
-    pixel_xy = torch.empty(p, 2, dtype=offsets.dtype, device=offsets.device)
-    sampling = (sample.contiguous(), voting.contiguous(), flat_labels.contiguous(), centroids.contiguous())
-    geometry = (int(flat_labels.shape[1]), int(map_width), int(centroids.shape[1]), float(scale))
-    vote, distortion, total, terms = _fused_losses(
-        means2d,
-        conics,
-        opacities,
-        (offsets, means),
-        viewmat,
-        K,
-        (pixel_xy, pixel_xy, sample),  # target and valid are computed in the kernel: placeholders
-        (sampling, geometry),
-        isect_offsets,
-        flatten_ids,
-        tile_size,
-        options,
-        (float(weights[0]), float(weights[1])),
-        support,
-    )
-    return {"vote": vote, "distortion": distortion, "total": total, "terms": terms}
 
 
 def _checked_levels(options: VoteRenderOptions, votes: Tensor, pixels: Tensor) -> Tuple[int, bool]:
@@ -342,6 +362,7 @@ def _fused_losses(
     options: VoteRenderOptions,
     weights: Tuple[float, float],
     support: Optional[Tuple[Tensor, Tensor, int]],
+    check_inputs: bool = True,
 ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
     """[L] vote and distortion losses, the weighted total and its [2] terms; ``votes_and_means`` = (votes,
     None), or (offsets, means) for the votes means[:, None] + offsets; ``pixels`` = (pixel_xy, target, valid)
@@ -351,14 +372,17 @@ def _fused_losses(
     levels = 1 if votes.ndim == 2 else votes.shape[1]
     pixel_xy = pixels[0]
     p = pixel_xy.shape[0]
-    shapes = {"means2d": (means2d, (n, 2)), "conics": (conics, (n, 3)), "opacities": (opacities, (n,))}
-    _check_shapes(n, {**shapes, "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3))})
-    floats = (means2d, conics, opacities, votes, viewmat, K, pixel_xy)
-    if len({t.dtype for t in floats}) != 1:
-        raise ValueError("means2d, conics, opacities, votes, viewmat, K and pixel_xy must share one dtype")
-    if len({t.device for t in floats}) != 1:
-        raise ValueError("all inputs of the fused vote losses must be on the same device")
-    offsets, tiles_high, tiles_wide = _validate_tiles(isect_offsets, flatten_ids, tile_size, None, votes.device)
+    if check_inputs:
+        shapes = {"means2d": (means2d, (n, 2)), "conics": (conics, (n, 3)), "opacities": (opacities, (n,))}
+        _check_shapes(n, {**shapes, "viewmat": (viewmat, (4, 4)), "K": (K, (3, 3))})
+        floats = (means2d, conics, opacities, votes, viewmat, K, pixel_xy)
+        if len({t.dtype for t in floats}) != 1:
+            raise ValueError("means2d, conics, opacities, votes, viewmat, K and pixel_xy must share one dtype")
+        if len({t.device for t in floats}) != 1:
+            raise ValueError("all inputs of the fused vote losses must be on the same device")
+        offsets, tiles_high, tiles_wide = _validate_tiles(isect_offsets, flatten_ids, tile_size, None, votes.device)
+    else:
+        offsets, (tiles_high, tiles_wide) = isect_offsets.reshape(-1), isect_offsets.shape[-2:]
 
     dist, in_pixels = _DIST[options.distortion]
     if n == 0 or p == 0:
