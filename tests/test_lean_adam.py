@@ -1,0 +1,91 @@
+"""LeanFusedAdam (the vote groups' optimizer) against torch.optim.Adam(fused=True)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.optim.adam as torch_adam
+
+from votesplat_ns.ns.lean_adam import LeanFusedAdam
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def _pair(device, **kwargs):
+    start = torch.randn(300, 2, 3, generator=torch.Generator().manual_seed(0)).to(device)
+    reference, lean = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+    options = dict(lr=1e-3, eps=1e-15, fused=True, **kwargs)
+    return (reference, torch.optim.Adam([reference], **options)), (lean, LeanFusedAdam([lean], **options))
+
+
+def _prune(param, optimizer, keep):
+    """What densification does to an optimizer: a new parameter of the kept rows, its state cut the same way."""
+    state = optimizer.state.pop(param)
+    new = torch.nn.Parameter(param.detach()[keep].clone())
+    optimizer.param_groups[0]["params"] = [new]
+    optimizer.state[new] = {k: (v if k == "step" else v[keep].clone()) for k, v in state.items()}
+    return new
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("weight_decay", [0.0, 0.01])
+def test_lean_steps_equal_torch_fused_adam(device, weight_decay, monkeypatch):
+    """The same bits as torch's fused Adam over a run with a scheduled lr, a step without a gradient and a
+    pruning of the parameter, and every step after the first (which makes the state) skips Adam.step's body."""
+    (ref, ref_opt), (lean, lean_opt) = _pair(device, weight_decay=weight_decay)
+    calls = []
+    original = torch_adam.adam
+    monkeypatch.setattr(torch_adam, "adam", lambda *a, **k: calls.append(1) or original(*a, **k))
+    gen = torch.Generator().manual_seed(1)
+    for step in range(40):
+        if step == 15:
+            for opt in (ref_opt, lean_opt):
+                opt.param_groups[0]["lr"] = 3e-4  # a scheduler's change
+        if step == 25:
+            keep = torch.arange(ref.shape[0], device=device) % 3 != 0
+            ref, lean = _prune(ref, ref_opt, keep), _prune(lean, lean_opt, keep)
+        grad = torch.randn(ref.shape, generator=gen).to(device)
+        ref.grad = grad.clone()
+        lean.grad = None if step == 10 else grad.clone()  # no vote this step: nerfstudio does not step it,
+        if step == 10:  # but a caller that does gets Adam's (which skips a parameter without a gradient)
+            ref.grad = None
+        ref_opt.step()
+        lean_opt.step()
+        assert torch.equal(lean, ref), step
+    assert torch.equal(lean_opt.state[lean]["exp_avg_sq"], ref_opt.state[ref]["exp_avg_sq"])
+    assert torch.equal(lean_opt.state[lean]["step"], ref_opt.state[ref]["step"])
+    # Adam's body ran for each of the reference's 39 steps with a gradient (and its step without one), and
+    # for the lean optimizer only where a step was not plain: the first (no state yet) and the one without
+    # a gradient
+    assert len(calls) == 40 + 2
+
+
+def test_not_plain_steps_go_through_adam_with_hooks_once(monkeypatch):
+    """A closure or a grad scaler's attributes take Adam.step; step hooks run once a step either way."""
+    (_, _), (lean, opt) = _pair("cpu")
+    lean.grad = torch.ones_like(lean)
+    opt.step()  # makes the state
+    hooks = []
+    opt.register_step_pre_hook(lambda *args: hooks.append("pre"))
+    opt.register_step_post_hook(lambda *args: hooks.append("post"))
+    calls = []
+    original = torch_adam.adam
+    monkeypatch.setattr(torch_adam, "adam", lambda *a, **k: calls.append(k.get("grad_scale")) or original(*a, **k))
+    torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))])  # Optimizer wraps Adam.step with the hooks now
+    opt.step()
+    assert calls == [] and hooks == ["pre", "post"]
+    assert opt.step(closure=lambda: torch.tensor(1.0)) == torch.tensor(1.0)
+    assert len(calls) == 1 and hooks == ["pre", "post"] * 2
+    opt.grad_scale, opt.found_inf = torch.ones(()), torch.zeros(())  # as GradScaler.step sets them
+    opt.step()
+    assert len(calls) == 2 and calls[-1] is not None and hooks == ["pre", "post"] * 3
+
+
+def test_the_vote_groups_use_it():
+    from votesplat_ns.ns.method import splatfacto_optimizers
+
+    optimizers = splatfacto_optimizers()
+    param = torch.nn.Parameter(torch.zeros(4, 2, 3))
+    for group in ("vote_offsets", "vote_support"):
+        optimizer = optimizers[group]["optimizer"].setup([param])
+        assert type(optimizer) is LeanFusedAdam and optimizer.param_groups[0]["fused"]

@@ -1,0 +1,72 @@
+"""Adam for the vote groups: torch's fused Adam without most of its Python on a plain step.
+
+A vote step's offsets take one Adam step; torch.optim.Adam(fused=True) spends most of that step's host time
+in Python around its two ops (grouping tensors by device, the functional wrapper's checks, the grad-mode
+decorator): ~0.1 ms a vote step on the H100's host, against a vote pass of ~1 ms (BENCHMARKS.md, session
+12). ``LeanFusedAdam.step`` runs those two ops itself when nothing else is asked of it.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+class LeanFusedAdam(torch.optim.Adam):
+    """torch.optim.Adam(fused=True) whose plain steps run torch's fused path directly: ``_foreach_add_`` on
+    the step count, then ``_fused_adam_`` (the same ops with the same arguments, so the same bits).
+
+    A plain step: one group with one parameter that has a dense gradient and a state (made by an earlier
+    step), a float lr, no closure, no grad scaler (GradScaler sets ``grad_scale``/``found_inf``), no AMSGrad,
+    maximize, capturable, differentiable or decoupled decay. Any other step is Adam.step's. Step hooks and
+    the profiler label still run: Optimizer wraps this method as it wraps Adam.step.
+    """
+
+    def step(self, closure=None):  # type: ignore[override]
+        if closure is not None or not self._plain_step():
+            adam_step = torch.optim.Adam.step
+            # Adam's step as Optimizer wrapped it (once an Adam was made) would run the step hooks a second time
+            if getattr(adam_step, "hooked", False):
+                adam_step = adam_step.__wrapped__
+            return adam_step(self, closure)
+        group = self.param_groups[0]
+        param = group["params"][0]
+        state = self.state[param]
+        beta1, beta2 = group["betas"]
+        steps = [state["step"]]
+        with torch.no_grad():
+            torch._foreach_add_(steps, 1)
+            torch._fused_adam_(
+                [param],
+                [param.grad],
+                [state["exp_avg"]],
+                [state["exp_avg_sq"]],
+                [],
+                steps,
+                amsgrad=False,
+                lr=group["lr"],
+                beta1=beta1,
+                beta2=beta2,
+                weight_decay=group["weight_decay"],
+                eps=group["eps"],
+                maximize=False,
+                grad_scale=None,
+                found_inf=None,
+            )
+        return None
+
+    def _plain_step(self) -> bool:
+        if len(self.param_groups) != 1 or not hasattr(torch, "_fused_adam_"):
+            return False
+        group = self.param_groups[0]
+        if len(group["params"]) != 1 or not group.get("fused"):
+            return False
+        if any(group.get(flag) for flag in ("amsgrad", "maximize", "capturable", "differentiable")):
+            return False
+        if group.get("decoupled_weight_decay") or isinstance(group["lr"], torch.Tensor):
+            return False
+        if getattr(self, "grad_scale", None) is not None or getattr(self, "found_inf", None) is not None:
+            return False
+        param = group["params"][0]
+        grad = param.grad
+        state = self.state.get(param)
+        return grad is not None and not grad.is_sparse and bool(state) and "step" in state
