@@ -365,17 +365,11 @@ def test_fused_kernels_compile_once_for_any_list_length(device):
     assert [compiled_variants(kernel) for kernel in kernels] == before
 
 
-@pytest.mark.parametrize("device", CUDA_ONLY)
-@pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
-def test_warm_up_compiles_what_a_training_step_launches(distortion, device):
-    """start_warm_up's thread compiles the variants of the three fused kernels that a training step's
-    vote_losses_sampled launches (float32 votes, gsplat's int32 tile lists, another tile size and grid):
-    after it, the step compiles nothing."""
-    levels = 2
+def training_like_step(levels: int, distortion: str, device: str) -> None:
+    """A training step's vote_losses_sampled, forward and backward, on a 50-Gaussian scene: other sizes, tile
+    size and grid than start_warm_up's one-Gaussian scene, the same argument dtypes (float32 votes, gsplat's
+    int32 tile lists, int64 draws)."""
     options = VoteRenderOptions(distortion=distortion)
-    vote_fused.start_warm_up(levels, options, torch.device(device)).join()
-    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_reduce_kernel, vote_fused._fused_bwd_kernel)
-    before = [compiled_variants(kernel) for kernel in kernels]
     scene, level_votes, _, lists = scene_of_size(50)
     scene = to_device(scene, device, torch.float32)
     offsets, flatten_ids = (t.to(device=device, dtype=torch.int32) for t in lists["gsplat"])
@@ -396,7 +390,44 @@ def test_warm_up_compiles_what_a_training_step_launches(distortion, device):
     )
     losses["total"].backward()
     assert votes.grad is not None and votes.grad.abs().sum() > 0
-    assert [compiled_variants(kernel) for kernel in kernels] == before
+
+
+@pytest.mark.parametrize("device", DEVICES[:1])
+def test_warm_up_process_runs_the_training_steps_call(device):
+    """start_warm_up's child (``python -m votesplat_ns.core.vote_warm_up``, here on CPU under the interpreter)
+    takes what start_warm_up passes and runs the training step's call to the end."""
+    warm_up = vote_fused.start_warm_up(2, VoteRenderOptions(distortion="squared"), torch.device(device))
+    warm_up.join()
+    assert warm_up._process is not None and warm_up._process.returncode == 0
+
+
+@pytest.mark.parametrize("device", CUDA_ONLY)
+@pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
+def test_warm_up_fills_tritons_cache_with_what_a_training_step_launches(distortion, device, tmp_path, monkeypatch):
+    """start_warm_up's child process compiles the variants of the three fused kernels that a training step
+    launches into Triton's on-disk cache, and nothing in this process (whose GIL the compiler would hold): a
+    fresh process that runs a training step after it finds them all there (the cache gains no entry)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    levels = 2
+    monkeypatch.setenv("TRITON_CACHE_DIR", str(tmp_path))
+    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_reduce_kernel, vote_fused._fused_bwd_kernel)
+    compiled_here = [compiled_variants(kernel) for kernel in kernels]
+    vote_fused.start_warm_up(levels, VoteRenderOptions(distortion=distortion), torch.device(device)).join()
+    assert [compiled_variants(kernel) for kernel in kernels] == compiled_here
+    entries = sorted(path.relative_to(tmp_path) for path in tmp_path.rglob("*"))
+    assert {f"{kernel.fn.__name__}.cubin" for kernel in kernels} <= {path.name for path in entries}
+    tests = Path(__file__).resolve().parent
+    step = f"import sys; sys.path.insert(0, {str(tests)!r}); import test_vote_fused as t; "
+    step += f"t.training_like_step({levels}, {distortion!r}, {device!r})"
+    done = subprocess.run(
+        [sys.executable, "-c", step], check=False, env=dict(os.environ), capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(path.relative_to(tmp_path) for path in tmp_path.rglob("*")) == entries
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU

@@ -33,7 +33,11 @@ by construction.
 
 from __future__ import annotations
 
-import threading
+import atexit
+import dataclasses
+import json
+import subprocess
+import sys
 from typing import Dict, Optional, Tuple
 
 import torch
@@ -58,6 +62,8 @@ triton, tl = vote_kernel.triton, vote_kernel.tl
 
 # Pixels per step of the one-program reduction.
 REDUCE_BLOCK = 1024
+# how long the first vote step waits for the warm-up process before compiling by itself
+WARM_UP_TIMEOUT_S = 300.0
 # distortion -> (kernel mode, l1 in pixels)
 _DIST = {"none": (0, False), "l1": (1, False), "l1_pixels": (1, True), "squared": (2, False)}
 
@@ -81,55 +87,45 @@ def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bo
     return fused_unavailable_reason(options, votes, pixel_xy) is None
 
 
-def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device) -> threading.Thread:
+def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device) -> "KernelWarmUp":
     """Compiles the kernels of ``vote_losses_sampled`` (forward, reduction, backward) for ``levels``
-    [N, L, 3] float32 offsets, ``options`` and a support count on CUDA ``device`` in a background thread, by running them
-    on a one-Gaussian scene on a side stream: otherwise the first vote step of a training compiles them
-    on the spot (~5 s on an H100 host). Join the thread before the first real call; a failure here is
-    left to that call, which compiles (and reports) by itself."""
+    [N, L, 3] float32 offsets, ``options`` and a support count on CUDA ``device`` into Triton's on-disk cache,
+    in a child process (``vote_warm_up``): otherwise the first vote step of a training compiles them on the
+    spot (~5 s on an H100 host), and a thread of the training process would hold its GIL for as long. Join it
+    before the first real call, which then loads them from the cache; a failure here is left to that call,
+    which compiles (and reports) by itself."""
+    command = [sys.executable, "-m", "votesplat_ns.core.vote_warm_up", str(int(levels))]
+    command += [json.dumps(dataclasses.asdict(options)), str(device)]
+    try:
+        process = subprocess.Popen(
+            command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+    except OSError:
+        return KernelWarmUp(None)
+    return KernelWarmUp(process)
 
-    def run() -> None:
+
+class KernelWarmUp:
+    """The warm-up process (None when it could not start); stopped when this process exits."""
+
+    def __init__(self, process: Optional[subprocess.Popen]):
+        self._process = process
+        if process is not None:
+            atexit.register(self.stop)
+
+    def join(self) -> None:
+        """Waits for the warm-up (at most WARM_UP_TIMEOUT_S: past that, the first call compiles by itself)."""
+        if self._process is None:
+            return
         try:
-            with torch.cuda.device(device), torch.cuda.stream(torch.cuda.Stream(device)):
+            self._process.wait(timeout=WARM_UP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self.stop()
 
-                def f32(values) -> Tensor:
-                    return torch.tensor(values, dtype=torch.float32, device=device)
-
-                offsets = torch.zeros(1, levels, 3, dtype=torch.float32, device=device, requires_grad=True)
-                # the argument dtypes of a training step: gsplat's int32 tile lists, int64 pixel draws
-                losses = vote_losses_sampled(
-                    f32([[8.0, 8.0]]),
-                    f32([[1.0, 0.0, 1.0]]),
-                    f32([0.5]),
-                    f32([[0.0, 0.0, 2.0]]),
-                    offsets,
-                    torch.eye(4, dtype=torch.float32, device=device),
-                    f32([[8.0, 0.0, 8.0], [0.0, 8.0, 8.0], [0.0, 0.0, 1.0]]),
-                    torch.zeros(2, dtype=torch.int64, device=device),
-                    torch.zeros(1, dtype=torch.int64, device=device),
-                    torch.ones(levels, 1, dtype=torch.int32, device=device),
-                    torch.full((levels, 2, 2), 0.5, dtype=torch.float32, device=device),
-                    1,
-                    1.0,
-                    torch.zeros(1, 1, dtype=torch.int32, device=device),
-                    torch.zeros(1, dtype=torch.int32, device=device),
-                    16,
-                    options,
-                    (1.0, 0.5),
-                    (
-                        torch.zeros(1, levels, dtype=torch.float32, device=device),
-                        torch.full((1, levels), -1, dtype=torch.int32, device=device),
-                        0,
-                    ),
-                )
-                losses["total"].backward()
-                torch.cuda.current_stream(device).synchronize()
-        except Exception:  # noqa: BLE001 (the first real call compiles and raises on its own)
-            pass
-
-    thread = threading.Thread(target=run, name="vote-kernel-warm-up", daemon=True)
-    thread.start()
-    return thread
+    def stop(self) -> None:
+        if self._process is not None and self._process.poll() is None:
+            self._process.kill()  # Triton writes a cache entry whole (a renamed file), so none is left half-written
+            self._process.wait()
 
 
 def vote_losses_tiled(

@@ -15,7 +15,6 @@ path config.yml files of earlier runs name).
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Union
 
@@ -27,7 +26,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
 from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
-from votesplat_ns.core.vote_fused import start_warm_up, use_fused, vote_losses_sampled
+from votesplat_ns.core.vote_fused import KernelWarmUp, start_warm_up, use_fused, vote_losses_sampled
 from votesplat_ns.core.vote_maps import pixels_and_targets
 from votesplat_ns.core.vote_render import DIVERGED_VOTES, VoteRender, render_votes_tiled, vote_losses
 from votesplat_ns.ns.compat import UnavailableMetric
@@ -89,7 +88,7 @@ class VoteSplatModel(SplatfactoModel):
         self.vote_options = self.config.vote_render_options()
         # (batch, its vote losses): computed in get_metrics_dict, used by get_loss_dict of the same batch
         self._early_vote_losses: Tuple[Optional[Dict], Dict[str, torch.Tensor]] = (None, {})
-        self._kernel_warm_up: Optional[threading.Thread] = None  # compiling the fused kernels (CUDA)
+        self._kernel_warm_up: Optional[KernelWarmUp] = None  # compiling the fused kernels (CUDA)
         # made at the first draw, on the device the pipeline has moved the model to by then
         self._vote_pixel_generator: Optional[torch.Generator] = None
         # [N, L] int32, the step that last counted each support entry (the fused backward counts the support)
@@ -97,7 +96,7 @@ class VoteSplatModel(SplatfactoModel):
         self._support_counted = False  # by this step's fused backward: record_vote_support has nothing to add
         self._fused_vote_steps = 0  # run by this model object (the finiteness check's clock)
         if (self.kwargs.get("metadata") or {}).get("vote_training"):
-            # now, so the compiler's GIL-bound part overlaps the trainer's set-up (image caching) rather than steps
+            # now, so that the compiling process runs beside the trainer's set-up (image caching)
             self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
         self.viewer_state = VoteSplatViewerState(self)
 
@@ -440,7 +439,7 @@ class VoteSplatModel(SplatfactoModel):
 
     def _start_kernel_warm_up(self, device: torch.device) -> None:
         """On CUDA, compiles the fused vote kernels in the background while training sets up and starts (the
-        first vote step would otherwise wait for the compiler); that step joins the thread. Started once, as
+        first vote step would otherwise wait for the compiler); that step joins the process. Started once, as
         the model is built for ns-train (a model built otherwise compiles at its first vote step)."""
         if device.type != "cuda":
             return
