@@ -226,6 +226,13 @@ def _write(out_path: str, state: Dict, first: int, stop: int, elapsed: float, mo
         lines.append(f"  {count / steps:6.2f}  {site}")
     lines += ["", "ops by self CPU time (top 40):"]
     lines.append(events.table(sort_by="self_cpu_time_total", row_limit=40, max_name_column_width=60))
+    # GPU kernels by their own time: the vote kernels' share of a step (the host reads wait for it)
+    kernels = [e for e in events if e.device_type == torch.autograd.DeviceType.CUDA and e.self_device_time_total > 0]
+    kernels.sort(key=lambda e: -e.self_device_time_total)
+    lines += ["", "GPU kernels by time (top 25; per step):"]
+    for event in kernels[:25]:
+        per_step_ms = event.self_device_time_total / 1e3 / steps
+        lines.append(f"  {per_step_ms:8.3f} ms  {event.count / steps:6.2f}x  {event.key[:100]}")
     text = "\n".join(lines) + "\n"
     with open(out_path, "w") as handle:
         handle.write(text)
