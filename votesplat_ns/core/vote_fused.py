@@ -124,7 +124,7 @@ class KernelWarmUp:
 
     def stop(self) -> None:
         if self._process is not None and self._process.poll() is None:
-            self._process.kill()  # Triton writes a cache entry whole (a renamed file), so none is left half-written
+            self._process.kill()  # Triton writes each cache file under a temporary name and renames it
             self._process.wait()
 
 
