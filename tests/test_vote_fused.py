@@ -527,26 +527,31 @@ def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, ca
     vote_offsets = votes - means[:, None]
     n = len(votes)
     support = (torch.zeros(n, levels, device=device), torch.full((n, levels), -1, dtype=torch.int32, device=device))
+    geometry = (scene["means2d"], scene["conics"], scene["opacities"])
+    view = (scene["viewmat"], scene["K"])
+    maps = (sample, voting, labels, centroids, map_width, scale)
+
+    def sampled_losses(means_arg, leaf, stamp, check_inputs=True):
+        return vote_fused.vote_losses_sampled(
+            *geometry,
+            means_arg,
+            leaf,
+            *view,
+            *maps,
+            offsets,
+            flatten_ids,
+            TILE,
+            options,
+            (1.3, 0.7),
+            (*support, stamp),
+            check_inputs=check_inputs,
+        )
+
     results, totals, mean_grads = [], [], []
     for sampled in (False, True):
         means_leaf, leaf = means.clone().requires_grad_(), vote_offsets.clone().requires_grad_()
-        geometry = (scene["means2d"], scene["conics"], scene["opacities"])
-        view = (scene["viewmat"], scene["K"])
         if sampled:
-            maps = (sample, voting, labels, centroids, map_width, scale)
-            losses = vote_fused.vote_losses_sampled(
-                *geometry,
-                means_leaf,
-                leaf,
-                *view,
-                *maps,
-                offsets,
-                flatten_ids,
-                TILE,
-                options,
-                (1.3, 0.7),
-                (*support, 5),
-            )
+            losses = sampled_losses(means_leaf, leaf, 5)
             total = losses["total"]
             torch.testing.assert_close(losses["terms"].sum(), total.detach())
             assert not losses["terms"].requires_grad and total.shape == ()
@@ -591,20 +596,8 @@ def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, ca
     assert (results[1][1].ne(0).any(-1) <= members.to(device)).all()  # every entry with a gradient is a member
     for stamp, expected in ((5, counted), (6, 2 * counted)):
         leaf = vote_offsets.clone().requires_grad_()
-        losses = vote_fused.vote_losses_sampled(
-            *geometry,
-            means,
-            leaf,
-            *view,
-            *maps,
-            offsets,
-            flatten_ids,
-            TILE,
-            options,
-            (1.3, 0.7),
-            (*support, stamp),
-            check_inputs=stamp == 5,  # a training step's call, without the argument checks: the same results
-        )
+        # stamp 6: a training step's call, without the argument checks: the same results
+        losses = sampled_losses(means, leaf, stamp, check_inputs=stamp == 5)
         losses["total"].backward()
         assert torch.equal(support[0], expected), stamp  # step 5 again: nothing new; step 6: each once more
         exact = {"rtol": 0, "atol": 0} if device == "cpu" else {"rtol": 1e-5, "atol": 1e-6}
