@@ -95,19 +95,22 @@ def record(test_files, pytest_args):
 
 
 def grid_launches():
-    """The production defaults' variants (BLOCK 32, CAP 128, PAIR_BLOCK 32), as launch records."""
-    from votesplat_ns.core import vote_kernel as vk
+    """The production defaults' variants (BLOCK 32, PAIR_BLOCK 32, CAP 128; the fused kernels' rows as long as a
+    voting set at the default threshold can be, vote_fused.member_slots), as launch records."""
+    from votesplat_ns.core import vote_fused as vf, vote_kernel as vk
+    from votesplat_ns.core.vote_render import VoteRenderOptions
 
     def entry(kernel, args, constexprs):
         return {"kernel": kernel, "args": args, "constexprs": constexprs, "options": {"num_warps": vk.NUM_WARPS}}
 
     walk = dict(BLOCK=32, CAP=128, PB=32)
+    fused_walk = dict(walk, CAP=vf.member_slots(VoteRenderOptions().vote_transmittance, 1, 1, True))
     out = []
     for fp, levels, dist in itertools.product(("fp32", "fp64"), (1, 4), (0, 1, 2)):
         lp = vk._pow2(levels)
         f, i32, i64, u8 = "*" + fp, "*i32", "*i64", "*u8"
         d = f if dist else i32  # the member depths' buffer, the members' own without a distortion
-        fwd = dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, **walk)
+        fwd = dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, **fused_walk)
         # vote_losses_tiled: the sampling pointers are placeholders (the tile offsets), its map ints 1 and 1.0
         # (the vote means pointer is the votes' own placeholder there)
         tiled = [f, f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, d, f]
@@ -123,7 +126,7 @@ def grid_launches():
             # a training step: the weighted total's gradient, the support counted
             (dict(HAS_VOTE=False, HAS_DIST=False, HAS_TOTAL=True, PROJECT=2, COUNT_SUPPORT=True), [f, i32]),
         ):
-            bwd_constexprs = dict(LEVELS=levels, LP=lp, DIST=dist, **flags, **walk)
+            bwd_constexprs = dict(LEVELS=levels, LP=lp, DIST=dist, **flags, **fused_walk)
             out.append(entry("_fused_bwd_kernel", fused_bwd + support + ["i32"] * 4, bwd_constexprs))
         for alpha_t, d1 in itertools.product((False, True), (3, 4)):
             c = dict(LEVELS=levels, LP=lp, D1=d1, LDP=vk._pow2(levels * d1), ALPHA_T=alpha_t, DIST=dist, **walk)

@@ -26,7 +26,13 @@ from test_vote_render import call, random_scene, tile_lists_gsplat
 
 from votesplat_ns.core import vote_fused, vote_kernel
 from votesplat_ns.core.vote_maps import pixels_and_targets, voting_pixels
-from votesplat_ns.core.vote_render import BACKEND_ENV, VoteRenderOptions, render_votes_tiled, vote_losses
+from votesplat_ns.core.vote_render import (
+    BACKEND_ENV,
+    VoteRenderOptions,
+    render_votes_reference,
+    render_votes_tiled,
+    vote_losses,
+)
 
 DISTORTIONS = ["l1", "l1_pixels", "squared", "none"]
 
@@ -36,11 +42,14 @@ def no_backend_env(monkeypatch):
     monkeypatch.delenv(BACKEND_ENV, raising=False)
 
 
-def small_blocks(monkeypatch, cap=128):
-    """Narrow walk blocks and pair tiles, so runs and voting sets span several; ``cap``: scratch slots."""
+def small_blocks(monkeypatch, cap=None):
+    """Narrow walk blocks and pair tiles, so runs and voting sets span several; ``cap``: scratch slots per pixel
+    (also the fused kernels', which otherwise hold every member: ``vote_fused.member_slots``)."""
     monkeypatch.setattr(vote_kernel, "BLOCK", 16)
     monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", 4)
-    monkeypatch.setattr(vote_kernel, "CAP", cap)
+    if cap is not None:
+        monkeypatch.setattr(vote_kernel, "CAP", cap)
+        monkeypatch.setattr(vote_fused, "MEMBER_SLOT_BYTES", 0)
 
 
 def targets(pixel_xy, levels, seed=5):
@@ -145,11 +154,38 @@ def test_fused_matches_separate_path(levels, distortion, device, monkeypatch):
         assert_paths_agree(single)
 
 
+def test_member_bound_holds_the_deepest_voting_set():
+    """A stack of Gaussians at the least alpha that counts (ALPHA_MIN) makes the longest voting set there is: the
+    member rows are as long as it, so no default training step takes the slow path."""
+    n = 2600
+    alpha_min = torch.tensor(1.0 / 255.0, dtype=torch.float32).double()  # what the kernels compare against
+    scene = dict(
+        means2d=torch.full((n, 2), 0.5, dtype=torch.float64),
+        conics=torch.tensor([[1.0, 0.0, 1.0]], dtype=torch.float64).expand(n, 3).contiguous(),
+        opacities=torch.full((n,), float(alpha_min), dtype=torch.float64),
+        depths=torch.linspace(1.0, 2.0, n, dtype=torch.float64),
+        votes=torch.randn(n, 3, dtype=torch.float64),
+        viewmat=torch.eye(4, dtype=torch.float64),
+        K=torch.eye(3, dtype=torch.float64),
+    )
+    pixel = torch.tensor([[0.5, 0.5]], dtype=torch.float64)
+    for threshold in (0.01, 0.5, 0.0):
+        count = int(call(render_votes_reference, scene, pixel, VoteRenderOptions(vote_transmittance=threshold)).count)
+        bound = vote_fused.member_bound(threshold)
+        assert bound - 3 <= count <= bound
+        slots = vote_fused.member_slots(threshold, 4096, 4, True)
+        assert slots >= bound and slots % vote_kernel.PAIR_BLOCK == 0
+    # rows that would take more than MEMBER_SLOT_BYTES keep vote_kernel.CAP slots
+    assert vote_fused.member_slots(0.01, 10**6, 2, True) == vote_kernel.CAP
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("distortion", ["l1", "l1_pixels", "squared"])
-def test_fused_more_members_than_the_scratch_row(distortion, device, monkeypatch):
-    """Pixels with more members than CAP take the slow exact path, forward and backward."""
-    small_blocks(monkeypatch, cap=4)
+@pytest.mark.parametrize("cap", [4, None])
+def test_fused_more_members_than_the_scratch_row(cap, distortion, device, monkeypatch):
+    """Pixels with more members than CAP take the slow exact path, forward and backward (cap 4); with rows as
+    long as a voting set can be (no cap: ``member_slots``) the compacted rows hold them all."""
+    small_blocks(monkeypatch, cap=cap)
     scene, level_votes, pixel_xy, lists = scene_of_size(50)
     pixel_xy = pixel_xy[3::17]
     scene, pixel_xy = to_device(scene, device), pixel_xy.to(device)
@@ -163,14 +199,14 @@ def test_fused_more_members_than_the_scratch_row(distortion, device, monkeypatch
         flatten_ids=lists[1],
         tile_size=TILE,
     ).count
-    assert (count > 4 * vote_kernel.CAP).any() and ((count > 0) & (count <= vote_kernel.CAP)).any()
+    assert (count > 16).any() and ((count > 0) & (count <= 4)).any()
     target, valid = targets(pixel_xy, 2)
     options = VoteRenderOptions(distortion=distortion)
     assert_paths_agree(both_paths(scene, level_votes[:, :2].to(device), pixel_xy, target, valid, lists, options))
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("cap", [128, 2])
+@pytest.mark.parametrize("cap", [None, 2])
 @pytest.mark.parametrize("distortion", ["l1", "squared"])
 def test_fused_ties_in_depth(cap, distortion, device, monkeypatch):
     """Members with the same vote depth: the same losses; gradients equal up to the split of a tie."""
@@ -495,7 +531,7 @@ def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize(
     "scale, distortion, cap",
-    [(scale, distortion, 128) for distortion in ("l1_pixels", "squared", "none") for scale in (1.0, 0.5)]
+    [(scale, distortion, None) for distortion in ("l1_pixels", "squared", "none") for scale in (1.0, 0.5)]
     + [(1.0, "l1_pixels", 4)],
 )
 def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, cap, device, monkeypatch):
