@@ -12,6 +12,10 @@ method, so splatfacto and votesplat are profiled alike). Over those steps it rec
 Written to ``$VOTESPLAT_PROFILE_OUT`` (default ``train_profile.txt``). Timing inside the window is
 perturbed by the profiler; the per-step wall time is measured on the steps before it.
 
+``install_capture`` (run.sh: ``VOTESPLAT_CAPTURE_VOTE_STEP=N``) saves the arguments of the first fused vote
+step at or after step N (``vote_losses_sampled``'s tensors on the CPU, its other arguments as values), so
+``benchmarks/bench_captured_step.py`` can time the vote kernels on a trained, densified scene's real inputs.
+
 ``install_step_times`` (run.sh: ``VOTESPLAT_STEP_TIMES=1``) instead times a whole run without the
 profiler: for every step its wall time (from one step's start to the next one's) and the host time
 of each phase above, plus the set-up before step 0 and the tail after the last step's iteration
@@ -236,3 +240,62 @@ def _write(out_path: str, state: Dict, first: int, stop: int, elapsed: float, mo
     text = "\n".join(lines) + "\n"
     with open(out_path, "w") as handle:
         handle.write(text)
+
+
+# vote_losses_sampled's parameters, in order (a captured call is replayed with them by name)
+CAPTURED_ARGS = (
+    "means2d",
+    "conics",
+    "opacities",
+    "means",
+    "offsets",
+    "viewmat",
+    "K",
+    "sample",
+    "voting",
+    "flat_labels",
+    "centroids",
+    "map_width",
+    "scale",
+    "isect_offsets",
+    "flatten_ids",
+    "tile_size",
+    "options",
+    "weights",
+    "support",
+)
+
+
+def install_capture(step: int, out_path: str) -> None:
+    """Save the arguments of the first fused vote step at or after ``step`` to ``out_path`` (torch.save)."""
+    import dataclasses
+
+    model = importlib.import_module("votesplat_ns.ns.model")
+    original_step = Trainer.train_iteration
+    original_call = model.vote_losses_sampled
+    state: Dict = {"step": -1, "done": False}
+
+    def train_iteration(self, current):
+        state["step"] = current
+        return original_step(self, current)
+
+    def vote_losses_sampled(*args, **kwargs):
+        if not state["done"] and state["step"] >= step:
+            named = dict(zip(CAPTURED_ARGS, args))
+            named.update({k: v for k, v in kwargs.items() if k in CAPTURED_ARGS})
+            record = {"step": state["step"]}
+            for name, value in named.items():
+                if isinstance(value, torch.Tensor):
+                    record[name] = value.detach().cpu().clone()
+                elif name == "options":
+                    record[name] = dataclasses.asdict(value)
+                elif name == "support":
+                    record[name] = None if value is None else tuple(value[0].shape)
+                else:
+                    record[name] = value
+            torch.save(record, out_path)
+            state["done"] = True
+        return original_call(*args, **kwargs)
+
+    Trainer.train_iteration = train_iteration
+    model.vote_losses_sampled = vote_losses_sampled

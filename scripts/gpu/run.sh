@@ -41,9 +41,12 @@
 #   train_fox.json + train_fox.log, train_synthetic.json + train_synthetic.log
 #
 # Environment: STEPS (7000), METHODS ("splatfacto votesplat"), CALL_BUDGET_S (570),
-# GPU_TESTS, KERNEL_CONFIGS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods).
+# GPU_TESTS, KERNEL_CONFIGS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods),
+# EVAL (1; 0 skips the ns-eval after each training, for runs that only time the training).
 # VOTESPLAT_PROFILE_STEPS=A:B profiles each ns-train's steps [A, B) into $OUT/profile_<experiment>_<method>.txt
 # (benchmarks/train_profile.py: wall per step, phases, torch ops, host syncs by call site).
+# VOTESPLAT_CAPTURE_VOTE_STEP=N saves votesplat's first fused vote step at step >= N into
+# $OUT/capture_<experiment>_<method>.pt (benchmarks/bench_captured_step.py replays it).
 # VOTESPLAT_STEP_TIMES=1 writes every step's wall and phase host times of each ns-train, no profiler,
 # into $OUT/steps_<experiment>_<method>.json (set-up and tail too; compare with benchmarks/step_times.py).
 set -uo pipefail
@@ -144,6 +147,12 @@ elif os.environ.get("VOTESPLAT_STEP_TIMES") and command == "train":  # every ste
     from benchmarks.train_profile import install_step_times
 
     install_step_times(os.environ.get("VOTESPLAT_STEP_TIMES_OUT", "step_times.json"))
+
+capture = os.environ.get("VOTESPLAT_CAPTURE_VOTE_STEP")  # N: save the first fused vote step's inputs at step >= N
+if capture and command == "train":
+    from benchmarks.train_profile import install_capture
+
+    install_capture(int(capture), os.environ.get("VOTESPLAT_CAPTURE_OUT", "vote_step.pt"))
 
 if command == "train":
     from nerfstudio.scripts.train import entrypoint
@@ -415,7 +424,7 @@ train_one() {
     log "ns-train $method on $data: $STEPS steps, time limit ${train_limit} s" | tee -a "$log_file"
     local t0; t0=$(date +%s.%N)
     # shellcheck disable=SC2086
-    VOTESPLAT_RUN_STATS=$stats VOTESPLAT_PROFILE_OUT=$OUT/profile_${experiment}_${method}.txt VOTESPLAT_STEP_TIMES_OUT=$OUT/steps_${experiment}_${method}.json timeout --signal=INT --kill-after=20 "$train_limit" \
+    VOTESPLAT_RUN_STATS=$stats VOTESPLAT_PROFILE_OUT=$OUT/profile_${experiment}_${method}.txt VOTESPLAT_STEP_TIMES_OUT=$OUT/steps_${experiment}_${method}.json VOTESPLAT_CAPTURE_OUT=$OUT/capture_${experiment}_${method}.pt timeout --signal=INT --kill-after=20 "$train_limit" \
       "$PY" /tmp/ns_launch.py train "$method" --data "$data" --max-num-iterations "$STEPS" \
       --vis tensorboard --viewer.quit-on-train-completion True \
       --output-dir "$RUNS" --experiment-name "$experiment" --timestamp run \
@@ -426,7 +435,7 @@ train_one() {
     echo "$baseline_mib" >"$gpu_log.meta"
     if [ "$rc" = 124 ] || [ "$rc" = 137 ]; then status="timeout after ${train_limit} s"; elif [ "$rc" != 0 ]; then status="failed (exit $rc)"; fi
     log "$experiment/$method: $status, ${wall} s wall" | tee -a "$log_file"
-    if [ -f "$run_dir/config.yml" ] && ls "$run_dir"/nerfstudio_models/*.ckpt >/dev/null 2>&1; then
+    if [ "${EVAL:-1}" = 1 ] && [ -f "$run_dir/config.yml" ] && ls "$run_dir"/nerfstudio_models/*.ckpt >/dev/null 2>&1; then
       log "ns-eval $experiment/$method" | tee -a "$log_file"
       timeout "$(limit_s 20)" \
         "$PY" /tmp/ns_launch.py eval --load-config "$run_dir/config.yml" --output-path "$eval_json" >>"$log_file" 2>&1
