@@ -434,7 +434,45 @@ def test_warm_up_process_runs_the_training_steps_call(device):
     takes what start_warm_up passes and runs the training step's call to the end."""
     warm_up = vote_fused.start_warm_up(2, VoteRenderOptions(distortion="squared"), torch.device(device))
     warm_up.join()
-    assert warm_up._process is not None and warm_up._process.returncode == 0
+    assert [process.returncode for process in warm_up.processes] == [0]
+
+
+@pytest.mark.parametrize("device", DEVICES[:1])
+@pytest.mark.parametrize("part", ["forward", "backward"])
+def test_warm_up_parts_split_the_kernels(part, device, monkeypatch):
+    """start_warm_up's two CUDA children: "forward" runs the forward and reduction kernels and leaves the backward
+    alone; "backward" runs the backward kernel alone, on a forward whose voting sets are all empty (so it reads
+    none of the forward's unwritten outputs, and scatters no gradient)."""
+    from votesplat_ns.core import vote_warm_up
+
+    monkeypatch.setattr(vote_kernel, "_launch", vote_kernel._launch)  # the backward part replaces it: restored
+    kernels = {"fwd": vote_fused._fused_fwd_kernel, "reduce": vote_fused._fused_reduce_kernel}
+    kernels["bwd"] = vote_fused._fused_bwd_kernel
+    calls = []
+
+    def recorded(name, run):
+        def wrapped(*args, grid, warmup, **kwargs):
+            calls.append((name, "compile" if warmup else "run"))
+            return run(*args, grid=grid, warmup=warmup, **kwargs)
+
+        return wrapped
+
+    for name, kernel in kernels.items():
+        monkeypatch.setattr(kernel, "run", recorded(name, kernel.run))
+    backward = vote_fused._FusedVoteLosses.backward
+    zero_grads = []
+
+    def recorded_backward(ctx, *grads):
+        result = backward(ctx, *grads)
+        zero_grads.append(bool((result[0] == 0).all()))
+        return result
+
+    monkeypatch.setattr(vote_fused._FusedVoteLosses, "backward", staticmethod(recorded_backward))
+    vote_warm_up.warm_up(2, VoteRenderOptions(), torch.device(device), part)
+    if part == "forward":
+        assert calls == [("fwd", "run"), ("reduce", "run")] and zero_grads == []
+    else:
+        assert calls == [("bwd", "run")] and zero_grads == [True]
 
 
 @pytest.mark.parametrize("device", CUDA_ONLY)

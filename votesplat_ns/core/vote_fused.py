@@ -39,7 +39,8 @@ import json
 import math
 import subprocess
 import sys
-from typing import Dict, Optional, Tuple
+import time
+from typing import Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -96,42 +97,51 @@ def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bo
 def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device) -> "KernelWarmUp":
     """Compiles the kernels of ``vote_losses_sampled`` (forward, reduction, backward) for ``levels``
     [N, L, 3] float32 offsets, ``options`` and a support count on CUDA ``device`` into Triton's on-disk cache,
-    in a child process (``vote_warm_up``): otherwise the first vote step of a training compiles them on the
-    spot (~5 s on an H100 host), and a thread of the training process would hold its GIL for as long. Join it
-    before the first real call, which then loads them from the cache; a failure here is left to that call,
-    which compiles (and reports) by itself."""
+    in child processes (``vote_warm_up``; on CUDA one for the forward's kernels and one for the backward's, which
+    compile at once): otherwise the first vote step of a training compiles them on the spot (~5 s on an H100
+    host), and a thread of the training process would hold its GIL for as long. Join it before the first real
+    call, which then loads them from the cache; a failure here is left to that call, which compiles (and
+    reports) by itself."""
     command = [sys.executable, "-m", "votesplat_ns.core.vote_warm_up", str(int(levels))]
     command += [json.dumps(dataclasses.asdict(options)), str(device)]
-    try:
-        process = subprocess.Popen(
-            command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-        )
-    except OSError:
-        return KernelWarmUp(None)
-    return KernelWarmUp(process)
+    # under the interpreter nothing compiles: one child runs the whole call
+    parts = ["all"] if vote_kernel.interpreter_enabled() else ["forward", "backward"]
+    processes = []
+    for part in parts:
+        try:
+            processes.append(
+                subprocess.Popen(
+                    command + [part], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+                )
+            )
+        except OSError:
+            break
+    return KernelWarmUp(processes)
 
 
 class KernelWarmUp:
-    """The warm-up process (None when it could not start); stopped when this process exits."""
+    """The warm-up processes (none when they could not start); stopped when this process exits."""
 
-    def __init__(self, process: Optional[subprocess.Popen]):
-        self._process = process
-        if process is not None:
+    def __init__(self, processes: List[subprocess.Popen]):
+        self.processes = processes
+        if processes:
             atexit.register(self.stop)
 
     def join(self) -> None:
         """Waits for the warm-up (at most WARM_UP_TIMEOUT_S: past that, the first call compiles by itself)."""
-        if self._process is None:
-            return
-        try:
-            self._process.wait(timeout=WARM_UP_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self.stop()
+        deadline = time.monotonic() + WARM_UP_TIMEOUT_S
+        for process in self.processes:
+            try:
+                process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.stop()
+                return
 
     def stop(self) -> None:
-        if self._process is not None and self._process.poll() is None:
-            self._process.kill()  # Triton writes each cache file under a temporary name and renames it
-            self._process.wait()
+        for process in self.processes:
+            if process.poll() is None:
+                process.kill()  # Triton writes each cache file under a temporary name and renames it
+                process.wait()
 
 
 def vote_losses_tiled(
