@@ -27,7 +27,7 @@ from votesplat_ns.core import vote_fused, vote_kernel
 from votesplat_ns.core.vote_render import VoteRenderOptions
 
 DEFAULT_CAP = vote_kernel.CAP
-DEFAULT_SLOT_BYTES = vote_fused.MEMBER_SLOT_BYTES
+DEFAULT_SLOT_BYTES = vote_kernel.MEMBER_SLOT_BYTES
 
 
 def load(path: str, device: torch.device) -> Dict:
@@ -117,8 +117,8 @@ def time_walk(record: Dict, walk: str, reps: int) -> Dict:
     name, _, cap = walk.partition("@")
     vote_fused.WALK = name
     vote_kernel.CAP = int(cap) if cap else DEFAULT_CAP
-    # with a cap, the fused kernels' rows hold CAP members (as before vote_fused.member_slots), else every member
-    vote_fused.MEMBER_SLOT_BYTES = 0 if cap else DEFAULT_SLOT_BYTES
+    # with a cap, the fused kernels' rows hold CAP members (as before vote_kernel.member_slots), else every member
+    vote_kernel.MEMBER_SLOT_BYTES = 0 if cap else DEFAULT_SLOT_BYTES
     counts = torch.zeros(record["offsets"].shape[:2], device=record["offsets"].device)
     stamps = torch.full(record["offsets"].shape[:2], -1, dtype=torch.int32, device=counts.device)
     offsets = record["offsets"].clone().requires_grad_(True)

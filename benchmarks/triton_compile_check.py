@@ -95,16 +95,17 @@ def record(test_files, pytest_args):
 
 
 def grid_launches():
-    """The production defaults' variants (BLOCK 32, PAIR_BLOCK 32, CAP 128; the fused kernels' rows as long as a
-    voting set at the default threshold can be, vote_fused.member_slots), as launch records."""
-    from votesplat_ns.core import vote_fused as vf, vote_kernel as vk
-    from votesplat_ns.core.vote_render import VoteRenderOptions
+    """The production defaults' variants (BLOCK 32, PAIR_BLOCK 32; scratch rows as long as a voting set at the
+    default threshold can be, vote_kernel.member_slots, and CAP 128 where a kernel has none), as launch records."""
+    from votesplat_ns.core import vote_kernel as vk
+    from votesplat_ns.core.vote_render import ALPHA_MIN, COLOUR_STOP_T, VoteRenderOptions
 
     def entry(kernel, args, constexprs):
         return {"kernel": kernel, "args": args, "constexprs": constexprs, "options": {"num_warps": vk.NUM_WARPS}}
 
     walk = dict(BLOCK=32, CAP=128, PB=32)
-    fused_walk = dict(walk, CAP=vf.member_slots(VoteRenderOptions().vote_transmittance, 1, 1, True))
+    slots = vk.member_slots(VoteRenderOptions().vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, 1, 1)
+    fused_walk = dict(walk, CAP=slots)
     out = []
     for fp, levels, dist in itertools.product(("fp32", "fp64"), (1, 4), (0, 1, 2)):
         lp = vk._pow2(levels)
@@ -129,7 +130,8 @@ def grid_launches():
             bwd_constexprs = dict(LEVELS=levels, LP=lp, DIST=dist, **flags, **fused_walk)
             out.append(entry("_fused_bwd_kernel", fused_bwd + support + ["i32"] * 4, bwd_constexprs))
         for alpha_t, d1 in itertools.product((False, True), (3, 4)):
-            c = dict(LEVELS=levels, LP=lp, D1=d1, LDP=vk._pow2(levels * d1), ALPHA_T=alpha_t, DIST=dist, **walk)
+            rows = fused_walk if dist else walk  # rows of member_slots with a distortion (none without)
+            c = dict(LEVELS=levels, LP=lp, D1=d1, LDP=vk._pow2(levels * d1), ALPHA_T=alpha_t, DIST=dist, **rows)
             out.append(entry("_vote_fwd_kernel", [f, f, f, i64, i64, i32, f, i32, i64, f, f, f, f, f, "i32"], c))
             bwd = [f, f, f, i64, i64, i32, f, i32, f, f, f, f, f, f, f, "i32"]
             out.append(entry("_vote_bwd_kernel", bwd, dict(c, GEOMETRY_GRAD=alpha_t)))

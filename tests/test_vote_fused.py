@@ -27,7 +27,9 @@ from test_vote_render import call, random_scene, tile_lists_gsplat
 from votesplat_ns.core import vote_fused, vote_kernel
 from votesplat_ns.core.vote_maps import pixels_and_targets, voting_pixels
 from votesplat_ns.core.vote_render import (
+    ALPHA_MIN,
     BACKEND_ENV,
+    COLOUR_STOP_T,
     VoteRenderOptions,
     render_votes_reference,
     render_votes_tiled,
@@ -44,12 +46,12 @@ def no_backend_env(monkeypatch):
 
 def small_blocks(monkeypatch, cap=None):
     """Narrow walk blocks and pair tiles, so runs and voting sets span several; ``cap``: scratch slots per pixel
-    (also the fused kernels', which otherwise hold every member: ``vote_fused.member_slots``)."""
+    (rows that would otherwise hold every member: ``vote_kernel.member_slots``)."""
     monkeypatch.setattr(vote_kernel, "BLOCK", 16)
     monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", 4)
     if cap is not None:
         monkeypatch.setattr(vote_kernel, "CAP", cap)
-        monkeypatch.setattr(vote_fused, "MEMBER_SLOT_BYTES", 0)
+        monkeypatch.setattr(vote_kernel, "MEMBER_SLOT_BYTES", 0)
 
 
 def targets(pixel_xy, levels, seed=5):
@@ -156,7 +158,7 @@ def test_fused_matches_separate_path(levels, distortion, device, monkeypatch):
 
 def test_member_bound_holds_the_deepest_voting_set():
     """A stack of Gaussians at the least alpha that counts (ALPHA_MIN) makes the longest voting set there is: the
-    member rows are as long as it, so no default training step takes the slow path."""
+    member rows are as long as it, so no walk takes the slow path unless its rows would take too much memory."""
     n = 2600
     alpha_min = torch.tensor(1.0 / 255.0, dtype=torch.float32).double()  # what the kernels compare against
     scene = dict(
@@ -171,12 +173,12 @@ def test_member_bound_holds_the_deepest_voting_set():
     pixel = torch.tensor([[0.5, 0.5]], dtype=torch.float64)
     for threshold in (0.01, 0.5, 0.0):
         count = int(call(render_votes_reference, scene, pixel, VoteRenderOptions(vote_transmittance=threshold)).count)
-        bound = vote_fused.member_bound(threshold)
+        bound = vote_kernel.member_bound(threshold, ALPHA_MIN, COLOUR_STOP_T)
         assert bound - 3 <= count <= bound
-        slots = vote_fused.member_slots(threshold, 4096, 4, True)
+        slots = vote_kernel.member_slots(threshold, ALPHA_MIN, COLOUR_STOP_T, 4096, 4 * 5)
         assert slots >= bound and slots % vote_kernel.PAIR_BLOCK == 0
     # rows that would take more than MEMBER_SLOT_BYTES keep vote_kernel.CAP slots
-    assert vote_fused.member_slots(0.01, 10**6, 2, True) == vote_kernel.CAP
+    assert vote_kernel.member_slots(0.01, ALPHA_MIN, COLOUR_STOP_T, 10**6, 4 * 3) == vote_kernel.CAP
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -212,13 +212,17 @@ def test_kernel_float32(kernel_scene, device):
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("distortion", ["l1", "l1_pixels", "squared"])
 @pytest.mark.parametrize(
-    "cap, pair_block", [(128, 4), (4, 4)], ids=["compacted-several-pair-tiles", "more-members-than-cap"]
+    "cap, pair_block",
+    [(128, 4), (4, 4), (None, 4)],
+    ids=["compacted-several-pair-tiles", "more-members-than-cap", "rows-of-member-slots"],
 )
 def test_kernel_distortion_compacted_and_past_cap(device, distortion, cap, pair_block, monkeypatch):
     """The spread and its gradient from the members' compacted depths, summed over several tiles of
     pairs; and the exact slow path of pixels with more members than the scratch row holds."""
     set_block(monkeypatch, 16)
-    monkeypatch.setattr(vote_kernel, "CAP", cap)
+    if cap is not None:  # rows of cap slots, not as many as a voting set can have (vote_kernel.member_slots)
+        monkeypatch.setattr(vote_kernel, "CAP", cap)
+        monkeypatch.setattr(vote_kernel, "MEMBER_SLOT_BYTES", 0)
     monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", pair_block)
     scene, level_votes, pixel_xy, lists = scene_of_size(50)
     pixel_xy = pixel_xy[::17].to(device)
@@ -227,8 +231,8 @@ def test_kernel_distortion_compacted_and_past_cap(device, distortion, cap, pair_
     expected, _ = compare_backends(to_device(scene, device), pixel_xy, options, lists, TILE)
     counts = expected.count
     # pixels on both sides of the capacity, and tiles of pairs across several pair blocks
-    assert (counts > 3 * pair_block).any() and (counts <= cap).any() and (counts > 1).sum() >= 5
-    if cap < 128:
+    assert (counts > 3 * pair_block).any() and (counts <= (cap or 4)).any() and (counts > 1).sum() >= 5
+    if cap is not None and cap < 128:
         assert (counts > cap).any()
     leveled = to_device({**scene, "votes": level_votes}, device)
     compare_backends(leveled, pixel_xy, options, lists, TILE)
@@ -263,6 +267,7 @@ def test_kernel_distortion_with_ties(device, cap, distortion, monkeypatch):
     """Members whose depths tie: the same spread as the torch path; gradients equal up to the split of a tie."""
     set_block(monkeypatch, 16)
     monkeypatch.setattr(vote_kernel, "CAP", cap)
+    monkeypatch.setattr(vote_kernel, "MEMBER_SLOT_BYTES", 0)  # rows of cap slots
     monkeypatch.setattr(vote_kernel, "PAIR_BLOCK", 4)
     scene, level_votes, pixel_xy, lists = scene_of_size(50)
     scene = to_device({**scene, "votes": tied_votes(level_votes, TIE_GROUPS)}, device)

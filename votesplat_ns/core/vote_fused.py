@@ -13,7 +13,7 @@ kernels. Here everything per pixel happens in the kernels:
 * forward, one program per pixel: the pixel's tile run from ``pixel_xy`` and ``isect_offsets``
   (positions outside the tile grid have an empty run); the walk, summing the members' votes of
   every level and their camera depths (from ``viewmat``); the members' ids (and, with a
-  distortion, their depths) to a compacted per-pixel scratch row of ``member_slots`` slots; the
+  distortion, their depths) to a compacted per-pixel scratch row of ``vote_kernel.member_slots`` slots; the
   mean vote, its projection with ``K``, the L1 distance to the target where ``valid``, the
   distortion (over the compacted depths; pixels with more members than the row holds take the
   exact slow path of the vote kernels) and its scaling; per pixel and level it writes the loss
@@ -36,7 +36,6 @@ from __future__ import annotations
 import atexit
 import dataclasses
 import json
-import math
 import subprocess
 import sys
 import time
@@ -64,11 +63,6 @@ triton, tl = vote_kernel.triton, vote_kernel.tl
 
 # Pixels per step of the one-program reduction.
 REDUCE_BLOCK = 1024
-# Scratch a call may take to give every pixel a member row as long as a voting set can be (member_slots): past
-# it, rows keep vote_kernel.CAP slots and longer voting sets take the kernels' slow exact path, whose pair sums
-# re-walk the run for each of its blocks (a captured step of a densified scene: 396 ms with 1.3% of its pixels
-# on it, 1.2 ms without; BENCHMARKS.md, session 13).
-MEMBER_SLOT_BYTES = 256 * 2**20
 # how long the first vote step waits for the warm-up process before compiling by itself
 WARM_UP_TIMEOUT_S = 300.0
 # distortion -> (kernel mode, l1 in pixels)
@@ -348,28 +342,6 @@ def _check_sampled_inputs(
             raise ValueError("support counts and stamps must be on the offsets' device")
 
 
-def member_bound(vote_transmittance: float) -> int:
-    """The most members a voting set can have at this voting threshold.
-
-    A member's alpha is at least ALPHA_MIN, the transmittance in front of it is above the threshold and the one
-    behind it above COLOUR_STOP_T, so after k members it is at most (1 - ALPHA_MIN)^k, which must stay above
-    max(threshold, COLOUR_STOP_T). The 1e-3 slack covers the float32 rounding of the walk's running product
-    (~6e-8 per factor). 1174 at the default threshold 0.01, 2350 with no threshold."""
-    floor = max(float(vote_transmittance), COLOUR_STOP_T) / (1.0 + 1e-3)
-    return int(math.log(floor) / math.log1p(-ALPHA_MIN)) + 2
-
-
-def member_slots(vote_transmittance: float, pixels: int, levels: int, distortion: bool) -> int:
-    """Member slots per pixel of the fused kernels' scratch rows: ``member_bound`` rounded up to a whole number
-    of pair tiles, so that no voting set takes the slow path, unless the rows (ids, and a depth per level with
-    a distortion) would take more than MEMBER_SLOT_BYTES; then ``vote_kernel.CAP``."""
-    tile = vote_kernel.PAIR_BLOCK
-    slots = -(-member_bound(vote_transmittance) // tile) * tile
-    if pixels * slots * 4 * (1 + (levels if distortion else 0)) > MEMBER_SLOT_BYTES:
-        return vote_kernel.CAP
-    return slots
-
-
 def _checked_levels(options: VoteRenderOptions, votes: Tensor, pixels: Tensor) -> Tuple[int, bool]:
     """(levels, whether votes are [N,3]) after the checks both entry points share."""
     reason = fused_unavailable_reason(options, votes, pixels)
@@ -439,7 +411,10 @@ def _fused_losses(
     # the sampling inputs, or placeholders (never read) and zeros when the pixels are given
     sampling, map_geometry = sampled if sampled is not None else ((offsets,) * 4, (1, 1, 1, 1.0))
     config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel(), map_geometry)
-    slots = member_slots(options.vote_transmittance, p, levels, dist != 0)
+    # member ids, and with a distortion a depth per level, per slot
+    slots = vote_kernel.member_slots(
+        options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p, 4 * (1 + (levels if dist else 0))
+    )
     votes = votes.reshape(n, levels, 3).contiguous()
     return _FusedVoteLosses.apply(
         votes,

@@ -17,12 +17,13 @@ What a kernel program does (one program per sampled pixel):
   ends. It sums, over the voting set M, the weights, the weighted table rows of every
   level, and the member depths; it records |M| and the run position of the last member.
   With a distortion, the walk also writes each member's depths, compacted (slot = rank in
-  M), to a per-pixel scratch row of ``CAP`` slots; the depth spread, sum_{i<j} |z_i - z_j|
+  M), to a per-pixel scratch row of ``member_slots`` slots (as many as a voting set can have members,
+  unless that would take too much memory: then ``CAP``); the depth spread, sum_{i<j} |z_i - z_j|
   ("l1", "l1_pixels") or sum_i (z_i - mean)^2 ("squared"), is then summed over those
   slots only, in [PAIR_BLOCK, PAIR_BLOCK] tiles of contiguous loads: |M| ~ 30-70 members
   instead of the pairs of every run entry up to the last member (most of which are not
   members) with their geometry gathered again for each pair of blocks. A pixel with more
-  than ``CAP`` members takes that exact slow path: every visible entry up to the last member
+  members than its row holds takes that exact slow path: every visible entry up to the last member
   is a member (the transmittance only falls), so pairs of run blocks with the visibility
   recomputed give the same sums.
 * backward: re-walks [run start, last member] and scatters, with atomic adds, the gradient
@@ -54,6 +55,7 @@ without a GPU.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 from typing import Optional, Tuple
 
@@ -80,7 +82,32 @@ NUM_WARPS = 2
 # exact too, on a slower path (module docstring).
 CAP = 128
 PAIR_BLOCK = 32
+# Scratch a call may take to give every pixel a row as long as a voting set can be (member_slots); past it, rows
+# keep CAP slots and longer voting sets take the slow exact path, whose pair sums re-walk the run once for each of
+# its blocks (a captured training step of a densified scene: 395 ms with 1.3% of its pixels on it, 1.2 ms
+# without; BENCHMARKS.md, session 13).
+MEMBER_SLOT_BYTES = 256 * 2**20
 _DIST_MODES = {"none": 0, "l1": 1, "l1_pixels": 1, "squared": 2}
+
+
+def member_bound(threshold: float, alpha_min: float, colour_stop: float) -> int:
+    """The most members a voting set can have at the voting threshold ``threshold``.
+
+    A member's alpha is at least ``alpha_min``, the transmittance in front of it is above the threshold and the one
+    behind it above ``colour_stop``, so after k members it is at most (1 - alpha_min)^k, which must stay above
+    max(threshold, colour_stop). The 1e-3 slack covers the float rounding of the walk's running product (~6e-8
+    per factor in float32). With vote_render's ALPHA_MIN and COLOUR_STOP_T: 1174 at the default threshold 0.01,
+    2346 with none."""
+    floor = max(float(threshold), float(colour_stop)) / (1.0 + 1e-3)
+    return int(math.log(floor) / math.log1p(-float(alpha_min))) + 2
+
+
+def member_slots(threshold: float, alpha_min: float, colour_stop: float, pixels: int, bytes_per_slot: int) -> int:
+    """Slots per pixel of a walk's scratch rows: ``member_bound`` rounded up to a whole number of pair tiles, so
+    that no voting set takes the slow path, unless ``pixels`` rows of ``bytes_per_slot`` a slot would take more than
+    MEMBER_SLOT_BYTES; then CAP."""
+    slots = -(-member_bound(threshold, alpha_min, colour_stop) // PAIR_BLOCK) * PAIR_BLOCK
+    return CAP if pixels * slots * bytes_per_slot > MEMBER_SLOT_BYTES else slots
 
 
 def interpreter_enabled() -> bool:
@@ -132,7 +159,10 @@ def vote_sums(
     n, levels, width = vote_table.shape
     dtype = vote_table.dtype
     consts = _constants((threshold, alpha_max, open_above, alpha_min, colour_stop), dtype, vote_table.device)
-    config = (levels, width, bool(alpha_t), _DIST_MODES[distortion])
+    dist = _DIST_MODES[distortion]
+    # a depth per level and slot (no rows without a distortion)
+    slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0], 4 * levels)
+    config = (levels, width, bool(alpha_t), dist, slots if dist else CAP)
     count, weight_sum, value_sum, depth_sum, spread = _VoteSums.apply(
         geometry.contiguous(),
         vote_table.contiguous(),
@@ -181,7 +211,7 @@ def _pow2(x: int) -> int:
 class _VoteSums(torch.autograd.Function):
     @staticmethod
     def forward(ctx, geometry, table, pixel_xy, run_start, run_end, flatten_ids, consts, config):
-        levels, width, alpha_t, dist = config
+        levels, width, alpha_t, dist, cap = config
         p = pixel_xy.shape[0]
         device, dtype = table.device, table.dtype
         count = torch.empty(p, dtype=torch.int32, device=device)
@@ -190,8 +220,8 @@ class _VoteSums(torch.autograd.Function):
         value_sum = torch.empty(p, levels * width, dtype=dtype, device=device)
         depth_sum = torch.empty(p, levels, dtype=dtype, device=device)
         spread = torch.empty(p, levels, dtype=dtype, device=device)
-        # member depths, compacted: [P, L, CAP] (a dummy pointer without a distortion)
-        depths = torch.empty(p, levels, CAP, dtype=dtype, device=device) if dist else spread
+        # member depths, compacted: [P, L, cap] (a dummy pointer without a distortion)
+        depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else spread
         if p > 0:
             with _on(device):
                 _launch(
@@ -218,10 +248,10 @@ class _VoteSums(torch.autograd.Function):
                     LDP=_pow2(levels * width),
                     ALPHA_T=alpha_t,
                     DIST=dist,
-                    **_walk_options(CAP),
+                    **_walk_options(cap),
                 )
         ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths)
-        ctx.cap = CAP
+        ctx.cap = cap
         ctx.config = config
         ctx.mark_non_differentiable(count, depth_sum)
         return count, weight_sum, value_sum, depth_sum, spread
@@ -229,7 +259,7 @@ class _VoteSums(torch.autograd.Function):
     @staticmethod
     def backward(ctx, _g_count, g_weight_sum, g_value_sum, _g_depth_sum, g_spread):
         geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths = ctx.saved_tensors
-        levels, width, alpha_t, dist = ctx.config
+        levels, width, alpha_t, dist, _cap = ctx.config
         p = pixel_xy.shape[0]
         geometry_grad = alpha_t and ctx.needs_input_grad[0]
         if not (ctx.needs_input_grad[1] or geometry_grad) or p == 0:
