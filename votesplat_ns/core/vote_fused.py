@@ -411,10 +411,9 @@ def _fused_losses(
     # the sampling inputs, or placeholders (never read) and zeros when the pixels are given
     sampling, map_geometry = sampled if sampled is not None else ((offsets,) * 4, (1, 1, 1, 1.0))
     config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel(), map_geometry)
-    # member ids, and with a distortion a depth per level, per slot
-    slots = vote_kernel.member_slots(
-        options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p, 4 * (1 + (levels if dist else 0))
-    )
+    # a slot holds a member id (int32) and, with a distortion, a depth per level
+    slot_bytes = 4 + (levels * votes.element_size() if dist else 0)
+    slots = vote_kernel.member_slots(options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p, slot_bytes)
     votes = votes.reshape(n, levels, 3).contiguous()
     return _FusedVoteLosses.apply(
         votes,

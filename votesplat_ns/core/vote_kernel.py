@@ -161,7 +161,7 @@ def vote_sums(
     consts = _constants((threshold, alpha_max, open_above, alpha_min, colour_stop), dtype, vote_table.device)
     dist = _DIST_MODES[distortion]
     # a depth per level and slot (no rows without a distortion)
-    slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0], 4 * levels)
+    slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0], levels * vote_table.element_size())
     config = (levels, width, bool(alpha_t), dist, slots if dist else CAP)
     count, weight_sum, value_sum, depth_sum, spread = _VoteSums.apply(
         geometry.contiguous(),
