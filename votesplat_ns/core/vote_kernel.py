@@ -160,7 +160,7 @@ def vote_sums(
     dtype = vote_table.dtype
     consts = _constants((threshold, alpha_max, open_above, alpha_min, colour_stop), dtype, vote_table.device)
     dist = _DIST_MODES[distortion]
-    # a depth per level and slot (no rows without a distortion)
+    # rows of a depth per level and slot, only with a distortion
     slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0], levels * vote_table.element_size())
     config = (levels, width, bool(alpha_t), dist, slots if dist else CAP)
     count, weight_sum, value_sum, depth_sum, spread = _VoteSums.apply(
@@ -251,7 +251,6 @@ class _VoteSums(torch.autograd.Function):
                     **_walk_options(cap),
                 )
         ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths)
-        ctx.cap = cap
         ctx.config = config
         ctx.mark_non_differentiable(count, depth_sum)
         return count, weight_sum, value_sum, depth_sum, spread
@@ -259,7 +258,7 @@ class _VoteSums(torch.autograd.Function):
     @staticmethod
     def backward(ctx, _g_count, g_weight_sum, g_value_sum, _g_depth_sum, g_spread):
         geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths = ctx.saved_tensors
-        levels, width, alpha_t, dist, _cap = ctx.config
+        levels, width, alpha_t, dist, cap = ctx.config
         p = pixel_xy.shape[0]
         geometry_grad = alpha_t and ctx.needs_input_grad[0]
         if not (ctx.needs_input_grad[1] or geometry_grad) or p == 0:
@@ -300,7 +299,7 @@ class _VoteSums(torch.autograd.Function):
                 ALPHA_T=alpha_t,
                 DIST=dist,
                 GEOMETRY_GRAD=geometry_grad,
-                **_walk_options(ctx.cap),
+                **_walk_options(cap),
             )
         return (
             g_geometry if geometry_grad else None,

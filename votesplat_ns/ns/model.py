@@ -439,7 +439,7 @@ class VoteSplatModel(SplatfactoModel):
 
     def _start_kernel_warm_up(self, device: torch.device) -> None:
         """On CUDA, compiles the fused vote kernels in the background while training sets up and starts (the
-        first vote step would otherwise wait for the compiler); that step joins the process. Started once, as
+        first vote step would otherwise wait for the compiler); that step joins the processes. Started once, as
         the model is built for ns-train (a model built otherwise compiles at its first vote step)."""
         if device.type != "cuda":
             return
