@@ -40,28 +40,9 @@ def load(path: str, device: torch.device) -> Dict:
 
 
 def call(record: Dict, offsets: torch.Tensor, support) -> Dict[str, torch.Tensor]:
-    return vote_fused.vote_losses_sampled(
-        record["means2d"],
-        record["conics"],
-        record["opacities"],
-        record["means"],
-        offsets,
-        record["viewmat"],
-        record["K"],
-        record["sample"],
-        record["voting"],
-        record["flat_labels"],
-        record["centroids"],
-        record["map_width"],
-        record["scale"],
-        record["isect_offsets"],
-        record["flatten_ids"],
-        record["tile_size"],
-        record["options"],
-        record["weights"],
-        support,
-        check_inputs=False,
-    )
+    """The captured ``vote_losses_sampled`` call with these offsets and support counts."""
+    arguments = {name: value for name, value in record.items() if name not in ("step", "offsets", "support")}
+    return vote_fused.vote_losses_sampled(**arguments, offsets=offsets, support=support)
 
 
 def walk_stats(record: Dict) -> List[str]:

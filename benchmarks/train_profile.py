@@ -242,37 +242,17 @@ def _write(out_path: str, state: Dict, first: int, stop: int, elapsed: float, mo
         handle.write(text)
 
 
-# vote_losses_sampled's parameters, in order (a captured call is replayed with them by name)
-CAPTURED_ARGS = (
-    "means2d",
-    "conics",
-    "opacities",
-    "means",
-    "offsets",
-    "viewmat",
-    "K",
-    "sample",
-    "voting",
-    "flat_labels",
-    "centroids",
-    "map_width",
-    "scale",
-    "isect_offsets",
-    "flatten_ids",
-    "tile_size",
-    "options",
-    "weights",
-    "support",
-)
-
-
 def install_capture(step: int, out_path: str) -> None:
-    """Save the arguments of the first fused vote step at or after ``step`` to ``out_path`` (torch.save)."""
+    """Save the arguments of the first fused vote step at or after ``step`` to ``out_path`` (torch.save), by
+    ``vote_losses_sampled``'s parameter names: tensors on the CPU, the options as a dict, the support as its shape
+    (the replay starts its own counts)."""
     import dataclasses
+    import inspect
 
     model = importlib.import_module("votesplat_ns.ns.model")
     original_step = Trainer.train_iteration
     original_call = model.vote_losses_sampled
+    signature = inspect.signature(original_call)
     state: Dict = {"step": -1, "done": False}
 
     def train_iteration(self, current):
@@ -281,10 +261,8 @@ def install_capture(step: int, out_path: str) -> None:
 
     def vote_losses_sampled(*args, **kwargs):
         if not state["done"] and state["step"] >= step:
-            named = dict(zip(CAPTURED_ARGS, args))
-            named.update({k: v for k, v in kwargs.items() if k in CAPTURED_ARGS})
             record = {"step": state["step"]}
-            for name, value in named.items():
+            for name, value in signature.bind(*args, **kwargs).arguments.items():
                 if isinstance(value, torch.Tensor):
                     record[name] = value.detach().cpu().clone()
                 elif name == "options":
