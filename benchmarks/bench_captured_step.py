@@ -53,8 +53,8 @@ def walk_stats(record: Dict) -> List[str]:
     def launch(kernel, grid, *args, **kwargs):
         original(kernel, grid, *args, **kwargs)
         if "walk" not in seen and kernel is vote_fused._fused_fwd_kernel:
-            seen["walk"] = args[17].clone()
-            seen["pixel_xy"] = args[7].clone()
+            seen["walk"] = args[kernel.arg_names.index("walk_ptr")].clone()
+            seen["pixel_xy"] = args[kernel.arg_names.index("pix_ptr")].clone()
 
     vote_kernel._launch = launch
     try:
