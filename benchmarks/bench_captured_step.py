@@ -9,23 +9,16 @@ the training step makes it, and prints
   (the share past ``vote_kernel.CAP``: the slow exact paths when the rows hold only that many members);
 * for each walk (``--walks``, ``vote_fused.WALKS``): the GPU time of forward + backward (CUDA events, median
   of ``--reps``), the time of each kernel (torch profiler), and the largest difference of its losses and
-  offset gradients from the first walk's;
-* with ``--host``: the host time of the replayed step (no synchronisation between steps, as in training) and
-  of each kernel launch (``vote_kernel._launch``), and the Python functions that take it (cProfile), to find
-  what a launch costs the training loop besides its kernel.
+  offset gradients from the first walk's.
 
-    python benchmarks/bench_captured_step.py capture.pt [--walks pixel pixel@512 tile] [--reps 50] [--host]
+    python benchmarks/bench_captured_step.py capture.pt [--walks pixel pixel@512 tile] [--reps 50]
 """
 
 from __future__ import annotations
 
 import argparse
-import cProfile
-import io
-import pstats
 import statistics
 import sys
-import time
 from typing import Dict, List
 
 import torch
@@ -100,9 +93,8 @@ def walk_stats(record: Dict) -> List[str]:
     return lines
 
 
-def replay(record: Dict, walk: str):
-    """(step, offsets, counts, stamps): ``step(stamp)`` replays the captured call, forward and backward with the
-    support count, with ``walk`` = NAME or NAME@CAP (``vote_kernel.CAP``, the member slots per pixel)."""
+def time_walk(record: Dict, walk: str, reps: int) -> Dict:
+    """``walk`` = NAME or NAME@CAP (``vote_kernel.CAP``, the member slots per pixel, for this run)."""
     name, _, cap = walk.partition("@")
     vote_fused.WALK = name
     vote_kernel.CAP = int(cap) if cap else DEFAULT_CAP
@@ -118,64 +110,6 @@ def replay(record: Dict, walk: str):
         losses["total"].backward()
         return losses
 
-    return step, offsets, counts, stamps
-
-
-def _synchronize(record: Dict) -> None:
-    if record["offsets"].is_cuda:
-        torch.cuda.synchronize()
-
-
-def host_time(record: Dict, walk: str, reps: int, top: int = 15) -> List[str]:
-    """The host time of ``reps`` replayed steps, run back to back without a synchronisation (the GPU's queue
-    keeps the kernels while the host goes on, as in training, unless the GPU is the slower of the two), of
-    each kernel's launch within them, and the ``top`` functions by own time in a cProfile of the same steps."""
-    step, _, _, _ = replay(record, walk)
-    for stamp in range(3):  # compile and warm
-        step(stamp)
-    _synchronize(record)
-    launches: Dict[str, List[float]] = {}
-    original = vote_kernel._launch
-
-    def timed(kernel, grid, *args, **kwargs):
-        begin = time.perf_counter()
-        original(kernel, grid, *args, **kwargs)
-        launches.setdefault(getattr(kernel, "__name__", str(kernel)), []).append(time.perf_counter() - begin)
-
-    vote_kernel._launch = timed
-    try:
-        begin = time.perf_counter()
-        for stamp in range(3, 3 + reps):
-            step(stamp)
-        host = (time.perf_counter() - begin) / reps
-        _synchronize(record)
-        drained = (time.perf_counter() - begin) / reps
-    finally:
-        vote_kernel._launch = original
-    lines = [
-        f"host time per step (forward + backward, {reps} steps back to back): {host * 1e3:.3f} ms "
-        f"({drained * 1e3:.3f} ms a step until the GPU had run them all)"
-    ]
-    for name, seconds in launches.items():
-        lines.append(
-            f"  launch of {name}: median {statistics.median(seconds) * 1e6:.1f} us, {len(seconds) / reps:.0f} a step"
-        )
-    profile = cProfile.Profile()
-    profile.enable()
-    for stamp in range(3 + reps, 3 + 2 * reps):
-        step(stamp)
-    profile.disable()
-    _synchronize(record)
-    text = io.StringIO()
-    pstats.Stats(profile, stream=text).sort_stats("tottime").print_stats(top)
-    lines.append(f"cProfile of {reps} more steps, by own time (profiling slows every Python call):")
-    lines += ["  " + line for line in text.getvalue().splitlines() if line.strip()]
-    return lines
-
-
-def time_walk(record: Dict, walk: str, reps: int) -> Dict:
-    """``walk`` = NAME or NAME@CAP (``vote_kernel.CAP``, the member slots per pixel, for this run)."""
-    step, offsets, counts, stamps = replay(record, walk)
     for stamp in range(3):  # compile and warm
         step(stamp)
     torch.cuda.synchronize()
@@ -213,9 +147,6 @@ def main(argv=None) -> int:
     parser.add_argument("capture")
     parser.add_argument("--walks", nargs="+", default=list(getattr(vote_fused, "WALKS", ("pixel",))))
     parser.add_argument("--reps", type=int, default=50)
-    parser.add_argument(
-        "--host", action="store_true", help="also the host time of a step and of each launch (first walk)"
-    )
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("bench_captured_step: needs CUDA", file=sys.stderr)
@@ -223,10 +154,6 @@ def main(argv=None) -> int:
     record = load(args.capture, torch.device("cuda"))
     for line in walk_stats(record):
         print(line)
-    if args.host:
-        print()
-        for line in host_time(record, args.walks[0], args.reps):
-            print(line)
     results = {}
     for walk in args.walks:
         results[walk] = result = time_walk(record, walk, args.reps)
