@@ -10,14 +10,22 @@ exceeds ``--slow-ms``, grouped (first visits of views, JIT compiles and refineme
 range into the steps that vote and those that do not, and prints per phase the difference of their means: with
 N = 2 the two kinds alternate within one run, so their difference is a vote step's cost without the ±1 ms
 that separate runs differ by (work a vote step leaves to the next step is counted in the other kind).
+
+``--table DIR ...`` reads the run folders of ``run.sh train-balanced`` (each: one ``steps_*.json`` and its
+``train_*.json``) and prints one row per run and the ratios of votesplat's means to splatfacto's over the runs
+that finished (the stage alternates the methods, so a drift of the machine falls on both alike):
+
+    python benchmarks/step_times.py --table 1-splatfacto 2-votesplat 3-votesplat 4-splatfacto --vote-start 500
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
-from typing import Dict, List, Tuple
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
 
 
 def _ranges(text: List[str]) -> List[Tuple[int, int]]:
@@ -80,14 +88,92 @@ def vote_step_cost(record: Dict, ranges: List[Tuple[int, int]], every: int, star
     return lines
 
 
-def main() -> None:
+def run_row(folder: Path, vote_start: int) -> Optional[Dict]:
+    """One run of ``run.sh train-balanced``: its method, walls, set-up, step 0, the step sums before and from
+    ``vote_start`` and its eval PSNR; None when the folder holds no finished run (cut by the call's limit)."""
+    steps_files, train_files = sorted(folder.glob("steps_*.json")), sorted(folder.glob("train_*.json"))
+    if len(steps_files) != 1 or len(train_files) != 1:
+        return None
+    record = json.loads(steps_files[0].read_text())
+    methods = json.loads(train_files[0].read_text()).get("methods", {})
+    if len(methods) != 1:
+        return None
+    ((method, result),) = methods.items()
+    if result.get("status") != "ok":
+        return None
+    walls = dict(zip(record["steps"], record["wall_ms"]))
+    return {
+        "run": folder.name,
+        "method": method,
+        "wall_s": result["wall_s"],
+        "process_s": result.get("process", {}).get("wall_s", float("nan")),
+        "setup_s": record["setup_s"],
+        "step0_s": walls.get(0, float("nan")) / 1e3,
+        "before_s": sum(ms for step, ms in walls.items() if 0 < step < vote_start) / 1e3,
+        "from_s": sum(ms for step, ms in walls.items() if step >= vote_start) / 1e3,
+        "from_steps": sum(1 for step in walls if step >= vote_start),
+        "psnr": result.get("eval", {}).get("psnr", float("nan")),
+    }
+
+
+def balanced_table(folders: List[Path], vote_start: int) -> List[str]:
+    """The runs' rows and votesplat's means over splatfacto's (run wall, process, the training loop after step 0),
+    the mean difference of a step from ``vote_start`` on, and of the eval PSNR (without ns-eval: none)."""
+    rows, lines = (
+        [],
+        [
+            f"| run | method | run wall (process) | set-up | step 0 | steps 1–{vote_start - 1} | steps {vote_start}– | eval PSNR |",
+            "|---|---|---|---|---|---|---|---|",
+        ],
+    )
+    for folder in folders:
+        row = run_row(folder, vote_start)
+        if row is None:
+            lines.append(f"| {folder.name} | | not finished | | | | | |")
+            continue
+        rows.append(row)
+        lines.append(
+            f"| {row['run']} | {row['method']} | {row['wall_s']:.1f} ({row['process_s']:.1f}) s | {row['setup_s']:.2f} s | "
+            f"{row['step0_s']:.2f} s | {row['before_s']:.2f} s | {row['from_s']:.2f} s | "
+            + ("—" if math.isnan(row["psnr"]) else f"{row['psnr']:.3f}")
+            + " |"
+        )
+    by_method = {name: [row for row in rows if row["method"] == name] for name in ("splatfacto", "votesplat")}
+    base, votes = by_method["splatfacto"], by_method["votesplat"]
+    if not base or not votes:
+        return lines + ["", "no ratio: a method has no finished run"]
+
+    def ratio(key) -> float:  # of the means: the methods may have finished different numbers of runs
+        return statistics.mean(key(row) for row in votes) / statistics.mean(key(row) for row in base)
+
+    def per_step(group: List[Dict]) -> float:
+        return sum(row["from_s"] for row in group) * 1e3 / max(1, sum(row["from_steps"] for row in group))
+
+    psnr = statistics.mean(r["psnr"] for r in votes) - statistics.mean(r["psnr"] for r in base)
+    lines += [
+        "",
+        f"votesplat / splatfacto ({len(votes)} and {len(base)} runs): run wall {ratio(lambda r: r['wall_s']):.3f}×, "
+        f"process {ratio(lambda r: r['process_s']):.3f}×, steps 1– {ratio(lambda r: r['before_s'] + r['from_s']):.3f}×; "
+        f"a step from {vote_start} on {per_step(votes) - per_step(base):+.2f} ms"
+        + ("" if math.isnan(psnr) else f"; eval PSNR {psnr:+.3f} dB"),
+        f"step 0 per run: {', '.join('%.2f' % row['step0_s'] for row in rows)} s (a first training of the machine "
+        "takes ~4 s more: the stage's warm-up run is there to take it)",
+    ]
+    return lines
+
+
+def main(argv: Optional[List[str]] = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", nargs="+", help="steps_<experiment>_<method>.json files")
+    parser.add_argument("runs", nargs="+", help="steps_<experiment>_<method>.json files (with --table: run folders)")
+    parser.add_argument("--table", action="store_true", help="the runs are run.sh train-balanced's run folders")
     parser.add_argument("--ranges", nargs="+", default=["0:500", "500:100000"], help="step ranges A:B")
     parser.add_argument("--slow-ms", type=float, default=60.0, help="list the steps slower than this")
     parser.add_argument("--vote-every", type=int, help="the run's vote_every_n_steps: split vote steps from others")
-    parser.add_argument("--vote-start", type=int, default=500, help="the run's vote_start_step (with --vote-every)")
-    args = parser.parse_args()
+    parser.add_argument("--vote-start", type=int, default=500, help="the runs' vote_start_step (--vote-every, --table)")
+    args = parser.parse_args(argv)
+    if args.table:
+        print("\n".join(balanced_table([Path(run) for run in args.runs], args.vote_start)))
+        return
     for path in args.runs:
         with open(path) as handle:
             record = json.load(handle)

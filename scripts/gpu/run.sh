@@ -31,6 +31,13 @@
 #                     family set with SWEEP_ARGS="--family test --family-dir build/family_test ..."
 #                     (carry the set's folder), all trainings in parallel worker processes (--jobs);
 #                     sweep.md, sweep.json, sweep.log. 12 runs of 3000 steps at 256x192: ~290 s
+#   train-balanced fox|synthetic [DATA]  splatfacto and votesplat timed in the order $ORDER (default
+#                     "splatfacto votesplat votesplat splatfacto"), after a throwaway $WARM_UP_STEPS-step (50)
+#                     splatfacto run that takes the machine's first-training cost (~4 s more at step 0); each run
+#                     with its own folders and empty Triton cache and VOTESPLAT_STEP_TIMES, the time left shared
+#                     among the runs left. After each run $OUT/balanced_<experiment>.md (benchmarks/step_times.py
+#                     --table: a row per run, votesplat's means over splatfacto's) and .tar.gz (the runs' files)
+#                     are written again, so a call cut short keeps the runs it finished. 4 runs: ~300-450 s
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
 #                     with votesplat/splatfacto ratios; prints it
 #
@@ -576,6 +583,41 @@ train_compare() {  # EXPERIMENT DATA DOWNSCALE
   ! grep -L -E '"status": "ok"' "${results[@]}" | grep -q . && ! grep -l -E '"eval_status": "(failed|timeout)' "${results[@]}" | grep -q .
 }
 
+# ---------------------------------------------------------------------------- train-balanced
+stage_train_balanced() {  # EXPERIMENT [DATA]
+  local experiment=$1 data=${2:-} base method dir index=0 left runs_left
+  local order=(${ORDER:-splatfacto votesplat votesplat splatfacto}) folders=() vote_start=500
+  # the table's split of the steps: votesplat's vote_start_step, from its flags when they set one
+  if [[ "$VOTESPLAT_TRAIN_ARGS $EXTRA_TRAIN_ARGS" =~ --pipeline\.model\.vote-start-step[=\ ]+([0-9]+) ]]; then
+    vote_start=${BASH_REMATCH[1]}
+  fi
+  case "$experiment" in fox|synthetic) ;; *) log "train-balanced: fox or synthetic, not '$experiment'"; return 1 ;; esac
+  ensure_setup || return 1
+  base=$RUNS/balanced_$experiment
+  rm -rf "$base" && mkdir -p "$base"
+  if [ "${WARM_UP_STEPS:-50}" -gt 0 ]; then  # its files stay here: it is not a measurement
+    log "train-balanced: warm-up run, splatfacto, $WARM_UP_STEPS steps"
+    OUT=$base/warm_up RUNS=$base/warm_up/runs STEPS=${WARM_UP_STEPS:-50} EVAL=0 METHODS=splatfacto \
+      VOTESPLAT_STEP_TIMES= CALL_BUDGET_S=$(limit_s 60) bash "$0" "train-$experiment" $data >"$base/warm_up.log" 2>&1 \
+      || log "train-balanced: the warm-up run failed ($base/warm_up.log); going on"
+  fi
+  for method in "${order[@]}"; do
+    index=$((index + 1))
+    dir=$base/$index-$method
+    runs_left=$((${#order[@]} - index + 1))
+    left=$(seconds_left)
+    log "train-balanced: run $index of ${#order[@]}, $method, $((left / runs_left)) s"
+    OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=$method VOTESPLAT_STEP_TIMES=1 \
+      CALL_BUDGET_S=$((left / runs_left)) bash "$0" "train-$experiment" $data >"$dir.log" 2>&1 \
+      || log "train-balanced: run $index ($method) did not finish ($dir.log)"
+    rm -rf "$dir/runs" "$dir/triton"
+    folders+=("$dir")
+    tar czf "$OUT/balanced_$experiment.tar.gz" -C "$base" --exclude='warm_up*' . || return 1
+    "$PY" benchmarks/step_times.py --table "${folders[@]}" --vote-start "$vote_start" >"$OUT/balanced_$experiment.md" || return 1
+  done
+  cat "$OUT/balanced_$experiment.md"
+}
+
 # ------------------------------------------------------------------------------------- main
 [ "$#" -gt 0 ] || { sed -n '2,/^set -uo/p' "$0" | sed '$d'; exit 2; }
 rc=0
@@ -594,8 +636,13 @@ while [ "$#" -gt 0 ]; do
       data=.gpu/synthetic
       if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
       train_compare synthetic "$data" "$SYNTH_DOWNSCALE" || rc=1 ;;
+    train-balanced)
+      [ "$#" -gt 0 ] || { log "train-balanced: fox or synthetic [DATA]" >&2; rc=2; continue; }
+      experiment=$1; shift; data=
+      if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
+      stage_train_balanced "$experiment" "$data" || rc=1 ;;
     compare) summarize - "$@" || rc=1; shift "$#" ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2

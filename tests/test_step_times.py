@@ -1,0 +1,90 @@
+"""benchmarks/step_times.py --table: the rows and ratios of run.sh train-balanced's run folders."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import load_benchmark
+
+step_times = load_benchmark("step_times.py", "step_times_under_test")
+
+
+def write_run(folder: Path, method: str, walls_ms, wall_s: float, psnr=None, status: str = "ok") -> Path:
+    """A run folder as train-balanced leaves it: one steps file and one train file."""
+    folder.mkdir(parents=True)
+    steps = {
+        "steps": list(range(len(walls_ms))),
+        "wall_ms": list(walls_ms),
+        "phases_ms": {},
+        "setup_s": 5.0,
+        "tail_s": 0.1,
+        "total_s": 5.1 + sum(walls_ms) / 1e3,
+    }
+    (folder / f"steps_synthetic_{method}.json").write_text(json.dumps(steps))
+    result = {"status": status, "wall_s": wall_s, "process": {"wall_s": wall_s - 2.0}}
+    if psnr is not None:
+        result["eval"] = {"psnr": psnr}
+    (folder / "train_synthetic.json").write_text(json.dumps({"methods": {method: result}}))
+    return folder
+
+
+def test_table_gives_votesplats_means_over_splatfactos_and_leaves_out_unfinished_runs(tmp_path):
+    # 10 steps, votes from step 4: splatfacto 10 ms a step, votesplat 12 ms from step 4 on; step 0 4 s (and the
+    # first splatfacto run's 8 s, the machine's first training)
+    folders = [
+        write_run(tmp_path / "1-splatfacto", "splatfacto", [8000] + [10] * 9, 100.0, psnr=30.0),
+        write_run(tmp_path / "2-votesplat", "votesplat", [4000] + [10] * 3 + [12] * 6, 105.0, psnr=30.3),
+        write_run(tmp_path / "3-votesplat", "votesplat", [4000] + [10] * 3 + [12] * 6, 111.0, psnr=29.9),
+        write_run(tmp_path / "4-splatfacto", "splatfacto", [4000] + [10] * 9, 100.0, psnr=30.1),
+        write_run(tmp_path / "5-splatfacto", "splatfacto", [4000] + [10] * 9, 10.0, status="timeout"),
+        tmp_path / "6-votesplat",  # never started
+    ]
+    lines = step_times.balanced_table(folders, vote_start=4)
+    table = "\n".join(lines)
+    assert "| 1-splatfacto | splatfacto | 100.0 (98.0) s | 5.00 s | 8.00 s | 0.03 s | 0.06 s | 30.000 |" in table
+    assert "| 2-votesplat | votesplat | 105.0 (103.0) s | 5.00 s | 4.00 s | 0.03 s | 0.07 s | 30.300 |" in table
+    assert "| 5-splatfacto | | not finished |" in table and "| 6-votesplat | | not finished |" in table
+    summary = lines[-2]
+    # means over the finished runs: (105 + 111) / 2 / 100; process (103 + 109) / 2 / 98; steps 1-9: 0.102 / 0.090
+    assert "(2 and 2 runs)" in summary
+    assert "run wall 1.080×" in summary and f"process {106 / 98:.3f}×" in summary
+    assert f"steps 1– {0.102 / 0.090:.3f}×" in summary
+    assert "a step from 4 on +2.00 ms" in summary
+    assert "eval PSNR +0.050 dB" in summary  # (30.3 + 29.9) / 2 - (30.0 + 30.1) / 2
+    assert "step 0 per run: 8.00, 4.00, 4.00, 4.00 s" in lines[-1]
+
+
+def test_table_without_eval_or_without_a_method_says_so(tmp_path):
+    folders = [
+        write_run(tmp_path / "1-splatfacto", "splatfacto", [4000] + [10] * 9, 50.0),
+        write_run(tmp_path / "2-votesplat", "votesplat", [4000] + [11] * 9, 55.0),
+    ]
+    lines = step_times.balanced_table(folders, vote_start=4)
+    assert lines[2].endswith("| — |")  # no ns-eval: no PSNR
+    assert "run wall 1.100×" in lines[-2] and "eval PSNR" not in lines[-2]
+    only_votes = step_times.balanced_table(folders[1:], vote_start=4)
+    assert only_votes[-1] == "no ratio: a method has no finished run"
+
+
+def test_table_from_the_command_line(tmp_path, capsys):
+    folders = [
+        write_run(tmp_path / "1-splatfacto", "splatfacto", [4000] + [10] * 9, 50.0),
+        write_run(tmp_path / "2-votesplat", "votesplat", [4000] + [11] * 9, 55.0),
+    ]
+    step_times.main(["--table", *map(str, folders), "--vote-start", "4"])
+    printed = capsys.readouterr().out
+    assert "| steps 1–3 | steps 4– |" in printed and "run wall 1.100×" in printed
+
+
+@pytest.mark.parametrize("bad", ["two steps files", "two methods"])
+def test_a_folder_that_is_not_one_run_is_not_finished(tmp_path, bad):
+    folder = write_run(tmp_path / "1-votesplat", "votesplat", [4000] + [10] * 9, 50.0)
+    if bad == "two steps files":
+        (folder / "steps_synthetic_splatfacto.json").write_text((folder / "steps_synthetic_votesplat.json").read_text())
+    else:
+        result = json.loads((folder / "train_synthetic.json").read_text())
+        result["methods"]["splatfacto"] = result["methods"]["votesplat"]
+        (folder / "train_synthetic.json").write_text(json.dumps(result))
+    assert step_times.run_row(folder, vote_start=4) is None
