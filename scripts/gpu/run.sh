@@ -585,19 +585,23 @@ train_compare() {  # EXPERIMENT DATA DOWNSCALE
 
 # ---------------------------------------------------------------------------- train-balanced
 stage_train_balanced() {  # EXPERIMENT [DATA]
-  local experiment=$1 data=${2:-} base method dir index=0 left runs_left
+  local experiment=$1 data=${2:-} base method dir index=0 left runs_left warm_up_steps=${WARM_UP_STEPS:-50}
   local order=(${ORDER:-splatfacto votesplat votesplat splatfacto}) folders=() vote_start=500
   # the table's split of the steps: votesplat's vote_start_step, from its flags when they set one
   if [[ "$VOTESPLAT_TRAIN_ARGS $EXTRA_TRAIN_ARGS" =~ --pipeline\.model\.vote-start-step[=\ ]+([0-9]+) ]]; then
     vote_start=${BASH_REMATCH[1]}
   fi
-  case "$experiment" in fox|synthetic) ;; *) log "train-balanced: fox or synthetic, not '$experiment'"; return 1 ;; esac
+  case "$experiment" in
+    fox) [ -z "$data" ] || { log "train-balanced: fox takes no DATA (it trains \$FOX, $FOX)"; return 1; } ;;
+    synthetic) ;;
+    *) log "train-balanced: fox or synthetic, not '$experiment'"; return 1 ;;
+  esac
   ensure_setup || return 1
   base=$RUNS/balanced_$experiment
   rm -rf "$base" && mkdir -p "$base"
-  if [ "${WARM_UP_STEPS:-50}" -gt 0 ]; then  # its files stay here: it is not a measurement
-    log "train-balanced: warm-up run, splatfacto, $WARM_UP_STEPS steps"
-    OUT=$base/warm_up RUNS=$base/warm_up/runs STEPS=${WARM_UP_STEPS:-50} EVAL=0 METHODS=splatfacto \
+  if [ "$warm_up_steps" -gt 0 ]; then  # its files stay here: it is not a measurement
+    log "train-balanced: warm-up run, splatfacto, $warm_up_steps steps"
+    OUT=$base/warm_up RUNS=$base/warm_up/runs STEPS=$warm_up_steps EVAL=0 METHODS=splatfacto \
       VOTESPLAT_STEP_TIMES= CALL_BUDGET_S=$(limit_s 60) bash "$0" "train-$experiment" $data >"$base/warm_up.log" 2>&1 \
       || log "train-balanced: the warm-up run failed ($base/warm_up.log); going on"
   fi
