@@ -7,11 +7,12 @@ the training step makes it, and prints
 
 * the walk's shape at those pixels: sampled pixels per tile, tile-list length, run entries walked, |M|
   (the share past ``vote_kernel.CAP``: the slow exact paths when the rows hold only that many members);
-* for each walk (``--walks``, ``vote_fused.WALKS``): the GPU time of forward + backward (CUDA events, median
+* for each walk (``--walks``: ``pixel``, the kernels' one walk, or ``pixel@CAP``, the same with rows of CAP member
+  slots as before ``vote_kernel.member_slots``): the GPU time of forward + backward (CUDA events, median
   of ``--reps``), the time of each kernel (torch profiler), and the largest difference of its losses and
   offset gradients from the first walk's.
 
-    python benchmarks/bench_captured_step.py capture.pt [--walks pixel pixel@512 tile] [--reps 50]
+    python benchmarks/bench_captured_step.py capture.pt [--walks pixel pixel@128] [--reps 50]
 """
 
 from __future__ import annotations
@@ -94,9 +95,10 @@ def walk_stats(record: Dict) -> List[str]:
 
 
 def time_walk(record: Dict, walk: str, reps: int) -> Dict:
-    """``walk`` = NAME or NAME@CAP (``vote_kernel.CAP``, the member slots per pixel, for this run)."""
+    """``walk`` = pixel or pixel@CAP (``vote_kernel.CAP``, the member slots per pixel, for this run)."""
     name, _, cap = walk.partition("@")
-    vote_fused.WALK = name
+    if name != "pixel":
+        raise SystemExit(f"bench_captured_step: --walks takes pixel or pixel@CAP, not {walk!r}")
     vote_kernel.CAP = int(cap) if cap else DEFAULT_CAP
     # with a cap, the fused kernels' rows hold CAP members (as before vote_kernel.member_slots), else every member
     vote_kernel.MEMBER_SLOT_BYTES = 0 if cap else DEFAULT_SLOT_BYTES
@@ -145,7 +147,7 @@ def time_walk(record: Dict, walk: str, reps: int) -> Dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("capture")
-    parser.add_argument("--walks", nargs="+", default=list(getattr(vote_fused, "WALKS", ("pixel",))))
+    parser.add_argument("--walks", nargs="+", default=["pixel"], help="pixel, pixel@CAP (rows of CAP slots)")
     parser.add_argument("--reps", type=int, default=50)
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
