@@ -245,35 +245,34 @@ def _write(out_path: str, state: Dict, first: int, stop: int, elapsed: float, mo
 def install_capture(step: int, out_path: str) -> None:
     """Save the arguments of the first fused vote step at or after ``step`` to ``out_path`` (torch.save), by
     ``vote_losses_sampled``'s parameter names: tensors on the CPU, the options as a dict, the support as its shape
-    (the replay starts its own counts)."""
+    (the replay starts its own counts). The step is the one the model passes with the support counts."""
     import dataclasses
     import inspect
 
     model = importlib.import_module("votesplat_ns.ns.model")
-    original_step = Trainer.train_iteration
     original_call = model.vote_losses_sampled
     signature = inspect.signature(original_call)
-    state: Dict = {"step": -1, "done": False}
-
-    def train_iteration(self, current):
-        state["step"] = current
-        return original_step(self, current)
+    done = False
 
     def vote_losses_sampled(*args, **kwargs):
-        if not state["done"] and state["step"] >= step:
-            record = {"step": state["step"]}
-            for name, value in signature.bind(*args, **kwargs).arguments.items():
+        nonlocal done
+        if done:
+            return original_call(*args, **kwargs)
+        arguments = signature.bind(*args, **kwargs).arguments
+        support = arguments.get("support")
+        if support is not None and support[2] >= step:
+            record = {"step": support[2]}
+            for name, value in arguments.items():
                 if isinstance(value, torch.Tensor):
                     record[name] = value.detach().cpu().clone()
                 elif name == "options":
                     record[name] = dataclasses.asdict(value)
                 elif name == "support":
-                    record[name] = None if value is None else tuple(value[0].shape)
+                    record[name] = tuple(value[0].shape)
                 else:
                     record[name] = value
             torch.save(record, out_path)
-            state["done"] = True
+            done = True
         return original_call(*args, **kwargs)
 
-    Trainer.train_iteration = train_iteration
     model.vote_losses_sampled = vote_losses_sampled
