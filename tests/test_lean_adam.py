@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.optim.adam as torch_adam
 
-from votesplat_ns.ns.lean_adam import LeanFusedAdam
+from votesplat_ns.ns.lean_adam import LeanFusedAdam, NeverStepsOptimizer
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
@@ -81,11 +81,51 @@ def test_not_plain_steps_go_through_adam_with_hooks_once(monkeypatch):
     assert len(calls) == 2 and calls[-1] is not None and hooks == ["pre", "post"] * 3
 
 
-def test_the_vote_groups_use_it():
+def test_the_vote_groups_use_them():
     from votesplat_ns.ns.method import splatfacto_optimizers
 
     optimizers = splatfacto_optimizers()
-    param = torch.nn.Parameter(torch.zeros(4, 2, 3))
-    for group in ("vote_offsets", "vote_support"):
-        optimizer = optimizers[group]["optimizer"].setup([param])
-        assert type(optimizer) is LeanFusedAdam and optimizer.param_groups[0]["fused"]
+    offsets = optimizers["vote_offsets"]["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 2, 3))])
+    assert type(offsets) is LeanFusedAdam and offsets.param_groups[0]["fused"]
+    support = optimizers["vote_support"]["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 2))])
+    assert type(support) is NeverStepsOptimizer
+
+
+@pytest.mark.parametrize(
+    "make", [lambda p: LeanFusedAdam([p], lr=1e-3, fused=True), lambda p: NeverStepsOptimizer([p])]
+)
+def test_zero_grad_clears_as_torch_does(make):
+    """set_to_none (nerfstudio's call) leaves no gradient; set_to_none=False zeroes it in place, as torch does."""
+    param = torch.nn.Parameter(torch.ones(3, 2))
+    optimizer = make(param)
+    param.grad = torch.full_like(param, 2.0)
+    optimizer.zero_grad()
+    assert param.grad is None
+    param.grad = torch.full_like(param, 2.0)
+    grad = param.grad
+    optimizer.zero_grad(set_to_none=False)
+    assert param.grad is grad and torch.equal(grad, torch.zeros_like(grad))
+
+
+def test_never_steps_keeps_its_parameter_through_steps_densification_and_resume():
+    """A gradient does not move it; gsplat's densification edits it as an Adam's entry (rows kept and copied,
+    no state); a checkpoint written with the earlier lr-0 Adam for this group loads into it."""
+    from gsplat.strategy.ops import duplicate, remove
+
+    param = torch.nn.Parameter(torch.arange(12.0).reshape(6, 2))
+    optimizer = NeverStepsOptimizer([param])
+    param.grad = torch.ones_like(param)
+    assert optimizer.step() is None and torch.equal(param, torch.arange(12.0).reshape(6, 2))
+    assert optimizer.step(closure=lambda: torch.tensor(3.0)) == 3.0
+    params = torch.nn.ParameterDict({"vote_support": param})
+    optimizers = {"vote_support": optimizer}
+    duplicate(params, optimizers, {}, torch.tensor([True, False, False, False, False, True]))
+    remove(params, optimizers, {}, torch.tensor([False, True] + [False] * 6))
+    kept = params["vote_support"]
+    assert torch.equal(kept.detach(), torch.tensor([[0.0, 1], [4, 5], [6, 7], [8, 9], [10, 11], [0, 1], [10, 11]]))
+    assert optimizer.param_groups[0]["params"][0] is kept and not any(optimizer.state.values())
+    old = torch.optim.Adam([torch.nn.Parameter(torch.zeros(7, 2))], lr=0.0, fused=True)  # never stepped
+    optimizer.load_state_dict(old.state_dict())
+    kept.grad = torch.ones_like(kept)
+    optimizer.step()
+    assert optimizer.param_groups[0]["params"][0] is kept and torch.equal(kept.detach()[0], torch.tensor([0.0, 1]))

@@ -1,9 +1,14 @@
-"""Adam for the vote groups: torch's fused Adam without most of its Python on a plain step.
+"""The vote groups' optimizers: torch's fused Adam without most of its Python on a plain step, and one that
+never steps.
 
 A vote step's offsets take one Adam step; torch.optim.Adam(fused=True) spends most of that step's host time
 in Python around its two ops (grouping tensors by device, the functional wrapper's checks, the grad-mode
 decorator). ``LeanFusedAdam.step`` runs those two ops itself when nothing else is asked of it: inside
 training on the H100's host the offsets' step fell from 0.16 to 0.11-0.13 ms (BENCHMARKS.md, session 12).
+
+Both also clear gradients without Optimizer.zero_grad's profiler scope (two dispatcher calls around a loop):
+nerfstudio clears every group on every step, and on the H100's host the two vote groups' clears added
+0.03-0.16 ms to every step, voting or not (BENCHMARKS.md, session 14's step phases).
 """
 
 from __future__ import annotations
@@ -54,6 +59,12 @@ class LeanFusedAdam(torch.optim.Adam):
             )
         return None
 
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        if not set_to_none:
+            super().zero_grad(set_to_none)
+            return
+        _clear_gradients(self)
+
     def _plain_step(self) -> bool:
         if len(self.param_groups) != 1 or not hasattr(torch, "_fused_adam_"):
             return False
@@ -70,3 +81,34 @@ class LeanFusedAdam(torch.optim.Adam):
         grad = param.grad
         state = self.state.get(param)
         return grad is not None and not grad.is_sparse and bool(state) and "step" in state
+
+
+class NeverStepsOptimizer(torch.optim.Optimizer):
+    """The optimizer of a ``gauss_params`` entry that is kept, not trained (``vote_support``, a count).
+
+    gsplat's densification edits one optimizer per entry (it moves each entry's optimizer state along with
+    the rows it keeps or copies), so the entry needs one; this one holds no state, and its ``step`` leaves
+    the parameter as it is, with or without a gradient. ``lr`` and ``eps`` are taken (nerfstudio's optimizer
+    config passes them) and kept in the group, unused."""
+
+    def __init__(self, params, lr: float = 0.0, eps: float = 1e-8):
+        super().__init__(params, {"lr": lr, "eps": eps})
+
+    def step(self, closure=None):  # type: ignore[override]
+        if closure is not None:
+            with torch.enable_grad():
+                return closure()
+        return None
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        if not set_to_none:
+            super().zero_grad(set_to_none)
+            return
+        _clear_gradients(self)
+
+
+def _clear_gradients(optimizer: torch.optim.Optimizer) -> None:
+    """``optimizer.zero_grad(set_to_none=True)`` without its profiler scope: every gradient set to None."""
+    for group in optimizer.param_groups:
+        for param in group["params"]:
+            param.grad = None

@@ -13,7 +13,7 @@ from typing import Any, Dict, Optional, Type
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig, OptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
@@ -21,7 +21,7 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from votesplat_ns.ns import patches
 from votesplat_ns.ns.datamanager import VoteDataManagerConfig
-from votesplat_ns.ns.lean_adam import LeanFusedAdam
+from votesplat_ns.ns.lean_adam import LeanFusedAdam, NeverStepsOptimizer
 from votesplat_ns.ns.model_config import VoteSplatModelConfig
 
 
@@ -36,6 +36,16 @@ class FusedAdamOptimizerConfig(AdamOptimizerConfig):
     _target: Type = LeanFusedAdam
     fused: bool = True
     """Passed to torch.optim.Adam."""
+
+
+@dataclass
+class NeverStepsOptimizerConfig(OptimizerConfig):
+    """For a ``gauss_params`` entry that is kept, not trained (``vote_support``): gsplat's densification needs an
+    optimizer per entry; this one never changes it and costs a step no Adam."""
+
+    _target: Type = NeverStepsOptimizer
+    lr: float = 0.0
+    """Unused (never steps)."""
 
 
 def splatfacto_optimizers(max_steps: int = 30000) -> dict:
@@ -67,8 +77,8 @@ def splatfacto_optimizers(max_steps: int = 30000) -> dict:
             "optimizer": FusedAdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps),
         },
-        # Bookkeeping only: never receives a gradient, so its optimizer never moves it.
-        "vote_support": {"optimizer": FusedAdamOptimizerConfig(lr=0.0), "scheduler": None},
+        # Bookkeeping only: counted by the vote steps, never trained.
+        "vote_support": {"optimizer": NeverStepsOptimizerConfig(), "scheduler": None},
     }
 
 
