@@ -18,7 +18,7 @@ step at or after step N (``vote_losses_sampled``'s tensors on the CPU, its other
 
 ``install_step_times`` (run.sh: ``VOTESPLAT_STEP_TIMES=1``) instead times a whole run without the
 profiler: for every step its wall time (from one step's start to the next one's) and the host time
-of each phase above, plus the set-up before step 0 and the tail after the last step's iteration
+of each phase above (``VOTESPLAT_STEP_TIMES=walls``: not the phases, whose wrappers would time them), plus the set-up before step 0 and the tail after the last step's iteration
 (the final callbacks, e.g. votesplat's foreground pass, and the checkpoint). The host and
 the GPU run in lock step in these trainings (splatfacto reads the GPU ~15 times a step), so a
 phase's host time includes the GPU work it waits for.
@@ -161,11 +161,14 @@ def install(first: int, stop: int, out_path: str) -> None:
     Trainer.train_iteration = train_iteration
 
 
-def install_step_times(out_path: str) -> None:
-    """Time every step of ns-train and its phases (host time, no profiler) into ``out_path`` (JSON)."""
+def install_step_times(out_path: str, phases: bool = True) -> None:
+    """Time every step of ns-train and its phases (host time, no profiler) into ``out_path`` (JSON). Without
+    ``phases`` only the steps: the phases' wrappers cost each call a few microseconds, and votesplat has more of
+    them (its vote losses' parts), which would charge a comparison of the methods' walls to votesplat."""
     process_start = time.perf_counter()
     phase_totals: Dict[str, float] = {}
-    _install_phases(lambda function, label: _timed(function, label[3:], phase_totals))
+    if phases:
+        _install_phases(lambda function, label: _timed(function, label[3:], phase_totals))
     original = Trainer.train_iteration
     record: Dict = {"steps": [], "wall_ms": [], "phases_ms": collections.defaultdict(list)}
     state: Dict = {}

@@ -88,3 +88,40 @@ def test_a_folder_that_is_not_one_run_is_not_finished(tmp_path, bad):
         result["methods"]["splatfacto"] = result["methods"]["votesplat"]
         (folder / "train_synthetic.json").write_text(json.dumps(result))
     assert step_times.run_row(folder, vote_start=4) is None
+
+
+@pytest.mark.parametrize("phases", [False, True])
+def test_step_times_record_every_step_and_wrap_the_phases_only_when_asked(phases, tmp_path, monkeypatch):
+    """VOTESPLAT_STEP_TIMES=walls (train-balanced's default) times the steps and wraps none of the phases, whose
+    wrappers would charge votesplat's more numerous calls; =1 wraps and records them."""
+    import atexit
+    import importlib
+
+    from nerfstudio.engine.trainer import Trainer
+
+    from votesplat_ns.ns.model import VoteSplatModel
+
+    train_profile = load_benchmark("train_profile.py", "train_profile_under_test")
+    at_exit = []
+    monkeypatch.setattr(atexit, "register", at_exit.append)
+    monkeypatch.setattr(Trainer, "train_iteration", lambda self, step: step)  # restored after the test
+    model_module = importlib.import_module("votesplat_ns.ns.model")
+    for module_name, class_name, name in train_profile.PHASES:  # what the install rebinds: restored too
+        module = importlib.import_module(module_name)
+        if class_name:
+            owner = getattr(module, class_name)
+            monkeypatch.setattr(owner, name, vars(owner)[name])  # a static method stays one
+            continue
+        monkeypatch.setattr(module, name, getattr(module, name))
+        if hasattr(model_module, name):  # where the model imported it
+            monkeypatch.setattr(model_module, name, getattr(model_module, name))
+    before = VoteSplatModel.get_metrics_dict
+    out = tmp_path / "steps.json"
+    train_profile.install_step_times(str(out), phases)
+    assert (VoteSplatModel.get_metrics_dict is not before) == phases
+    for step in range(3):
+        assert Trainer.train_iteration(None, step) == step
+    at_exit[0]()
+    record = json.loads(out.read_text())
+    assert record["steps"] == [0, 1, 2] and len(record["wall_ms"]) == 3
+    assert ("Trainer.train_iteration" in record["phases_ms"]) == phases

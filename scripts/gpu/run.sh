@@ -34,7 +34,8 @@
 #   train-balanced fox|synthetic [DATA]  splatfacto and votesplat timed in the order $ORDER (default
 #                     "splatfacto votesplat votesplat splatfacto"), after a throwaway $WARM_UP_STEPS-step (50)
 #                     splatfacto run that takes the machine's first-training cost (~4 s more at step 0); each run
-#                     with its own folders and empty Triton cache and VOTESPLAT_STEP_TIMES, the time left shared
+#                     with its own folders and empty Triton cache and VOTESPLAT_STEP_TIMES (BALANCED_STEP_TIMES:
+#                     walls, or 1 for the phases too, which charge votesplat's more wrapped calls), the time left shared
 #                     among the runs left. After each run $OUT/balanced_<experiment>.md (benchmarks/step_times.py
 #                     --table: a row per run, votesplat's means over splatfacto's) and .tar.gz (the runs' files)
 #                     are written again, so a call cut short keeps the runs it finished. 4 runs: ~300-450 s
@@ -55,7 +56,8 @@
 # VOTESPLAT_CAPTURE_VOTE_STEP=N saves votesplat's first fused vote step at step >= N into
 # $OUT/capture_<experiment>_<method>.pt (benchmarks/bench_captured_step.py replays it).
 # VOTESPLAT_STEP_TIMES=1 writes every step's wall and phase host times of each ns-train, no profiler,
-# into $OUT/steps_<experiment>_<method>.json (set-up and tail too; compare with benchmarks/step_times.py).
+# into $OUT/steps_<experiment>_<method>.json (set-up and tail too; compare with benchmarks/step_times.py);
+# VOTESPLAT_STEP_TIMES=walls the steps' walls only (no wrapper around the phases: what train-balanced times).
 set -uo pipefail
 cd "$(dirname "$0")/../.." || exit 2
 
@@ -150,10 +152,11 @@ if profile and command == "train":
 
     first, stop = (int(value) for value in profile.split(":"))
     install(first, stop, os.environ.get("VOTESPLAT_PROFILE_OUT", "train_profile.txt"))
-elif os.environ.get("VOTESPLAT_STEP_TIMES") and command == "train":  # every step's wall and phases, no profiler
+elif os.environ.get("VOTESPLAT_STEP_TIMES") and command == "train":  # every step's wall (and phases), no profiler
     from benchmarks.train_profile import install_step_times
 
-    install_step_times(os.environ.get("VOTESPLAT_STEP_TIMES_OUT", "step_times.json"))
+    phases = os.environ["VOTESPLAT_STEP_TIMES"] != "walls"
+    install_step_times(os.environ.get("VOTESPLAT_STEP_TIMES_OUT", "step_times.json"), phases)
 
 capture = os.environ.get("VOTESPLAT_CAPTURE_VOTE_STEP")  # N: save the first fused vote step's inputs at step >= N
 if capture and command == "train":
@@ -611,7 +614,7 @@ stage_train_balanced() {  # EXPERIMENT [DATA]
     runs_left=$((${#order[@]} - index + 1))
     left=$(seconds_left)
     log "train-balanced: run $index of ${#order[@]}, $method, $((left / runs_left)) s"
-    OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=$method VOTESPLAT_STEP_TIMES=1 \
+    OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=$method VOTESPLAT_STEP_TIMES=${BALANCED_STEP_TIMES:-walls} \
       CALL_BUDGET_S=$((left / runs_left)) bash "$0" "train-$experiment" $data >"$dir.log" 2>&1 \
       || log "train-balanced: run $index ($method) did not finish ($dir.log)"
     rm -rf "$dir/runs" "$dir/triton"
