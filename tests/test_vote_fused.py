@@ -518,7 +518,7 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
         model.record_vote_support()
         with torch.no_grad():
             support.zero_()
-        model._support_stamps = None  # the warm-up's step counted with this step's stamp
+        model.vote_step.support_stamps = None  # the warm-up's step counted with this step's stamp
         counter = count_ops.OpCounter()
         with counter:
             loss = step(seed=0)
@@ -558,13 +558,13 @@ def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, 
     monkeypatch.setenv(BACKEND_ENV, "triton")
     with torch.no_grad():
         model.gauss_params["vote_offsets"][:5] = float("nan")
-    model._fused_vote_steps = 10 * FUSED_FINITE_CHECK_EVERY - 2  # the step after is not a checking one
+    model.vote_step.fused_steps = 10 * FUSED_FINITE_CHECK_EVERY - 2  # the step after is not a checking one
     model.step = 10 * FUSED_FINITE_CHECK_EVERY - 1  # a step count's checking step: no longer what decides
     assert not torch.isfinite(step())  # no host read, a NaN loss
     model.step = 1000  # a vote step of the default schedule (every 4th from 500), as every step here
     with pytest.raises(ValueError, match="vote offsets have diverged"):
         step()
-    assert model._fused_vote_steps == 10 * FUSED_FINITE_CHECK_EVERY
+    assert model.vote_step.fused_steps == 10 * FUSED_FINITE_CHECK_EVERY
 
 
 @pytest.mark.parametrize("device", DEVICES)

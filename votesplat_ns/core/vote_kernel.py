@@ -190,8 +190,11 @@ def _constants(values: Tuple[float, ...], dtype: torch.dtype, device: torch.devi
 
 
 def _on(device: torch.device):
-    """Triton launches on the current CUDA device: make it the tensors' one."""
-    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
+    """Triton launches on the current CUDA device: make it the tensors' one (a switch of devices only where they
+    differ: entering and leaving torch.cuda.device costs a training step's vote work two calls a launch)."""
+    if device.type != "cuda" or device.index is None or device.index == torch.cuda.current_device():
+        return contextlib.nullcontext()
+    return torch.cuda.device(device)
 
 
 def _launch(kernel, grid, *args, **kwargs) -> None:

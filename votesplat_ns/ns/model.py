@@ -15,6 +15,7 @@ path config.yml files of earlier runs name).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Union
 
@@ -49,6 +50,19 @@ FUSED_FINITE_CHECK_EVERY = 100
 def _raise_if_diverged(vote_loss: torch.Tensor) -> None:
     if not bool(torch.isfinite(vote_loss).all()):
         raise ValueError(DIVERGED_VOTES)
+
+
+@dataclass
+class VoteStepState:
+    """What the parts of a training step's vote work hand on to one another. Plain attributes: an assignment to
+    a torch Module's own attribute goes through Module.__setattr__'s checks, microseconds each on every step."""
+
+    # (batch, its vote losses): computed in get_metrics_dict, used by get_loss_dict of the same batch
+    early_losses: Tuple[Optional[Dict], Dict[str, torch.Tensor]] = field(default_factory=lambda: (None, {}))
+    # [N, L] int32, the step that last counted each support entry (the fused backward counts the support)
+    support_stamps: Optional[torch.Tensor] = None
+    support_counted: bool = False  # by this step's fused backward: record_vote_support has nothing to add
+    fused_steps: int = 0  # run by this model object (the finiteness check's clock)
 
 
 def vote_step_due(step: int, start: int, every: int) -> bool:
@@ -86,15 +100,10 @@ class VoteSplatModel(SplatfactoModel):
         # that densification copies a parent's support to its children and pruning drops it.
         self.gauss_params["vote_support"] = Parameter(torch.zeros(num_points, num_levels, device=device))
         self.vote_options = self.config.vote_render_options()
-        # (batch, its vote losses): computed in get_metrics_dict, used by get_loss_dict of the same batch
-        self._early_vote_losses: Tuple[Optional[Dict], Dict[str, torch.Tensor]] = (None, {})
+        self.vote_step = VoteStepState()
         self._kernel_warm_up: Optional[KernelWarmUp] = None  # compiling the fused kernels (CUDA)
         # made at the first draw, on the device the pipeline has moved the model to by then
         self._vote_pixel_generator: Optional[torch.Generator] = None
-        # [N, L] int32, the step that last counted each support entry (the fused backward counts the support)
-        self._support_stamps: Optional[torch.Tensor] = None
-        self._support_counted = False  # by this step's fused backward: record_vote_support has nothing to add
-        self._fused_vote_steps = 0  # run by this model object (the finiteness check's clock)
         if (self.kwargs.get("metadata") or {}).get("vote_training"):
             # now, so that the compiling process runs beside the trainer's set-up (image caching)
             self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
@@ -311,7 +320,7 @@ class VoteSplatModel(SplatfactoModel):
         # so host work done before them overlaps the colour pass still running on the GPU. (On a stream of
         # their own, joined in get_loss_dict, a vote step cost 0.5-0.7 ms more host time: BENCHMARKS.md.)
         losses, terms = self._vote_losses(batch)
-        self._early_vote_losses = (batch, losses)
+        self.vote_step.early_losses = (batch, losses)
         if self.training and self.vote_only:
             metrics = {"gaussian_count": self.num_points}
         else:
@@ -338,8 +347,8 @@ class VoteSplatModel(SplatfactoModel):
             loss_dict: Dict[str, torch.Tensor] = {}
         else:
             loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
-        early_batch, early_losses = self._early_vote_losses
-        self._early_vote_losses = (None, {})
+        early_batch, early_losses = self.vote_step.early_losses
+        self.vote_step.early_losses = (None, {})
         loss_dict.update(early_losses if early_batch is batch else self._vote_losses(batch)[0])
         return loss_dict
 
@@ -359,7 +368,8 @@ class VoteSplatModel(SplatfactoModel):
         """(loss, terms) on pixels sampled from the vote maps: loss = vote_loss_weight * vote L1 +
         distortion_loss_weight * distortion, each summed over levels; terms [2]: these two weighted terms,
         without a gradient."""
-        labels, centroids, voting = self._vote_maps(batch)
+        offsets = self.gauss_params["vote_offsets"]
+        labels, centroids, voting = self._vote_maps(batch, offsets.device)
         # splatfacto renders at 1/d of the image resolution early in training; positions in the
         # continuous pixel frame (pixel centre = index + 0.5) scale by exactly 1/d.
         scale = 1.0 / self._get_downscale_factor()
@@ -367,14 +377,13 @@ class VoteSplatModel(SplatfactoModel):
         # One pixel sample and one walk for all levels: membership depends only on geometry. Uniform
         # among the pixels that carry a vote.
         size = (self.config.vote_pixels_per_step,)
-        offsets = self.gauss_params["vote_offsets"]
         weights = (self.config.vote_loss_weight, self.config.distortion_loss_weight)
         if self.config.vote_distortion == "none":
             weights = (weights[0], 0.0)
         if not voting.numel():
             # a view without any vote: the loss is 0, still connected to the offsets
             return offsets.sum() * 0.0, offsets.new_zeros(2)
-        sample = torch.randint(voting.numel(), size, device=self.device, generator=self._vote_generator())
+        sample = torch.randint(voting.numel(), size, device=offsets.device, generator=self._vote_generator())
         if use_fused(self.vote_options, offsets, voting):
             if self._kernel_warm_up is not None:
                 self._kernel_warm_up.join()  # the kernels it compiled are then in Triton's cache
@@ -405,8 +414,8 @@ class VoteSplatModel(SplatfactoModel):
                 self._support_in_backward(),
                 check_inputs=False,  # built the same way every step (the checks were a fair part of its host time)
             )
-            self._fused_vote_steps += 1
-            if self._fused_vote_steps % FUSED_FINITE_CHECK_EVERY == 0:
+            self.vote_step.fused_steps += 1
+            if self.vote_step.fused_steps % FUSED_FINITE_CHECK_EVERY == 0:
                 # one host read every FUSED_FINITE_CHECK_EVERY vote steps, so diverged votes still stop training
                 _raise_if_diverged(losses["vote"])
             return losses["total"], losses["terms"]
@@ -423,10 +432,11 @@ class VoteSplatModel(SplatfactoModel):
         """What the fused backward needs to count this step's vote support (``vote_losses_sampled``'s
         ``support``): the counts, the stamps (made again when densification changed N) and the step."""
         counts = self.gauss_params["vote_support"].detach()
-        if self._support_stamps is None or self._support_stamps.shape != counts.shape:
-            self._support_stamps = torch.full(counts.shape, -1, dtype=torch.int32, device=counts.device)
-        self._support_counted = True
-        return counts, self._support_stamps, int(self.step)
+        state = self.vote_step
+        if state.support_stamps is None or state.support_stamps.shape != counts.shape:
+            state.support_stamps = torch.full(counts.shape, -1, dtype=torch.int32, device=counts.device)
+        state.support_counted = True
+        return counts, state.support_stamps, int(self.step)
 
     def _vote_generator(self) -> torch.Generator:
         """The vote pixels' own random stream, seeded with ns-train's seed (--machine.seed). Drawing them from
@@ -480,7 +490,7 @@ class VoteSplatModel(SplatfactoModel):
         Rendered at the camera's full resolution; pixels whose voting set is empty are left out.
         Levels without any vote in this view give NaN.
         """
-        labels, centroids, voting = self._vote_maps(batch)
+        labels, centroids, voting = self._vote_maps(batch, self.device)
         self.get_outputs(camera.to(self.device))
         flat_labels = labels.reshape(labels.shape[0], -1)
         pixel_xy, target_xy, valid = pixels_and_targets(voting, labels.shape[-1], flat_labels, centroids, 1.0)
@@ -490,13 +500,15 @@ class VoteSplatModel(SplatfactoModel):
         errors = [error[used[:, level], level].mean() for level in range(labels.shape[0])]  # NaN when empty
         return torch.stack(errors)
 
-    def _vote_maps(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _vote_maps(
+        self, batch: Dict[str, torch.Tensor], device: torch.device
+    ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         # [L, H, W] at the datamanager's image resolution; [L, K+1, 2] pixel-index coordinates; [C] the
         # pixels carrying a vote. non_blocking: the datamanager pins them on CUDA, so the copies do not
         # wait for the GPU's queue.
-        labels = batch["vote_labels"].to(self.device, non_blocking=True)
-        centroids = batch["vote_centroids"].to(self.device, non_blocking=True)
-        voting = batch["vote_pixels"].to(self.device, non_blocking=True)
+        labels = batch["vote_labels"].to(device, non_blocking=True)
+        centroids = batch["vote_centroids"].to(device, non_blocking=True)
+        voting = batch["vote_pixels"].to(device, non_blocking=True)
         if labels.shape[0] != self.num_vote_levels:
             raise ValueError(
                 f"the vote maps have {labels.shape[0]} levels but the model has vote_levels={self.config.vote_levels}; "
@@ -513,8 +525,8 @@ class VoteSplatModel(SplatfactoModel):
         in their backward (``vote_losses_sampled``'s ``support``) and count that membership itself: a
         member whose gradients from several pixels cancel to an exact 0 (L1 signs) counts there, not here.
         """
-        if self._support_counted:  # the fused backward has counted it
-            self._support_counted = False
+        if self.vote_step.support_counted:  # the fused backward has counted it
+            self.vote_step.support_counted = False
             return
         grad = self.gauss_params["vote_offsets"].grad
         if grad is not None:
