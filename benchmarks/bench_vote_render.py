@@ -11,7 +11,7 @@ Times, on random Gaussians seen by one camera:
     separate single-level calls; with each backend of ``--backends``: the
     torch code and the fused Triton kernels (``votesplat_ns.core.vote_kernel``),
     the latter once per ``--kernel-configs`` block width x warps; and "triton-fused":
-    ``votesplat_ns.core.vote_fused.vote_losses_tiled``, the render and the losses in two Triton
+    ``votesplat_ns.core.vote_fused.vote_losses_tiled``, the render and the losses in three Triton
     launches; "triton-sampled": ``vote_fused.vote_losses_sampled``, what a training step runs on
     CUDA with the default switches: the pixels drawn (one ``randint``) among the voting pixels of
     block-shaped vote maps and looked up in the forward kernel ([N, L, 3] votes at every L).

@@ -97,7 +97,7 @@ def record(test_files, pytest_args):
 def grid_launches():
     """The production defaults' variants (BLOCK 32, PAIR_BLOCK 32; scratch rows as long as a voting set at the
     default threshold can be, vote_kernel.member_slots, and CAP 128 where a kernel has none), as launch records."""
-    from votesplat_ns.core import vote_fused, vote_kernel as vk
+    from votesplat_ns.core import vote_kernel as vk
     from votesplat_ns.core.vote_render import ALPHA_MIN, COLOUR_STOP_T, VoteRenderOptions
 
     def entry(kernel, args, constexprs):
@@ -111,25 +111,15 @@ def grid_launches():
         lp = vk._pow2(levels)
         f, i32, i64, u8 = "*" + fp, "*i32", "*i64", "*u8"
         d = f if dist else i32  # the member depths' buffer, the members' own without a distortion
-        fwd = dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, RB=vote_fused.REDUCE_BLOCK, **fused_walk)
-        # the ticket counter, the five outputs of the reduction its last program makes, and the two weights
-        reduction = ["*i32"] + [f] * 5 + ["fp32", "fp32"]
+        fwd = dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, **fused_walk)
         # vote_losses_tiled: the sampling pointers are placeholders (the tile offsets), its map ints 1 and 1.0
         # (the vote means pointer is the votes' own placeholder there)
         tiled = [f, f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, d, f]
-        out.append(
-            entry("_fused_fwd_kernel", tiled + reduction + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=False, PROJECT=1))
-        )
+        out.append(entry("_fused_fwd_kernel", tiled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=False, PROJECT=1)))
         if fp == "fp32":  # vote_losses_sampled takes float32 only
             # the target and valid pointers are placeholders too (the position buffer, the draws)
             sampled = [f, f, f, f, f, f, f, f, f, i64, i64, i64, i32, f, i32, i32, f, i64, i32, d, f]
-            out.append(
-                entry(
-                    "_fused_fwd_kernel",
-                    sampled + reduction + ["i32"] * 9 + ["fp32"],
-                    dict(fwd, SAMPLED=True, PROJECT=2),
-                )
-            )
+            out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=True, PROJECT=2)))
         fused_bwd = [f, f, f, f, f, f, f, i32, f, i64, i32, d, f, f, f, "i32", f, "i32", f, "fp32", "fp32", f]
         for flags, support in (
             # vote_losses_tiled: no support count (its counts and stamps are the denominator's placeholder)
@@ -145,6 +135,13 @@ def grid_launches():
             out.append(entry("_vote_fwd_kernel", [f, f, f, i64, i64, i32, f, i32, i64, f, f, f, f, f, "i32"], c))
             bwd = [f, f, f, i64, i64, i32, f, i32, f, f, f, f, f, f, f, "i32"]
             out.append(entry("_vote_bwd_kernel", bwd, dict(c, GEOMETRY_GRAD=alpha_t)))
+    out.append(
+        entry(
+            "_fused_reduce_kernel",
+            ["*" + fp] * 6 + ["fp32", "fp32", "i32"],
+            dict(LEVELS=2, LP=2, RB=1024),
+        )
+    )
     return out
 
 

@@ -3,7 +3,7 @@
     python benchmarks/vote_launch_cost.py        # on the GPU machine, after `bash scripts/gpu/run.sh setup`
 
 Prints the whole step (draw, forward, backward), the forward alone, the draw, one zero fill and one
-allocation, and for each of the kernel launches the full ``kernel[grid](...)`` and the JIT's argument
+allocation, and for each of the three kernel launches the full ``kernel[grid](...)`` and the JIT's argument
 binding alone; then a cProfile of the step. Inside a training step every one of these costs two to three
 times as much (BENCHMARKS.md, session 12): compare parts here, not totals.
 """

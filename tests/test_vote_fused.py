@@ -368,9 +368,9 @@ def test_fused_launches_and_host_reads(count_ops, distortion, device):
     offsets_param.grad = None
     counter = count_ops.count_step(step)
     assert counter.total_syncs == 0, dict(counter.syncs)
-    # 2 Triton kernels, the zeroed ticket counter and vote gradient; the rest is the test's own loss and its backward
+    # 3 Triton kernels and the zeroed vote gradient; the rest is the test's own loss and its backward
     assert count_ops.launches(counter) <= 15, count_ops.launch_names(counter)
-    assert counter.triton_launches == 2
+    assert counter.triton_launches == 3
     assert offsets_param.grad is not None and offsets_param.grad.abs().sum() > 0
 
 
@@ -388,7 +388,7 @@ def test_fused_kernels_compile_once_for_any_list_length(device):
     offsets, flatten_ids = (t.to(device) for t in lists["gsplat"])
     target, valid = targets(pixel_xy, 4)
     votes = level_votes.to(device).requires_grad_()
-    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_bwd_kernel)
+    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_reduce_kernel, vote_fused._fused_bwd_kernel)
 
     def step(extra):
         # entries past the last tile's run start: the list grows, the kernels' integer arguments change
@@ -442,13 +442,14 @@ def test_warm_up_process_runs_the_training_steps_call(device):
 @pytest.mark.parametrize("device", DEVICES[:1])
 @pytest.mark.parametrize("part", ["forward", "backward"])
 def test_warm_up_parts_split_the_kernels(part, device, monkeypatch):
-    """start_warm_up's two CUDA children: "forward" runs the forward kernel (its reduction included) and leaves the backward
+    """start_warm_up's two CUDA children: "forward" runs the forward and reduction kernels and leaves the backward
     alone; "backward" runs the backward kernel alone, on a forward whose voting sets are all empty (so it reads
     none of the forward's unwritten outputs, and scatters no gradient)."""
     from votesplat_ns.core import vote_warm_up
 
     monkeypatch.setattr(vote_kernel, "_launch", vote_kernel._launch)  # the backward part replaces it: restored
-    kernels = {"fwd": vote_fused._fused_fwd_kernel, "bwd": vote_fused._fused_bwd_kernel}
+    kernels = {"fwd": vote_fused._fused_fwd_kernel, "reduce": vote_fused._fused_reduce_kernel}
+    kernels["bwd"] = vote_fused._fused_bwd_kernel
     calls = []
 
     def recorded(name, run):
@@ -471,7 +472,7 @@ def test_warm_up_parts_split_the_kernels(part, device, monkeypatch):
     monkeypatch.setattr(vote_fused._FusedVoteLosses, "backward", staticmethod(recorded_backward))
     vote_warm_up.warm_up(2, VoteRenderOptions(), torch.device(device), part)
     if part == "forward":
-        assert calls == [("fwd", "run")] and zero_grads == []
+        assert calls == [("fwd", "run"), ("reduce", "run")] and zero_grads == []
     else:
         assert calls == [("bwd", "run")] and zero_grads == [True]
 
@@ -479,7 +480,7 @@ def test_warm_up_parts_split_the_kernels(part, device, monkeypatch):
 @pytest.mark.parametrize("device", CUDA_ONLY)
 @pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
 def test_warm_up_fills_tritons_cache_with_what_a_training_step_launches(distortion, device, tmp_path, monkeypatch):
-    """start_warm_up's child process compiles the variants of the two fused kernels that a training step
+    """start_warm_up's child process compiles the variants of the three fused kernels that a training step
     launches into Triton's on-disk cache, and nothing in this process (whose GIL the compiler would hold): a
     fresh process that runs a training step after it finds them all there (the cache gains no entry)."""
     import os
@@ -489,7 +490,7 @@ def test_warm_up_fills_tritons_cache_with_what_a_training_step_launches(distorti
 
     levels = 2
     monkeypatch.setenv("TRITON_CACHE_DIR", str(tmp_path))
-    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_bwd_kernel)
+    kernels = (vote_fused._fused_fwd_kernel, vote_fused._fused_reduce_kernel, vote_fused._fused_bwd_kernel)
     compiled_here = [compiled_variants(kernel) for kernel in kernels]
     vote_fused.start_warm_up(levels, VoteRenderOptions(distortion=distortion), torch.device(device)).join()
     assert [compiled_variants(kernel) for kernel in kernels] == compiled_here
@@ -537,7 +538,7 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
     assert counts.sum() > 0 and (fused_counts[extra] == 1).all() and (counts[extra] == 0).all()
     assert (grad[extra] == 0).all()
     assert grad.abs().sum() > 0
-    assert dict(counter.triton_names) == {"_fused_fwd_kernel": 1, "_fused_bwd_kernel": 1}
+    assert dict(counter.triton_names) == {"_fused_fwd_kernel": 1, "_fused_reduce_kernel": 1, "_fused_bwd_kernel": 1}
     assert counter.total_syncs == 0, dict(counter.syncs)
     # alpha*T weights: the separate kernels, not the fused ones
     monkeypatch.setattr(model, "vote_options", VoteRenderOptions(weighting="alpha_t", distortion="l1_pixels"))

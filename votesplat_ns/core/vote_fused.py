@@ -1,4 +1,4 @@
-"""The vote step's losses in two Triton launches: ``vote_losses_tiled``.
+"""The vote step's losses in three Triton launches: ``vote_losses_tiled``.
 
 ``vote_losses(render_votes_tiled(...), target_xy, valid)`` for the training defaults (uniform
 weights, blending in 3D, ``detach_geometry=True``; any distortion), fused: same values, same
@@ -18,15 +18,12 @@ kernels. Here everything per pixel happens in the kernels:
   distortion (over the compacted depths; pixels with more members than the row holds take the
   exact slow path of the vote kernels) and its scaling; per pixel and level it writes the loss
   terms and the gradient of each term with respect to the mean vote and to a member depth.
-  The program that finishes last (a ticket counter: each program takes one after writing its row)
-  then reduces: the per-level means over the used pixels (valid and |M| > 0), in a fixed order (the
-  sums take no atomics: the losses are deterministic). A launch of its own cost a training step
-  ~0.1 ms of host time on the H100's host (BENCHMARKS.md, session 14).
+* a one-program reduction: the per-level means over the used pixels (valid and |M| > 0), in a
+  fixed order (no atomics: the losses are deterministic).
 * backward, one program per pixel: scatters d loss / d vote to the members (from the compacted
   ids; a pixel past the row's capacity walks its run again).
 
-Launches per step: the zeroed ticket counter and the forward kernel, and in the backward a zeroed gradient
-and one kernel.
+Launches per step: the two forward kernels, and in the backward a zeroed gradient and one kernel.
 No host read: unlike ``render_votes_tiled``, nothing here checks values (finite votes and pixels,
 ids and offsets in range); shapes, dtypes and devices are checked. Ids and run positions are
 clamped into range, so bad lists give wrong sets, not an out-of-bounds read. The model already
@@ -64,10 +61,8 @@ from votesplat_ns.core.vote_render import (
 
 triton, tl = vote_kernel.triton, vote_kernel.tl
 
-# Pixels per step of the reduction in the forward's last program. Its loads must not raise the register count
-# (and so lower the occupancy) of every program of the forward: for sm_90 the forward compiles to 96 registers
-# with 64 or 256 (118 before the reduction moved in), to 230 with 1024 (ptxas -v, 4 levels, l1_pixels).
-REDUCE_BLOCK = 256
+# Pixels per step of the one-program reduction.
+REDUCE_BLOCK = 1024
 # how long the first vote step waits for the warm-up process before compiling by itself
 WARM_UP_TIMEOUT_S = 300.0
 # distortion -> (kernel mode, l1 in pixels)
@@ -94,9 +89,9 @@ def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bo
 
 
 def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device) -> "KernelWarmUp":
-    """Compiles the kernels of ``vote_losses_sampled`` (forward and backward) for ``levels``
+    """Compiles the kernels of ``vote_losses_sampled`` (forward, reduction, backward) for ``levels``
     [N, L, 3] float32 offsets, ``options`` and a support count on CUDA ``device`` into Triton's on-disk cache,
-    in child processes (``vote_warm_up``; on CUDA one for the forward kernel and one for the backward kernel, which
+    in child processes (``vote_warm_up``; on CUDA one for the forward's kernels and one for the backward's, which
     compile at once): otherwise the first vote step of a training compiles them on the spot (~5 s on an H100
     host), and a thread of the training process would hold its GIL for as long. Join it before the first real
     call, which then loads them from the cache; a failure here is left to that call, which compiles (and
@@ -158,7 +153,7 @@ def vote_losses_tiled(
     tile_size: int,
     options: Optional[VoteRenderOptions] = None,
 ) -> Dict[str, Tensor]:
-    """``vote_losses(render_votes_tiled(...), target_xy, valid, options)`` in two launches, no host read.
+    """``vote_losses(render_votes_tiled(...), target_xy, valid, options)`` in three launches, no host read.
 
     Args:
         means2d [N,2], conics [N,3], opacities [N]: the Gaussians projected to one camera (no
@@ -261,7 +256,7 @@ def vote_losses_sampled(
             level-l coefficient there is non-zero), once per ``stamp``: it swaps ``stamp`` into stamps[i, l]
             and counts where another value was there. With a new stamp each step, counts[i, l] becomes the
             number of steps in which the offset got a gradient, as ``counts += offsets.grad.ne(0).any(-1)``
-            after the step would count without those launches, except that a member whose gradients
+            after the step would count without those three launches, except that a member whose gradients
             from several pixels cancel to an exact 0 (L1 signs) counts here.
         check_inputs: False skips the checks of the arguments' shapes, dtypes and devices (and whether the
             kernels can run: ``use_fused``), for a caller that builds them the same way every step (a training
@@ -476,7 +471,6 @@ class _FusedVoteLosses(torch.autograd.Function):
         denominator = torch.empty(levels, dtype=dtype, device=device)
         total = torch.empty((), dtype=dtype, device=device)
         weighted = torch.empty(2, dtype=dtype, device=device)
-        tickets = torch.zeros((), dtype=torch.int32, device=device)  # programs done: the last one reduces
         lp = vote_kernel._pow2(levels)
         # the leading arguments of both walking kernels (the backward's come from the saved tensors)
         scene = (means2d, conics, opacities, votes, means, viewmat)
@@ -500,14 +494,6 @@ class _FusedVoteLosses(torch.autograd.Function):
                 members,
                 depths,
                 terms,
-                tickets,
-                vote,
-                distortion,
-                denominator,
-                total,
-                weighted,
-                w_vote,
-                w_dist,
                 p,
                 n_isects,
                 votes.shape[0],
@@ -524,8 +510,24 @@ class _FusedVoteLosses(torch.autograd.Function):
                 IN_PIXELS=in_pixels,
                 SAMPLED=sampled,
                 PROJECT=2 if split else 1,
-                RB=REDUCE_BLOCK,
                 **vote_kernel._walk_options(cap),
+            )
+            vote_kernel._launch(
+                _fused_reduce_kernel,
+                (1,),
+                terms,
+                vote,
+                distortion,
+                denominator,
+                total,
+                weighted,
+                w_vote,
+                w_dist,
+                p,
+                LEVELS=levels,
+                LP=lp,
+                RB=REDUCE_BLOCK,
+                num_warps=4,
             )
         # in the order of the backward kernel's leading arguments
         ctx.save_for_backward(*scene, pixel_xy, ids, consts, walk, members, depths, terms, denominator)
@@ -636,14 +638,6 @@ if triton is not None:
         members_ptr,
         depths_ptr,
         terms_ptr,
-        tickets_ptr,
-        vote_ptr,
-        dist_ptr,
-        den_ptr,
-        total_ptr,
-        weighted_ptr,
-        w_vote,
-        w_dist,
         n_pixels,
         n_isects,
         n_gauss,
@@ -660,13 +654,11 @@ if triton is not None:
         IN_PIXELS: tl.constexpr,
         SAMPLED: tl.constexpr,
         PROJECT: tl.constexpr,
-        RB: tl.constexpr,
         BLOCK: tl.constexpr,
         CAP: tl.constexpr,
         PB: tl.constexpr,
     ):
-        """PROJECT 1: ``votes_ptr`` holds the votes; 2: the offsets, the votes being vote means + offsets.
-        ``tickets_ptr``: an int32 0; the program that finishes last writes the losses (``_reduce_terms``)."""
+        """PROJECT 1: ``votes_ptr`` holds the votes; 2: the offsets, the votes being vote means + offsets."""
         pid, pix, walk = _program_pixel(pix_ptr, consts_ptr)
         lvl = tl.arange(0, LP)
         lvl_ok = lvl < LEVELS
@@ -822,29 +814,9 @@ if triton is not None:
         tl.store(row + 5 * LEVELS, jac_z, mask=lvl_ok)
         tl.store(row + 6 * LEVELS, factor, mask=lvl_ok)
         tl.store(row + 7 * LEVELS, mean_z, mask=lvl_ok)
-        # The losses, by the program that takes the last ticket. The barrier puts every thread's stores of this
-        # row before the ticket, whose atomic (acquire and release at GPU scope) orders them before the last
-        # program's reads, which bypass the SM's L1 cache.
-        tl.debug_barrier()
-        if tl.atomic_add(tickets_ptr, 1) == n_pixels - 1:
-            _reduce_terms(
-                terms_ptr,
-                vote_ptr,
-                dist_ptr,
-                den_ptr,
-                total_ptr,
-                weighted_ptr,
-                w_vote,
-                w_dist,
-                n_pixels,
-                LEVELS,
-                LP,
-                RB,
-            )
-            tl.store(tickets_ptr, 0)  # a launch replayed with the same arguments (benchmarks) reduces again
 
-    @triton.jit
-    def _reduce_terms(
+    @triton.jit(do_not_specialize=("n_pixels",))
+    def _fused_reduce_kernel(
         terms_ptr,
         vote_ptr,
         dist_ptr,
@@ -863,7 +835,7 @@ if triton is not None:
         lvl = tl.arange(0, LP)
         lvl_ok = lvl < LEVELS
         rows = tl.arange(0, RB).to(tl.int64)
-        first = tl.load(terms_ptr + lvl, mask=lvl_ok, other=0.0, cache_modifier=".cg")
+        first = tl.load(terms_ptr + lvl, mask=lvl_ok, other=0.0)
         error = first * 0.0
         distortion = first * 0.0
         used = first * 0.0
@@ -871,9 +843,9 @@ if triton is not None:
             r = p0 + rows
             mask = (r < n_pixels)[:, None] & lvl_ok[None, :]
             at = terms_ptr + r[:, None] * (8 * LEVELS) + lvl[None, :]
-            error += tl.sum(tl.load(at, mask=mask, other=0.0, cache_modifier=".cg"), axis=0)
-            distortion += tl.sum(tl.load(at + LEVELS, mask=mask, other=0.0, cache_modifier=".cg"), axis=0)
-            used += tl.sum(tl.load(at + 2 * LEVELS, mask=mask, other=0.0, cache_modifier=".cg"), axis=0)
+            error += tl.sum(tl.load(at, mask=mask, other=0.0), axis=0)
+            distortion += tl.sum(tl.load(at + LEVELS, mask=mask, other=0.0), axis=0)
+            used += tl.sum(tl.load(at + 2 * LEVELS, mask=mask, other=0.0), axis=0)
         denominator = tl.maximum(used, 1.0)
         vote = error / denominator
         distortion = distortion / denominator

@@ -129,7 +129,7 @@ class VoteRenderOptions:
         interpreter, TRITON_INTERPRET=1, for tests). The dense reference
         ignores it. Values agree to rounding, gradients too. The model's vote
         step calls ``votesplat_ns.core.vote_fused.vote_losses_tiled`` instead
-        (render and losses in two launches, no host read) with uniform
+        (render and losses in three launches, no host read) with uniform
         weights, 3D blending and detach_geometry, when the backend is
         "triton", or "auto" on CUDA (``vote_fused.use_fused``).
     """
