@@ -39,10 +39,6 @@
 #                     among the runs left. After each run $OUT/balanced_<experiment>.md (benchmarks/step_times.py
 #                     --table: a row per run, votesplat's means over splatfacto's) and .tar.gz (the runs' files)
 #                     are written again, so a call cut short keeps the runs it finished. 4 runs: ~300-450 s
-#   train-concurrent fox|synthetic [DATA]  the same comparison as pairs of runs at the same time, each run on
-#                     its own half of the CPUs ($PAIRS, default "splatfacto:votesplat votesplat:splatfacto"):
-#                     runs in a row drift apart by up to 25%, side by side they share the machine's state.
-#                     concurrent_<experiment>.md and .tar.gz after each pair
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
 #                     with votesplat/splatfacto ratios; prints it
 #
@@ -629,47 +625,6 @@ stage_train_balanced() {  # EXPERIMENT [DATA]
   cat "$OUT/balanced_$experiment.md"
 }
 
-# -------------------------------------------------------------------------- train-concurrent
-stage_train_concurrent() {  # EXPERIMENT [DATA]
-  # Pairs of runs at the same time, each on its own half of the CPUs: runs in a row drift apart by up to 25%
-  # (a whole run faster, BENCHMARKS.md session 15), runs side by side share the machine's state.
-  local experiment=$1 data=${2:-} base pair index=0 method half cpus=$(nproc) folders=() vote_start=500 pids
-  local pairs=(${PAIRS:-splatfacto:votesplat votesplat:splatfacto}) warm_up_steps=${WARM_UP_STEPS:-50}
-  if [[ "$VOTESPLAT_TRAIN_ARGS $EXTRA_TRAIN_ARGS" =~ --pipeline\.model\.vote-start-step[=\ ]+([0-9]+) ]]; then
-    vote_start=${BASH_REMATCH[1]}
-  fi
-  case "$experiment" in fox | synthetic) ;; *) log "train-concurrent: fox or synthetic, not '$experiment'"; return 1 ;; esac
-  ensure_setup || return 1
-  base=$RUNS/concurrent_$experiment
-  rm -rf "$base" && mkdir -p "$base"
-  if [ "$warm_up_steps" -gt 0 ]; then  # the machine's first-training cost, not a measurement
-    OUT=$base/warm_up RUNS=$base/warm_up/runs STEPS=$warm_up_steps EVAL=0 METHODS=splatfacto VOTESPLAT_STEP_TIMES= \
-      CALL_BUDGET_S=$(limit_s 60) bash "$0" "train-$experiment" $data >"$base/warm_up.log" 2>&1 || log "warm-up failed"
-  fi
-  for pair in "${pairs[@]}"; do
-    local left=$(($(seconds_left) / (${#pairs[@]} - index / 2)))
-    log "train-concurrent: pair $((index / 2 + 1)) of ${#pairs[@]}, ${pair/:/ and }, $left s"
-    pids=()
-    half=0
-    for method in ${pair/:/ }; do
-      index=$((index + 1))
-      local dir=$base/$index-$method
-      # cores [half * cpus/2, (half+1) * cpus/2): torch's threads of one run stay off the other's
-      OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=$method VOTESPLAT_STEP_TIMES=walls \
-        CALL_BUDGET_S=$left taskset -c $((half * cpus / 2))-$(((half + 1) * cpus / 2 - 1)) \
-        bash "$0" "train-$experiment" $data >"$dir.log" 2>&1 &
-      pids+=($!)
-      folders+=("$dir")
-      half=1
-    done
-    wait "${pids[@]}"
-    rm -rf "$base"/*/runs "$base"/*/triton
-    tar czf "$OUT/concurrent_$experiment.tar.gz" -C "$base" --exclude='warm_up*' . || return 1
-    "$PY" benchmarks/step_times.py --table "${folders[@]}" --vote-start "$vote_start" >"$OUT/concurrent_$experiment.md" || return 1
-  done
-  cat "$OUT/concurrent_$experiment.md"
-}
-
 # ------------------------------------------------------------------------------------- main
 [ "$#" -gt 0 ] || { sed -n '2,/^set -uo/p' "$0" | sed '$d'; exit 2; }
 rc=0
@@ -693,13 +648,8 @@ while [ "$#" -gt 0 ]; do
       experiment=$1; shift; data=
       if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
       stage_train_balanced "$experiment" "$data" || rc=1 ;;
-    train-concurrent)
-      [ "$#" -gt 0 ] || { log "train-concurrent: fox or synthetic [DATA]" >&2; rc=2; continue; }
-      experiment=$1; shift; data=
-      if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
-      stage_train_concurrent "$experiment" "$data" || rc=1 ;;
     compare) summarize - "$@" || rc=1; shift "$#" ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], train-concurrent fox|synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2
