@@ -548,6 +548,52 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
+def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, monkeypatch):
+    """The trainer's path (_vote_losses, then the backward of the loss dict's sum with the colour losses) runs
+    the fused backward at once, outside autograd: the offsets' gradient and support counts of the autograd path,
+    bitwise, added to a gradient already there (accumulation); a retrofit (a loss dict of the vote loss alone),
+    votes that move the means and mixed precision keep autograd."""
+    import functools
+
+    monkeypatch.setenv(BACKEND_ENV, "triton")
+    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    offsets, support = model.gauss_params["vote_offsets"], model.gauss_params["vote_support"]
+    colour = torch.zeros((), requires_grad=True)  # splatfacto's losses' stand-in
+
+    def trainer_step(through_autograd: bool, grad=None):
+        offsets.grad = None if grad is None else grad.clone()
+        with torch.no_grad():
+            support.zero_()
+        model.vote_step.support_stamps = None
+        torch.manual_seed(0)
+        model._vote_pixel_generator = None
+        if through_autograd:
+            losses = {"vote": model.vote_loss_terms(step.batch)[0]}
+        else:
+            losses = model._vote_losses(step.batch)[0]
+        assert losses["vote"].requires_grad == through_autograd
+        functools.reduce(torch.add, [colour * 1.0, *losses.values()]).backward()
+        model.record_vote_support()
+        return losses["vote"].detach(), offsets.grad.clone(), support.detach().clone()
+
+    reference, at_once = trainer_step(True), trainer_step(False)
+    for expected, got in zip(reference, at_once):
+        assert torch.equal(got, expected)
+    assert reference[1].abs().sum() > 0 and reference[2].sum() > 0
+    earlier = torch.full_like(offsets, 0.25)
+    assert torch.equal(trainer_step(False, earlier)[1], reference[1] + earlier)
+
+    assert model._vote_grad_at_once()
+    with torch.autocast("cpu"):
+        assert not model._vote_grad_at_once()
+    monkeypatch.setattr(model.config, "votes_move_geometry", True)
+    assert not model._vote_grad_at_once()
+    monkeypatch.setattr(model.config, "votes_move_geometry", False)
+    monkeypatch.setattr(model.config, "retrofit_from", "scene.ply")
+    assert model.vote_only and not model._vote_grad_at_once()
+
+
+@pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
 def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, monkeypatch):
     """The fused losses read nothing on the host, so a NaN vote gives a NaN loss; the model reads the loss's
     finiteness on every FUSED_FINITE_CHECK_EVERY-th fused vote step and stops with the same one-line error as

@@ -141,7 +141,7 @@ def test_vote_losses_computed_with_the_metrics_are_the_loss_dicts(count_ops, mon
     monkeypatch.setattr(SplatfactoModel, "get_loss_dict", lambda self, outputs, batch, metrics_dict=None: {})
     calls = []
     terms = model.vote_loss_terms
-    monkeypatch.setattr(model, "vote_loss_terms", lambda batch: calls.append(batch) or terms(batch))
+    monkeypatch.setattr(model, "vote_loss_terms", lambda batch, **kw: calls.append(batch) or terms(batch, **kw))
     labels = torch.zeros(2, 24, 32, dtype=torch.int32)
     labels[:, 4:20, 4:28] = 1
     centroids = torch.tensor([[[float("nan")] * 2, [15.0, 11.0]]] * 2)

@@ -231,6 +231,7 @@ def vote_losses_sampled(
     weights: Tuple[float, float] = (1.0, 1.0),
     support: Optional[Tuple[Tensor, Tensor, int]] = None,
     check_inputs: bool = True,
+    accumulate_grad: bool = False,
 ) -> Dict[str, Tensor]:
     """``vote_losses_tiled`` at pixels drawn from one view's vote maps, their lookup done in the forward
     kernel, with the votes ``means[:, None] + offsets`` formed in the kernels: the same values and gradients
@@ -261,6 +262,11 @@ def vote_losses_sampled(
         check_inputs: False skips the checks of the arguments' shapes, dtypes and devices (and whether the
             kernels can run: ``use_fused``), for a caller that builds them the same way every step (a training
             step: the checks are a fair part of its host time); wrong arguments then fail in the kernels.
+        accumulate_grad: True runs the backward of "total" at once, outside autograd, and adds its gradient to
+            ``offsets.grad`` (set when None); the returned losses then carry no gradient. For a training step
+            whose other losses' backward the trainer runs anyway: the autograd node, its saved tensors and the
+            engine's call of a Python backward cost the step host time. ``offsets`` must be a leaf and
+            ``means`` must not require a gradient (it would get none).
 
     Returns {"vote", "distortion"}: [L] tensors as ``vote_losses_tiled``'s; "total": the differentiable scalar
     w_vote * vote.sum() + w_distortion * distortion.sum(); "terms": [2] its two terms, without a gradient (for
@@ -269,6 +275,10 @@ def vote_losses_sampled(
     options = options or VoteRenderOptions()
     if check_inputs:
         _check_sampled_inputs(options, means, offsets, sample, voting, flat_labels, centroids, support)
+    if accumulate_grad and (means.requires_grad or not offsets.is_leaf):
+        raise ValueError(
+            "accumulate_grad gives the offsets (a leaf) their gradient and the means none: detach the means"
+        )
     p = sample.shape[0]
     # filled by the forward kernel with the drawn pixels' positions (its backward reads them)
     pixel_xy = torch.empty(p, 2, dtype=offsets.dtype, device=offsets.device)
@@ -290,6 +300,7 @@ def vote_losses_sampled(
         (float(weights[0]), float(weights[1])),
         support,
         check_inputs,
+        offsets if accumulate_grad else None,
     )
     return {"vote": vote, "distortion": distortion, "total": total, "terms": terms}
 
@@ -369,10 +380,13 @@ def _fused_losses(
     weights: Tuple[float, float],
     support: Optional[Tuple[Tensor, Tensor, int]],
     check_inputs: bool = True,
+    grad_leaf: Optional[Tensor] = None,
 ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
     """[L] vote and distortion losses, the weighted total and its [2] terms; ``votes_and_means`` = (votes,
     None), or (offsets, means) for the votes means[:, None] + offsets; ``pixels`` = (pixel_xy, target, valid)
-    as the kernel reads them (or, when ``sampled``, the position buffer the kernel fills)."""
+    as the kernel reads them (or, when ``sampled``, the position buffer the kernel fills). ``grad_leaf``: the
+    votes' tensor, to which the gradient of the total is added at once (no autograd; ``vote_losses_sampled``'s
+    ``accumulate_grad``)."""
     votes, means = votes_and_means
     n = votes.shape[0]
     levels = 1 if votes.ndim == 2 else votes.shape[1]
@@ -415,7 +429,7 @@ def _fused_losses(
     slot_bytes = 4 + (levels * votes.element_size() if dist else 0)
     slots = vote_kernel.member_slots(options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p, slot_bytes)
     votes = votes.reshape(n, levels, 3).contiguous()
-    return _FusedVoteLosses.apply(
+    inputs = (
         votes,
         votes if means is None else means.contiguous(),  # unread placeholder without means
         means2d.detach().contiguous(),
@@ -430,160 +444,172 @@ def _fused_losses(
         consts,
         (config, slots, sampled is not None, means is not None, weights, support),
     )
+    if grad_leaf is None:
+        return _FusedVoteLosses.apply(*inputs)
+    with torch.no_grad():
+        outputs, saved = _fused_forward(*inputs)
+        # d total / d total = 1, read by the kernel from the device (a constant put there once)
+        one = vote_kernel._constants((1.0,), votes.dtype, votes.device)
+        g_votes, _ = _fused_backward(saved, inputs[-1], (None, None, one), False)
+        if grad_leaf.grad is None:
+            grad_leaf.grad = g_votes.reshape(grad_leaf.shape)
+        else:  # gradients accumulated over steps (the trainer clears them only every few steps)
+            grad_leaf.grad.add_(g_votes.reshape(grad_leaf.shape))
+    return outputs
+
+
+def _fused_forward(*inputs) -> Tuple[Tuple[Tensor, Tensor, Tensor, Tensor], Tuple[Tensor, ...]]:
+    """The forward and reduction launches on ``_FusedVoteLosses``' inputs: ((vote, distortion, total, weighted),
+    what the backward reads)."""
+    votes, means, means2d, conics, opacities, viewmat, K, pixel_xy, target, valid = inputs[:10]
+    sample, voting, labels, centroids, offsets, ids, consts, modes = inputs[10:]
+    # votes: [N, L, 3] votes, or offsets when split (the votes are means[:, None] + votes)
+    config, cap, sampled, split, (w_vote, w_dist), _support = modes
+    levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects, map_geometry = config
+    map_pixels, map_width, cent_rows, pix_scale = map_geometry
+    p, device, dtype = pixel_xy.shape[0], votes.device, votes.dtype
+    walk = torch.empty(3, p, dtype=torch.int64, device=device)  # |M|, run start, last member's position
+    members = torch.empty(p, cap, dtype=torch.int32, device=device)
+    depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else members
+    # per pixel and level: loss terms (vote L1, distortion, used) and the backward's coefficients
+    # (d vote-L1 / d member vote [3], d distortion / d member depth factor, mean member depth)
+    terms = torch.empty(p, 8, levels, dtype=dtype, device=device)
+    vote = torch.empty(levels, dtype=dtype, device=device)
+    distortion = torch.empty(levels, dtype=dtype, device=device)
+    denominator = torch.empty(levels, dtype=dtype, device=device)
+    total = torch.empty((), dtype=dtype, device=device)
+    weighted = torch.empty(2, dtype=dtype, device=device)
+    lp = vote_kernel._pow2(levels)
+    # the leading arguments of both walking kernels (the backward's come from the saved tensors)
+    scene = (means2d, conics, opacities, votes, means, viewmat)
+    with vote_kernel._on(device):
+        vote_kernel._launch(
+            _fused_fwd_kernel,
+            (p,),
+            *scene,
+            K,
+            pixel_xy,
+            target,
+            valid,
+            sample,
+            voting,
+            labels,
+            centroids,
+            offsets,
+            ids,
+            consts,
+            walk,
+            members,
+            depths,
+            terms,
+            p,
+            n_isects,
+            votes.shape[0],
+            tiles_wide,
+            tiles_high,
+            tile_size,
+            map_pixels,
+            map_width,
+            cent_rows,
+            pix_scale,
+            LEVELS=levels,
+            LP=lp,
+            DIST=dist,
+            IN_PIXELS=in_pixels,
+            SAMPLED=sampled,
+            PROJECT=2 if split else 1,
+            **vote_kernel._walk_options(cap),
+        )
+        vote_kernel._launch(
+            _fused_reduce_kernel,
+            (1,),
+            terms,
+            vote,
+            distortion,
+            denominator,
+            total,
+            weighted,
+            w_vote,
+            w_dist,
+            p,
+            LEVELS=levels,
+            LP=lp,
+            RB=REDUCE_BLOCK,
+            num_warps=4,
+        )
+    # in the order of the backward kernel's leading arguments
+    saved = (*scene, pixel_xy, ids, consts, walk, members, depths, terms, denominator)
+    return (vote, distortion, total, weighted), saved
+
+
+def _fused_backward(saved, modes, grads: Tuple[Optional[Tensor], Optional[Tensor], Optional[Tensor]], means_grad: bool):
+    """The backward launch: (d loss / d votes [N, L, 3], d loss / d means [N, 3] when ``means_grad``) for the
+    gradients ``grads`` = (of vote, of distortion, of total; None where none arrives); the support counted."""
+    g_vote, g_distortion, g_total = grads
+    votes, pixel_xy, denominator = saved[3], saved[6], saved[13]
+    config, cap, _sampled, split, (w_vote, w_dist), support = modes
+    levels, dist = config[0], config[1]
+    n_isects = config[6]
+    has_vote, has_total = g_vote is not None, g_total is not None
+    has_distortion = g_distortion is not None and dist != 0
+    g_votes = torch.zeros_like(votes)
+    p = pixel_xy.shape[0]
+    # the counts and stamps, or placeholders (never read) and a stamp of 0
+    counts, stamps, stamp = support if support is not None else (denominator, denominator, 0)
+    with vote_kernel._on(votes.device):
+        vote_kernel._launch(
+            _fused_bwd_kernel,
+            (p,),
+            *saved,
+            # with strides: the gradient of a sum arrives expanded (stride 0), and copying it is a launch
+            g_vote if has_vote else denominator,
+            g_vote.stride(0) if has_vote else 0,
+            g_distortion if has_distortion else denominator,
+            g_distortion.stride(0) if has_distortion else 0,
+            g_total if has_total else denominator,
+            w_vote,
+            w_dist,
+            g_votes,
+            counts,
+            stamps,
+            stamp,
+            p,
+            n_isects,
+            votes.shape[0],
+            LEVELS=levels,
+            LP=vote_kernel._pow2(levels),
+            DIST=dist,
+            HAS_VOTE=has_vote,
+            HAS_DIST=has_distortion,
+            HAS_TOTAL=has_total,
+            PROJECT=2 if split else 1,
+            COUNT_SUPPORT=support is not None,
+            **vote_kernel._walk_options(cap),
+        )
+    # d vote / d mean = identity at every level
+    return g_votes, (g_votes.sum(1) if split and means_grad else None)
 
 
 class _FusedVoteLosses(torch.autograd.Function):
     @staticmethod
-    def forward(
-        ctx,
-        votes,
-        means,
-        means2d,
-        conics,
-        opacities,
-        viewmat,
-        K,
-        pixel_xy,
-        target,
-        valid,
-        sample,
-        voting,
-        labels,
-        centroids,
-        offsets,
-        ids,
-        consts,
-        modes,
-    ):
-        # votes: [N, L, 3] votes, or offsets when split (the votes are means[:, None] + votes)
-        config, cap, sampled, split, (w_vote, w_dist), support = modes
-        levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects, map_geometry = config
-        map_pixels, map_width, cent_rows, pix_scale = map_geometry
-        p, device, dtype = pixel_xy.shape[0], votes.device, votes.dtype
-        walk = torch.empty(3, p, dtype=torch.int64, device=device)  # |M|, run start, last member's position
-        members = torch.empty(p, cap, dtype=torch.int32, device=device)
-        depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else members
-        # per pixel and level: loss terms (vote L1, distortion, used) and the backward's coefficients
-        # (d vote-L1 / d member vote [3], d distortion / d member depth factor, mean member depth)
-        terms = torch.empty(p, 8, levels, dtype=dtype, device=device)
-        vote = torch.empty(levels, dtype=dtype, device=device)
-        distortion = torch.empty(levels, dtype=dtype, device=device)
-        denominator = torch.empty(levels, dtype=dtype, device=device)
-        total = torch.empty((), dtype=dtype, device=device)
-        weighted = torch.empty(2, dtype=dtype, device=device)
-        lp = vote_kernel._pow2(levels)
-        # the leading arguments of both walking kernels (the backward's come from the saved tensors)
-        scene = (means2d, conics, opacities, votes, means, viewmat)
-        with vote_kernel._on(device):
-            vote_kernel._launch(
-                _fused_fwd_kernel,
-                (p,),
-                *scene,
-                K,
-                pixel_xy,
-                target,
-                valid,
-                sample,
-                voting,
-                labels,
-                centroids,
-                offsets,
-                ids,
-                consts,
-                walk,
-                members,
-                depths,
-                terms,
-                p,
-                n_isects,
-                votes.shape[0],
-                tiles_wide,
-                tiles_high,
-                tile_size,
-                map_pixels,
-                map_width,
-                cent_rows,
-                pix_scale,
-                LEVELS=levels,
-                LP=lp,
-                DIST=dist,
-                IN_PIXELS=in_pixels,
-                SAMPLED=sampled,
-                PROJECT=2 if split else 1,
-                **vote_kernel._walk_options(cap),
-            )
-            vote_kernel._launch(
-                _fused_reduce_kernel,
-                (1,),
-                terms,
-                vote,
-                distortion,
-                denominator,
-                total,
-                weighted,
-                w_vote,
-                w_dist,
-                p,
-                LEVELS=levels,
-                LP=lp,
-                RB=REDUCE_BLOCK,
-                num_warps=4,
-            )
-        # in the order of the backward kernel's leading arguments
-        ctx.save_for_backward(*scene, pixel_xy, ids, consts, walk, members, depths, terms, denominator)
-        ctx.config = (config, cap, split, (w_vote, w_dist))
-        ctx.support = support  # not saved tensors: the backward kernel adds to the counts in place
-        ctx.mark_non_differentiable(weighted)
+    def forward(ctx, *inputs):
+        outputs, saved = _fused_forward(*inputs)
+        ctx.save_for_backward(*saved)
+        ctx.modes = inputs[-1]  # its support counts are not saved tensors: the backward adds to them in place
+        ctx.mark_non_differentiable(outputs[3])
         ctx.set_materialize_grads(False)
-        return vote, distortion, total, weighted
+        return outputs
 
     @staticmethod
     def backward(ctx, g_vote, g_distortion, g_total, _g_weighted):
-        inputs = ctx.saved_tensors
-        votes, pixel_xy, denominator = inputs[3], inputs[6], inputs[13]
-        (levels, dist, _in_pixels, _tw, _th, _ts, n_isects, _map), cap, split, (w_vote, w_dist) = ctx.config
         none = (None,) * 16  # the forward's inputs after votes and means
-        has_vote, has_total = g_vote is not None, g_total is not None
-        has_distortion = g_distortion is not None and dist != 0
+        dist, split = ctx.modes[0][1], ctx.modes[3]
         wants_means = split and ctx.needs_input_grad[1]
-        if not (ctx.needs_input_grad[0] or wants_means) or not (has_vote or has_distortion or has_total):
+        if g_distortion is not None and dist == 0:
+            g_distortion = None
+        if not (ctx.needs_input_grad[0] or wants_means) or all(g is None for g in (g_vote, g_distortion, g_total)):
             return (None, None) + none
-        g_votes = torch.zeros_like(votes)
-        p = pixel_xy.shape[0]
-        # the counts and stamps, or placeholders (never read) and a stamp of 0
-        counts, stamps, stamp = ctx.support if ctx.support is not None else (denominator, denominator, 0)
-        with vote_kernel._on(votes.device):
-            vote_kernel._launch(
-                _fused_bwd_kernel,
-                (p,),
-                *inputs,
-                # with strides: the gradient of a sum arrives expanded (stride 0), and copying it is a launch
-                g_vote if has_vote else denominator,
-                g_vote.stride(0) if has_vote else 0,
-                g_distortion if has_distortion else denominator,
-                g_distortion.stride(0) if has_distortion else 0,
-                g_total if has_total else denominator,
-                w_vote,
-                w_dist,
-                g_votes,
-                counts,
-                stamps,
-                stamp,
-                p,
-                n_isects,
-                votes.shape[0],
-                LEVELS=levels,
-                LP=vote_kernel._pow2(levels),
-                DIST=dist,
-                HAS_VOTE=has_vote,
-                HAS_DIST=has_distortion,
-                HAS_TOTAL=has_total,
-                PROJECT=2 if split else 1,
-                COUNT_SUPPORT=ctx.support is not None,
-                **vote_kernel._walk_options(cap),
-            )
-        # d vote / d mean = identity at every level
-        g_means = g_votes.sum(1) if wants_means else None
+        g_votes, g_means = _fused_backward(ctx.saved_tensors, ctx.modes, (g_vote, g_distortion, g_total), wants_means)
         return (g_votes if ctx.needs_input_grad[0] else None, g_means) + none
 
 

@@ -358,16 +358,27 @@ class VoteSplatModel(SplatfactoModel):
         "vote_distortion"}, without a gradient); ({}, {}) on steps that do not vote."""
         if not (self.votes_active() and "vote_labels" in batch):
             return {}, {}
-        loss, terms = self.vote_loss_terms(batch)
+        loss, terms = self.vote_loss_terms(batch, accumulate_grad=self._vote_grad_at_once())
         metrics = {"vote_l1": terms[0]}
         if self.config.vote_distortion != "none":
             metrics["vote_distortion"] = terms[1]
         return {"vote": loss}, metrics
 
-    def vote_loss_terms(self, batch: Dict[str, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
+    def _vote_grad_at_once(self) -> bool:
+        """Whether the trainer's step takes the fused vote losses' gradient at once (``vote_losses_sampled``'s
+        ``accumulate_grad``): not in a retrofit, whose loss dict holds only the vote loss (the trainer's backward
+        needs a graph), not when the votes move the means (their gradient joins the colour losses'), not under
+        mixed precision (the trainer's grad scaler scales the graph's gradients only)."""
+        device_type = self.gauss_params["vote_offsets"].device.type
+        return not (self.vote_only or self.config.votes_move_geometry or torch.is_autocast_enabled(device_type))
+
+    def vote_loss_terms(
+        self, batch: Dict[str, torch.Tensor], accumulate_grad: bool = False
+    ) -> Tuple[torch.Tensor, torch.Tensor]:
         """(loss, terms) on pixels sampled from the vote maps: loss = vote_loss_weight * vote L1 +
         distortion_loss_weight * distortion, each summed over levels; terms [2]: these two weighted terms,
-        without a gradient."""
+        without a gradient. ``accumulate_grad``: on the fused path, the loss's gradient is added to the offsets'
+        ``.grad`` here and the loss carries none (the torch path returns its graph either way)."""
         offsets = self.gauss_params["vote_offsets"]
         labels, centroids, voting = self._vote_maps(batch, offsets.device)
         # splatfacto renders at 1/d of the image resolution early in training; positions in the
@@ -413,6 +424,7 @@ class VoteSplatModel(SplatfactoModel):
                 weights,
                 self._support_in_backward(),
                 check_inputs=False,  # built the same way every step (the checks were a fair part of its host time)
+                accumulate_grad=accumulate_grad and torch.is_grad_enabled(),
             )
             self.vote_step.fused_steps += 1
             if self.vote_step.fused_steps % FUSED_FINITE_CHECK_EVERY == 0:
