@@ -39,6 +39,11 @@
 #                     among the runs left. After each run $OUT/balanced_<experiment>.md (benchmarks/step_times.py
 #                     --table: a row per run, votesplat's means over splatfacto's) and .tar.gz (the runs' files)
 #                     are written again, so a call cut short keeps the runs it finished. 4 runs: ~300-450 s
+#   vote-step-ab [DATA]  a vote step's in-run cost, this tree against AB_TREE (another commit's files:
+#                     `git archive C | tar -x -C build/ab_tree`, carried): votesplat with a vote every 2nd step
+#                     (vote steps and the others alternate within a run, so the machine's drift falls on both),
+#                     the trees in the order AB_ORDER ("this other other this"); vote_step_ab.md (per run: vote
+#                     steps' and others' means and medians, refinement steps left out) and .tar.gz. ~400 s
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
 #                     with votesplat/splatfacto ratios; prints it
 #
@@ -625,6 +630,47 @@ stage_train_balanced() {  # EXPERIMENT [DATA]
   cat "$OUT/balanced_$experiment.md"
 }
 
+# ------------------------------------------------------------------------------------ vote-step-ab
+stage_vote_step_ab() {  # [DATA]
+  # A vote step's in-run cost, this tree against $AB_TREE: votesplat voting every 2nd step, so that vote steps and
+  # the others alternate within one run and the machine's drift (a whole run up to 25% faster) falls on both.
+  local data=${1:-.gpu/synthetic} tree=${AB_TREE:-} order=(${AB_ORDER:-this other other this}) label dir folder
+  local n=0 vote_start=500 runs=$RUNS/vote_step_ab
+  if [[ "$VOTESPLAT_TRAIN_ARGS $EXTRA_TRAIN_ARGS" =~ --pipeline\.model\.vote-start-step[=\ ]+([0-9]+) ]]; then
+    vote_start=${BASH_REMATCH[1]}
+  fi
+  [ -d "$tree/votesplat_ns" ] || { log "vote-step-ab: AB_TREE='$tree' holds no votesplat_ns (another commit's files)"; return 1; }
+  ensure_setup || return 1
+  data=$(cd "$data" && pwd) && tree=$(cd "$tree" && pwd) || return 1
+  # its setup check finds this tree's wheelhouse (real files: the check's find does not follow a link)
+  [ -e "$tree/.whl" ] || cp -rl .whl "$tree/" 2>/dev/null || cp -r .whl "$tree/" || return 1
+  # the same launcher and timing in both trees: only the product code differs
+  cp scripts/gpu/run.sh "$tree/scripts/gpu/run.sh" && cp benchmarks/train_profile.py "$tree/benchmarks/" || return 1
+  rm -rf "$runs" && mkdir -p "$runs"
+  OUT=$runs/warm_up RUNS=$runs/warm_up/runs STEPS=${WARM_UP_STEPS:-50} EVAL=0 METHODS=splatfacto VOTESPLAT_STEP_TIMES= \
+    CALL_BUDGET_S=$(limit_s 60) bash "$0" train-synthetic "$data" >"$runs/warm_up.log" 2>&1 || log "warm-up failed"
+  : >"$OUT/vote_step_ab.md"
+  for label in "${order[@]}"; do
+    n=$((n + 1))
+    dir=$runs/$n-$label
+    folder=$PWD
+    [ "$label" = other ] && folder=$tree
+    log "vote-step-ab: run $n of ${#order[@]}, $label tree"
+    (cd "$folder" && OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=votesplat EVAL=0 EVAL_RESERVE_S=5 \
+      VOTESPLAT_STEP_TIMES=walls CALL_BUDGET_S=$(($(seconds_left) / (${#order[@]} - n + 1))) \
+      VOTESPLAT_TRAIN_ARGS="$VOTESPLAT_TRAIN_ARGS --pipeline.model.vote-every-n-steps 2" \
+      bash scripts/gpu/run.sh train-synthetic "$data") >"$dir.log" 2>&1 || log "vote-step-ab: run $n did not finish"
+    rm -rf "$dir/runs" "$dir/triton"
+    tar czf "$OUT/vote_step_ab.tar.gz" -C "$runs" --exclude='warm_up*' . || return 1
+    for f in "$dir"/steps_*.json; do
+      [ -f "$f" ] || continue
+      echo "$n-$label: $("$PY" benchmarks/step_times.py "$f" --vote-every 2 --vote-start "$vote_start" \
+        --ranges "$vote_start:100000" --skip-refinement | grep 'vote steps')" >>"$OUT/vote_step_ab.md"
+    done
+  done
+  cat "$OUT/vote_step_ab.md"
+}
+
 # ------------------------------------------------------------------------------------- main
 [ "$#" -gt 0 ] || { sed -n '2,/^set -uo/p' "$0" | sed '$d'; exit 2; }
 rc=0
@@ -648,8 +694,12 @@ while [ "$#" -gt 0 ]; do
       experiment=$1; shift; data=
       if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
       stage_train_balanced "$experiment" "$data" || rc=1 ;;
+    vote-step-ab)
+      data=.gpu/synthetic
+      if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
+      stage_vote_step_ab "$data" || rc=1 ;;
     compare) summarize - "$@" || rc=1; shift "$#" ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], compare FILE...)" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], vote-step-ab [DATA], compare FILE...)" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2
