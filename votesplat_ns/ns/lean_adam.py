@@ -16,7 +16,20 @@ from __future__ import annotations
 import torch
 
 
-class LeanFusedAdam(torch.optim.Adam):
+class _ClearsWithoutProfilerScope:
+    """``zero_grad(set_to_none=True)``, nerfstudio's call, as a plain loop that sets every gradient to None; the
+    other form is the optimizer's own."""
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        if not set_to_none:
+            super().zero_grad(set_to_none)  # type: ignore[misc]
+            return
+        for group in self.param_groups:  # type: ignore[attr-defined]
+            for param in group["params"]:
+                param.grad = None
+
+
+class LeanFusedAdam(_ClearsWithoutProfilerScope, torch.optim.Adam):
     """torch.optim.Adam(fused=True) whose plain steps run torch's fused path directly: ``_foreach_add_`` on
     the step count, then ``_fused_adam_`` (the same ops with the same arguments, so the same bits).
 
@@ -59,12 +72,6 @@ class LeanFusedAdam(torch.optim.Adam):
             )
         return None
 
-    def zero_grad(self, set_to_none: bool = True) -> None:
-        if not set_to_none:
-            super().zero_grad(set_to_none)
-            return
-        _clear_gradients(self)
-
     def _plain_step(self) -> bool:
         if len(self.param_groups) != 1 or not hasattr(torch, "_fused_adam_"):
             return False
@@ -83,7 +90,7 @@ class LeanFusedAdam(torch.optim.Adam):
         return grad is not None and not grad.is_sparse and bool(state) and "step" in state
 
 
-class NeverStepsOptimizer(torch.optim.Optimizer):
+class NeverStepsOptimizer(_ClearsWithoutProfilerScope, torch.optim.Optimizer):
     """The optimizer of a ``gauss_params`` entry that is kept, not trained (``vote_support``, a count).
 
     gsplat's densification edits one optimizer per entry (it moves each entry's optimizer state along with
@@ -99,16 +106,3 @@ class NeverStepsOptimizer(torch.optim.Optimizer):
             with torch.enable_grad():
                 return closure()
         return None
-
-    def zero_grad(self, set_to_none: bool = True) -> None:
-        if not set_to_none:
-            super().zero_grad(set_to_none)
-            return
-        _clear_gradients(self)
-
-
-def _clear_gradients(optimizer: torch.optim.Optimizer) -> None:
-    """``optimizer.zero_grad(set_to_none=True)`` without its profiler scope: every gradient set to None."""
-    for group in optimizer.param_groups:
-        for param in group["params"]:
-            param.grad = None
