@@ -552,7 +552,7 @@ def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, mon
     """The trainer's path (_vote_losses, then the backward of the loss dict's sum with the colour losses) runs
     the fused backward at once, outside autograd: the offsets' gradient and support counts of the autograd path,
     bitwise, added to a gradient already there (accumulation); a retrofit (a loss dict of the vote loss alone),
-    votes that move the means and mixed precision keep autograd."""
+    votes that move the means, mixed precision and no grad mode keep autograd."""
     import functools
 
     monkeypatch.setenv(BACKEND_ENV, "triton")
@@ -584,6 +584,8 @@ def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, mon
     assert torch.equal(trainer_step(False, earlier)[1], reference[1] + earlier)
 
     assert model._vote_grad_at_once()
+    with torch.no_grad():
+        assert not model._vote_grad_at_once()
     with torch.autocast("cpu"):
         assert not model._vote_grad_at_once()
     monkeypatch.setattr(model.config, "votes_move_geometry", True)

@@ -368,9 +368,11 @@ class VoteSplatModel(SplatfactoModel):
         """Whether the trainer's step takes the fused vote losses' gradient at once (``vote_losses_sampled``'s
         ``accumulate_grad``): not in a retrofit, whose loss dict holds only the vote loss (the trainer's backward
         needs a graph), not when the votes move the means (their gradient joins the colour losses'), not under
-        mixed precision (the trainer's grad scaler scales the graph's gradients only)."""
+        mixed precision (the trainer's grad scaler scales the graph's gradients only), not without grad mode."""
         device_type = self.gauss_params["vote_offsets"].device.type
-        return not (self.vote_only or self.config.votes_move_geometry or torch.is_autocast_enabled(device_type))
+        if self.vote_only or self.config.votes_move_geometry or torch.is_autocast_enabled(device_type):
+            return False
+        return torch.is_grad_enabled()
 
     def vote_loss_terms(
         self, batch: Dict[str, torch.Tensor], accumulate_grad: bool = False
@@ -424,7 +426,7 @@ class VoteSplatModel(SplatfactoModel):
                 weights,
                 self._support_in_backward(),
                 check_inputs=False,  # built the same way every step (the checks were a fair part of its host time)
-                accumulate_grad=accumulate_grad and torch.is_grad_enabled(),
+                accumulate_grad=accumulate_grad,
             )
             self.vote_step.fused_steps += 1
             if self.vote_step.fused_steps % FUSED_FINITE_CHECK_EVERY == 0:
