@@ -591,14 +591,31 @@ train_compare() {  # EXPERIMENT DATA DOWNSCALE
   ! grep -L -E '"status": "ok"' "${results[@]}" | grep -q . && ! grep -l -E '"eval_status": "(failed|timeout)' "${results[@]}" | grep -q .
 }
 
+# votesplat's vote_start_step: from its flags when they set one, else the default 500
+vote_start_step() {
+  if [[ "$VOTESPLAT_TRAIN_ARGS $EXTRA_TRAIN_ARGS" =~ --pipeline\.model\.vote-start-step[=\ ]+([0-9]+) ]]; then
+    echo "${BASH_REMATCH[1]}"
+  else
+    echo 500
+  fi
+}
+
+# A throwaway splatfacto training of $WARM_UP_STEPS (50) steps into FOLDER/warm_up: the first training of a machine
+# takes ~4 s more at step 0, whichever method it is; its files stay there, it is not a measurement.
+warm_up_run() {  # FOLDER EXPERIMENT [DATA]
+  local steps=${WARM_UP_STEPS:-50}
+  [ "$steps" -gt 0 ] || return 0
+  log "warm-up run, splatfacto, $steps steps"
+  OUT=$1/warm_up RUNS=$1/warm_up/runs STEPS=$steps EVAL=0 METHODS=splatfacto VOTESPLAT_STEP_TIMES= \
+    CALL_BUDGET_S=$(limit_s 60) bash "$0" "train-$2" ${3:-} >"$1/warm_up.log" 2>&1 \
+    || log "the warm-up run failed ($1/warm_up.log); going on"
+}
+
 # ---------------------------------------------------------------------------- train-balanced
 stage_train_balanced() {  # EXPERIMENT [DATA]
-  local experiment=$1 data=${2:-} base method dir index=0 left runs_left warm_up_steps=${WARM_UP_STEPS:-50}
-  local order=(${ORDER:-splatfacto votesplat votesplat splatfacto}) folders=() vote_start=500
-  # the table's split of the steps: votesplat's vote_start_step, from its flags when they set one
-  if [[ "$VOTESPLAT_TRAIN_ARGS $EXTRA_TRAIN_ARGS" =~ --pipeline\.model\.vote-start-step[=\ ]+([0-9]+) ]]; then
-    vote_start=${BASH_REMATCH[1]}
-  fi
+  local experiment=$1 data=${2:-} base method dir index=0 left runs_left
+  local order=(${ORDER:-splatfacto votesplat votesplat splatfacto}) folders=() vote_start
+  vote_start=$(vote_start_step)  # the table's split of the steps
   case "$experiment" in
     fox) [ -z "$data" ] || { log "train-balanced: fox takes no DATA (it trains \$FOX, $FOX)"; return 1; } ;;
     synthetic) ;;
@@ -607,12 +624,7 @@ stage_train_balanced() {  # EXPERIMENT [DATA]
   ensure_setup || return 1
   base=$RUNS/balanced_$experiment
   rm -rf "$base" && mkdir -p "$base"
-  if [ "$warm_up_steps" -gt 0 ]; then  # its files stay here: it is not a measurement
-    log "train-balanced: warm-up run, splatfacto, $warm_up_steps steps"
-    OUT=$base/warm_up RUNS=$base/warm_up/runs STEPS=$warm_up_steps EVAL=0 METHODS=splatfacto \
-      VOTESPLAT_STEP_TIMES= CALL_BUDGET_S=$(limit_s 60) bash "$0" "train-$experiment" $data >"$base/warm_up.log" 2>&1 \
-      || log "train-balanced: the warm-up run failed ($base/warm_up.log); going on"
-  fi
+  warm_up_run "$base" "$experiment" $data
   for method in "${order[@]}"; do
     index=$((index + 1))
     dir=$base/$index-$method
@@ -635,10 +647,8 @@ stage_vote_step_ab() {  # [DATA]
   # A vote step's in-run cost, this tree against $AB_TREE: votesplat voting every 2nd step, so that vote steps and
   # the others alternate within one run and the machine's drift (a whole run up to 25% faster) falls on both.
   local data=${1:-.gpu/synthetic} tree=${AB_TREE:-} order=(${AB_ORDER:-this other other this}) label dir folder
-  local n=0 vote_start=500 runs=$RUNS/vote_step_ab
-  if [[ "$VOTESPLAT_TRAIN_ARGS $EXTRA_TRAIN_ARGS" =~ --pipeline\.model\.vote-start-step[=\ ]+([0-9]+) ]]; then
-    vote_start=${BASH_REMATCH[1]}
-  fi
+  local n=0 vote_start runs=$RUNS/vote_step_ab
+  vote_start=$(vote_start_step)
   [ -d "$tree/votesplat_ns" ] || { log "vote-step-ab: AB_TREE='$tree' holds no votesplat_ns (another commit's files)"; return 1; }
   ensure_setup || return 1
   data=$(cd "$data" && pwd) && tree=$(cd "$tree" && pwd) || return 1
@@ -647,8 +657,7 @@ stage_vote_step_ab() {  # [DATA]
   # the same launcher and timing in both trees: only the product code differs
   cp scripts/gpu/run.sh "$tree/scripts/gpu/run.sh" && cp benchmarks/train_profile.py "$tree/benchmarks/" || return 1
   rm -rf "$runs" && mkdir -p "$runs"
-  OUT=$runs/warm_up RUNS=$runs/warm_up/runs STEPS=${WARM_UP_STEPS:-50} EVAL=0 METHODS=splatfacto VOTESPLAT_STEP_TIMES= \
-    CALL_BUDGET_S=$(limit_s 60) bash "$0" train-synthetic "$data" >"$runs/warm_up.log" 2>&1 || log "warm-up failed"
+  warm_up_run "$runs" synthetic "$data"
   : >"$OUT/vote_step_ab.md"
   for label in "${order[@]}"; do
     n=$((n + 1))
