@@ -62,6 +62,8 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
+from votesplat_ns.core import triton_launch
+
 # pyright: reportOptionalMemberAccess=false, reportInvalidTypeForm=false
 # (triton is optional: ``tl`` is None without it, and the kernels' ``tl.constexpr`` parameter
 # annotations are Triton's own markers, not Python types; both are only reached with triton.)
@@ -198,8 +200,9 @@ def _on(device: torch.device):
 
 
 def _launch(kernel, grid, *args, **kwargs) -> None:
-    """One kernel launch: every launch of the vote kernels goes through here, so it can be counted."""
-    kernel[grid](*args, **kwargs)
+    """One kernel launch: every launch of the vote kernels goes through here, so it can be counted; on CUDA
+    without the JIT's per-call dispatch once the kernel is compiled (``triton_launch``)."""
+    triton_launch.launch(kernel, grid, *args, **kwargs)
 
 
 def _walk_options(cap: int) -> dict:
