@@ -430,6 +430,46 @@ def training_like_step(levels: int, distortion: str, device: str) -> None:
     assert votes.grad is not None and votes.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_kept_scratch_rows_carry_nothing_into_the_next_call(device, monkeypatch):
+    """The training step's call (accumulate_grad) keeps the walk's scratch rows for the next one: calls on other
+    pixels in turn give what each gives with fresh rows."""
+    small_blocks(monkeypatch)
+    scene, level_votes, _, lists = scene_of_size(50)
+    scene = to_device(scene, device, torch.float32)
+    isect_offsets, flatten_ids = (t.to(device=device, dtype=torch.int32) for t in lists["gsplat"])
+    offsets = level_votes[:, :2].to(device=device, dtype=torch.float32).requires_grad_()
+    labels = (torch.arange(2 * HEIGHT * WIDTH, device=device).reshape(2, -1) % 3).to(torch.int32)
+    centroids = torch.rand(2, 3, 2, generator=torch.Generator().manual_seed(3)).to(device) * WIDTH
+    voting = torch.arange(HEIGHT * WIDTH, device=device)
+    means = torch.zeros(len(offsets), 3, device=device)
+
+    def call(seed):
+        sample = torch.randint(voting.numel(), (40,), generator=torch.Generator().manual_seed(seed)).to(device)
+        counts = torch.zeros(len(offsets), 2, device=device)
+        support = (counts, torch.full_like(counts, -1, dtype=torch.int32), 1)
+        offsets.grad = None
+        losses = vote_fused.vote_losses_sampled(
+            scene["means2d"], scene["conics"], scene["opacities"], means, offsets, scene["viewmat"], scene["K"],
+            sample, voting, labels, centroids, WIDTH, 1.0, isect_offsets, flatten_ids, TILE, VoteRenderOptions(),
+            (2.0, 0.5), support, accumulate_grad=True,
+        )  # fmt: skip
+        return losses["vote"], losses["distortion"], counts, offsets.grad
+
+    monkeypatch.setattr(vote_fused, "_KEPT_SCRATCH", {})
+    fresh = {}
+    for seed in (1, 2):
+        vote_fused._KEPT_SCRATCH.clear()
+        fresh[seed] = call(seed)
+    assert not torch.equal(fresh[1][0], fresh[2][0])
+    for seed in (1, 2, 1):
+        vote, distortion, counts, grad = call(seed)
+        assert torch.equal(vote, fresh[seed][0]) and torch.equal(distortion, fresh[seed][1])
+        assert torch.equal(counts, fresh[seed][2])
+        torch.testing.assert_close(grad, fresh[seed][3])  # on CUDA the atomic adds land in any order
+    assert len(vote_fused._KEPT_SCRATCH) == 1
+
+
 @pytest.mark.parametrize("device", DEVICES[:1])
 def test_warm_up_process_runs_the_training_steps_call(device):
     """start_warm_up's child (``python -m votesplat_ns.core.vote_warm_up``, here on CPU under the interpreter)

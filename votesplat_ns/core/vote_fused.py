@@ -447,7 +447,7 @@ def _fused_losses(
     if grad_leaf is None:
         return _FusedVoteLosses.apply(*inputs)
     with torch.no_grad():
-        outputs, saved = _fused_forward(*inputs)
+        outputs, saved = _fused_forward(*inputs, keep_scratch=True)
         # d total / d total = 1, read by the kernel from the device (a constant put there once)
         one = vote_kernel._constants((1.0,), votes.dtype, votes.device)
         g_votes, _ = _fused_backward(saved, inputs[-1], (None, None, one), False)
@@ -458,9 +458,36 @@ def _fused_losses(
     return outputs
 
 
-def _fused_forward(*inputs) -> Tuple[Tuple[Tensor, Tensor, Tensor, Tensor], Tuple[Tensor, ...]]:
+# The walk's scratch rows of the last call that ran its backward at once (``accumulate_grad``), kept for the next
+# such call of the same shapes: that backward ran in the same call, and the next call's kernels come after it on
+# the stream, so nothing reads the rows once they are written again. Four allocations less in a training step.
+_KEPT_SCRATCH: Dict[Tuple, Tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+
+
+def _walk_scratch(
+    p: int, cap: int, levels: int, dist: int, dtype: torch.dtype, device: torch.device, keep: bool
+) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(walk, members, depths, terms): the forward's scratch rows, kept from the last call with ``keep``."""
+    key = (p, cap, levels, dist, dtype, device, torch.cuda.current_stream(device) if device.type == "cuda" else None)
+    if keep and key in _KEPT_SCRATCH:
+        return _KEPT_SCRATCH[key]
+    walk = torch.empty(3, p, dtype=torch.int64, device=device)  # |M|, run start, last member's position
+    members = torch.empty(p, cap, dtype=torch.int32, device=device)
+    depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else members
+    # per pixel and level: loss terms (vote L1, distortion, used) and the backward's coefficients
+    # (d vote-L1 / d member vote [3], d distortion / d member depth factor, mean member depth)
+    terms = torch.empty(p, 8, levels, dtype=dtype, device=device)
+    if keep:
+        _KEPT_SCRATCH.clear()  # one shape at a time: a training run keeps its pixel count
+        _KEPT_SCRATCH[key] = (walk, members, depths, terms)
+    return walk, members, depths, terms
+
+
+def _fused_forward(
+    *inputs, keep_scratch: bool = False
+) -> Tuple[Tuple[Tensor, Tensor, Tensor, Tensor], Tuple[Tensor, ...]]:
     """The forward and reduction launches on ``_FusedVoteLosses``' inputs: ((vote, distortion, total, weighted),
-    what the backward reads)."""
+    what the backward reads). ``keep_scratch``: the backward runs before the next call (``_walk_scratch``)."""
     votes, means, means2d, conics, opacities, viewmat, K, pixel_xy, target, valid = inputs[:10]
     sample, voting, labels, centroids, offsets, ids, consts, modes = inputs[10:]
     # votes: [N, L, 3] votes, or offsets when split (the votes are means[:, None] + votes)
@@ -468,12 +495,7 @@ def _fused_forward(*inputs) -> Tuple[Tuple[Tensor, Tensor, Tensor, Tensor], Tupl
     levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects, map_geometry = config
     map_pixels, map_width, cent_rows, pix_scale = map_geometry
     p, device, dtype = pixel_xy.shape[0], votes.device, votes.dtype
-    walk = torch.empty(3, p, dtype=torch.int64, device=device)  # |M|, run start, last member's position
-    members = torch.empty(p, cap, dtype=torch.int32, device=device)
-    depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else members
-    # per pixel and level: loss terms (vote L1, distortion, used) and the backward's coefficients
-    # (d vote-L1 / d member vote [3], d distortion / d member depth factor, mean member depth)
-    terms = torch.empty(p, 8, levels, dtype=dtype, device=device)
+    walk, members, depths, terms = _walk_scratch(p, cap, levels, dist, dtype, device, keep_scratch)
     vote = torch.empty(levels, dtype=dtype, device=device)
     distortion = torch.empty(levels, dtype=dtype, device=device)
     denominator = torch.empty(levels, dtype=dtype, device=device)
