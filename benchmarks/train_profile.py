@@ -9,7 +9,8 @@ method, so splatfacto and votesplat are profiled alike). Over those steps it rec
 * every operation that synchronises the host with the GPU (``torch.cuda.set_sync_debug_mode``),
   counted per call site (the innermost frames of the project, nerfstudio and gsplat).
 
-Written to ``$VOTESPLAT_PROFILE_OUT`` (default ``train_profile.txt``). Timing inside the window is
+Written to ``$VOTESPLAT_PROFILE_OUT`` (default ``train_profile.txt``), the profiler's timeline beside it
+(``<name>_trace.json``, Chrome's trace format). Timing inside the window is
 perturbed by the profiler; the per-step wall time is measured on the steps before it.
 
 ``install_capture`` (run.sh: ``VOTESPLAT_CAPTURE_VOTE_STEP=N``) saves the arguments of the first fused vote
@@ -243,6 +244,8 @@ def _write(out_path: str, state: Dict, first: int, stop: int, elapsed: float, mo
     text = "\n".join(lines) + "\n"
     with open(out_path, "w") as handle:
         handle.write(text)
+    # the timeline: where the host waits for the GPU, step by step
+    state["profiler"].export_chrome_trace(os.path.splitext(out_path)[0] + "_trace.json")
 
 
 def install_capture(step: int, out_path: str) -> None:
