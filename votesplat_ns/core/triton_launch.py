@@ -18,8 +18,8 @@ included); an unknown key launches through ``kernel[grid]``, which finds or comp
 known.
 
 The JIT's own path is taken whenever the direct one is not known to be what it does: under Triton's
-interpreter, outside Triton 3.2-3.x (the launcher's call form checked on 3.6 and 3.8), or while a launch hook
-is set (a profiler such as proton hooks every launch). What it does not look at: Triton's debug and
+interpreter, outside Triton 3.6-3.x (the launcher's call form: run on 3.6 by the GPU tests, read in 3.8's
+source; older versions were not checked), or while a launch hook is set (a profiler such as proton hooks every launch). What it does not look at: Triton's debug and
 instrumentation settings, which the JIT reads from its knobs on every call; change them before the first
 launch of a process, not between launches.
 """
@@ -52,7 +52,7 @@ def _supported_version() -> bool:
         major, minor = (int(part) for part in triton.__version__.split(".")[:2])
     except ValueError:
         return False
-    return major == 3 and minor >= 2
+    return major == 3 and minor >= 6
 
 
 _SUPPORTED = _supported_version()
@@ -91,7 +91,7 @@ def _arg_key(args: Tuple[Any, ...]) -> Tuple:
 
 
 def _hooks_idle() -> bool:
-    """No launch hook to call: None, or a HookChain (Triton >= 3.6) without calls."""
+    """No launch hook to call: None, or a HookChain without calls."""
     runtime = getattr(getattr(triton, "knobs", None), "runtime", None)
     if runtime is None:
         return False
@@ -149,8 +149,3 @@ def _remember(kernel, key: Tuple, compiled: Any, positional: int, kwargs: Dict[s
         return
     tail = tuple(kwargs[p.name] if p.name in kwargs else p.default for p in parameters)
     _KNOWN.setdefault(kernel, {})[key] = _Known(compiled, tail)
-
-
-def forget() -> None:
-    """Drop every remembered kernel (the next launch of each goes through the JIT again)."""
-    _KNOWN.clear()
