@@ -444,10 +444,11 @@ def host_profile(step: Callable[[], None], device: torch.device, steps: int = 20
 
 
 def block_vote_maps(width: int, height: int, levels: int, device: torch.device, seed: int = 3):
-    """(flat labels [L, H*W] int32, centroids [L, K+1, 2] float32, voting pixels [C] int64) of square masks:
+    """(flat labels [L, H*W], centroids [L, K+1, 2] float32, voting pixels [C]) of square masks, in the training
+    batch's dtypes (``vote_maps.label_tensor``: int16 while the ids fit; int32 voting pixels):
     level l tiles the image with squares of side 96 / 2^l px (at most a quarter of the shorter side), a fifth of them left without a mask (label 0),
     each mask's centroid the middle of its square (pixel-index frame; NaN in row 0 and for unmasked squares)."""
-    from votesplat_ns.core.vote_maps import voting_pixels
+    from votesplat_ns.core.vote_maps import label_tensor, voting_pixels
 
     g = torch.Generator().manual_seed(seed)
     rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
@@ -469,7 +470,7 @@ def block_vote_maps(width: int, height: int, levels: int, device: torch.device, 
     centroids = torch.full((levels, rows_max, 2), math.nan)
     for level, table in enumerate(centroid_tables):
         centroids[level, : len(table)] = table
-    labels = torch.stack(label_maps).to(torch.int32)
+    labels = label_tensor(torch.stack(label_maps).numpy())
     voting = voting_pixels(labels, centroids)
     return labels.reshape(levels, -1).to(device), centroids.to(device), voting.to(device)
 

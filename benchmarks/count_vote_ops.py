@@ -408,6 +408,7 @@ def model_step(levels: int, n: int, width: int, height: int, pixels: int):
         centroids.append(table)
     size = max(len(t) for t in centroids)
     centroids = torch.stack([torch.cat([t, torch.full((size - len(t), 2), float("nan"))]) for t in centroids])
+    labels = labels.to(torch.int16)  # the datamanager's compact ids (vote_maps.label_tensor)
     batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
 
     def step(seed: Optional[int] = None):

@@ -36,7 +36,15 @@ import subprocess
 import sys
 import time
 
-_DTYPES = {"float32": "fp32", "float64": "fp64", "int32": "i32", "int64": "i64", "uint8": "u8", "bool": "i1"}
+_DTYPES = {
+    "float32": "fp32",
+    "float64": "fp64",
+    "int16": "i16",
+    "int32": "i32",
+    "int64": "i64",
+    "uint8": "u8",
+    "bool": "i1",
+}
 _MODULES = ("votesplat_ns.core.vote_kernel", "votesplat_ns.core.vote_fused")
 
 
@@ -117,9 +125,12 @@ def grid_launches():
         tiled = [f, f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, d, f]
         out.append(entry("_fused_fwd_kernel", tiled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=False, PROJECT=1)))
         if fp == "fp32":  # vote_losses_sampled takes float32 only
-            # the target and valid pointers are placeholders too (the position buffer, the draws)
-            sampled = [f, f, f, f, f, f, f, f, f, i64, i64, i64, i32, f, i32, i32, f, i64, i32, d, f]
-            out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=True, PROJECT=2)))
+            # the target and valid pointers are placeholders too (the position buffer, the draws); the vote maps
+            # as training passes them (int32 voting pixels, int16 labels) and in the wide dtypes it also takes
+            for voting, labels in (("*i32", "*i16"), (i64, i32)):
+                sampled = [f, f, f, f, f, f, f, f, f, i64, i64, voting, labels, f, i32, i32, f, i64, i32, d, f]
+                sampled_fwd = dict(fwd, SAMPLED=True, PROJECT=2)
+                out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], sampled_fwd))
         fused_bwd = [f, f, f, f, f, f, f, i32, f, i64, i32, d, f, f, f, "i32", f, "i32", f, "fp32", "fp32", f]
         for flags, support in (
             # vote_losses_tiled: no support count (its counts and stamps are the denominator's placeholder)

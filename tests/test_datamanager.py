@@ -127,7 +127,9 @@ def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
         index = int(camera.metadata["cam_idx"])
         seen.add(index)
         labels, centroids = data["vote_labels"], data["vote_centroids"]
-        assert labels.dtype == torch.int32 and centroids.dtype == torch.float32
+        # compact: int16 ids and int32 pixel indices (half the bytes kept per view and copied per vote step)
+        assert labels.dtype == torch.int16 and centroids.dtype == torch.float32
+        assert data["vote_pixels"].dtype == torch.int32
         # host tensors: the model copies them to its device only on the steps that vote
         assert labels.device.type == "cpu" and centroids.device.type == "cpu"
         assert labels.shape == (2, *data["image"].shape[:2]) == (2, HEIGHT, WIDTH)
@@ -140,7 +142,7 @@ def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
         assert torch.isnan(centroids[0, 3]).all()  # level 0 has 2 masks: padded
         # the pixels training samples from: those inside a kept mask at some level, in raster order
         in_a_mask = ((labels[0] > 0) | (labels[1] > 0)).reshape(-1)
-        assert torch.equal(data["vote_pixels"], torch.nonzero(in_a_mask).squeeze(1))
+        assert torch.equal(data["vote_pixels"], torch.nonzero(in_a_mask).squeeze(1).to(torch.int32))
         for level, file_labels in ((0, np.where(instance == BORDER_ID, 0, instance)), (1, renumbered_parts(part))):
             for k, centre in expected_centroids(file_labels).items():
                 np.testing.assert_array_equal(centroids[level, k].numpy(), centre)

@@ -25,7 +25,7 @@ from test_vote_kernel import (
 from test_vote_render import call, random_scene, tile_lists_gsplat
 
 from votesplat_ns.core import vote_fused, vote_kernel
-from votesplat_ns.core.vote_maps import pixels_and_targets, voting_pixels
+from votesplat_ns.core.vote_maps import label_tensor, pixels_and_targets, voting_pixels
 from votesplat_ns.core.vote_render import (
     ALPHA_MIN,
     BACKEND_ENV,
@@ -406,15 +406,15 @@ def test_fused_kernels_compile_once_for_any_list_length(device):
 def training_like_step(levels: int, distortion: str, device: str) -> None:
     """A training step's vote_losses_sampled, forward and backward, on a 50-Gaussian scene: other sizes, tile
     size and grid than start_warm_up's one-Gaussian scene, the same argument dtypes (float32 votes, gsplat's
-    int32 tile lists, int64 draws)."""
+    int32 tile lists, int64 draws, the datamanager's int16 labels and int32 voting pixels)."""
     options = VoteRenderOptions(distortion=distortion)
     scene, level_votes, _, lists = scene_of_size(50)
     scene = to_device(scene, device, torch.float32)
     offsets, flatten_ids = (t.to(device=device, dtype=torch.int32) for t in lists["gsplat"])
     votes = level_votes[:, :levels].to(device=device, dtype=torch.float32).requires_grad_()
-    labels = torch.randint(1, 3, (levels, HEIGHT * WIDTH), dtype=torch.int32, device=device)
+    labels = torch.randint(1, 3, (levels, HEIGHT * WIDTH), dtype=torch.int16, device=device)
     centroids = torch.rand(levels, 3, 2, device=device) * WIDTH
-    voting = torch.arange(HEIGHT * WIDTH, device=device)
+    voting = torch.arange(HEIGHT * WIDTH, dtype=torch.int32, device=device)
     sample = torch.randint(voting.numel(), (64,), device=device)
     means = torch.zeros(len(votes), 3, device=device)
     args = (scene["means2d"], scene["conics"], scene["opacities"], means, votes, scene["viewmat"], scene["K"], sample)
@@ -769,6 +769,47 @@ def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, ca
         torch.testing.assert_close(losses["total"].detach(), totals[1], **exact)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_sampled_losses_read_the_compact_vote_maps(device, monkeypatch):
+    """The datamanager's int16 labels and int32 voting pixels (vote_maps.label_tensor, voting_pixels) give the
+    losses, the offsets' gradient and the support count that int32 labels and int64 voting pixels give."""
+    small_blocks(monkeypatch)
+    scene, level_votes, _, lists = scene_of_size(50)
+    scene = to_device(scene, device, torch.float32)
+    isect_offsets, flatten_ids = (t.to(device=device, dtype=torch.int32) for t in lists["gsplat"])
+    g = torch.Generator().manual_seed(8)
+    # ids past int8's range, so that a narrower read than int16's would be caught
+    labels = torch.randint(0, 300, (2, HEIGHT, WIDTH), generator=g, dtype=torch.int32)
+    centroids = torch.rand(2, 300, 2, generator=g) * WIDTH
+    centroids[:, 0] = float("nan")
+    centroids[1, 200:] = float("nan")  # masks without a vote
+    compact = label_tensor(labels.numpy())
+    assert compact.dtype == torch.int16 and torch.equal(compact.int(), labels)
+    voting = voting_pixels(compact, centroids)
+    assert voting.dtype == torch.int32 and torch.equal(voting, voting_pixels(labels, centroids))
+    sample = torch.randint(voting.numel(), (40,), generator=g).to(device)
+    means = torch.zeros(len(level_votes), 3, device=device)
+
+    def call(flat_labels, voting_pixel_list):
+        offsets = level_votes[:, :2].to(device=device, dtype=torch.float32).requires_grad_()
+        counts = torch.zeros(len(offsets), 2, device=device)
+        losses = vote_fused.vote_losses_sampled(
+            scene["means2d"], scene["conics"], scene["opacities"], means, offsets, scene["viewmat"], scene["K"],
+            sample, voting_pixel_list.to(device), flat_labels.reshape(2, -1).to(device), centroids.to(device), WIDTH,
+            1.0, isect_offsets, flatten_ids, TILE, VoteRenderOptions(), (2.0, 0.5),
+            (counts, torch.full_like(counts, -1, dtype=torch.int32), 1),
+        )  # fmt: skip
+        losses["total"].backward()
+        return losses["vote"], losses["distortion"], counts, offsets.grad
+
+    wide = call(labels, voting.long())
+    narrow = call(compact, voting)
+    assert (wide[0] > 0).all() and wide[2].sum() > 0
+    for got, expected in zip(narrow[:3], wide[:3]):
+        assert torch.equal(got, expected)
+    torch.testing.assert_close(narrow[3], wide[3])  # on CUDA the atomic adds land in any order
+
+
 def test_sampled_losses_reject_bad_inputs():
     """One-line errors for what the kernel cannot take (checked before any launch)."""
     scene, level_votes, _, lists = scene_of_size(10)
@@ -785,9 +826,11 @@ def test_sampled_losses_reject_bad_inputs():
         (dict(offsets=votes.double()), "float32 offsets"),
         (dict(means=votes[:-1, 0]), "means must be float32"),
         (dict(voting=voting[:0]), "voting is empty"),
-        (dict(labels=labels.long()), "flat_labels must be int32"),
+        (dict(labels=labels.long()), "flat_labels must be int16 or int32"),
+        (dict(labels=labels.to(torch.uint8)), "flat_labels must be int16 or int32"),
         (dict(centroids=centroids[:1]), "centroids must be float32"),
-        (dict(sample=sample.int()), "1-D int64"),
+        (dict(sample=sample.int()), "sample must be a 1-D int64"),
+        (dict(voting=voting.short()), "voting a 1-D int32 or int64"),
     ]:
         given = {
             **dict(means=votes[:, 0], offsets=votes, sample=sample, voting=voting, labels=labels, centroids=centroids),

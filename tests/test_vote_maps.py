@@ -7,6 +7,7 @@ import torch
 from votesplat_ns.core.vote_maps import (
     VoteMaps,
     gather_vote_targets,
+    label_tensor,
     labels_from_binary_masks,
     mask_centroids,
     resize_label_images,
@@ -14,6 +15,7 @@ from votesplat_ns.core.vote_maps import (
     round_half_away_from_zero,
     to_continuous,
     vote_maps_from_labels,
+    voting_pixels,
 )
 
 
@@ -200,3 +202,24 @@ def test_huge_sparse_ids_are_renumbered_without_a_huge_table():
     labels_out, centroids = mask_centroids(labels)
     assert np.array_equal(labels_out == 1, labels == 7) and np.array_equal(labels_out == 2, labels == 2**40)
     np.testing.assert_array_equal(centroids[1:], [[4.0, 4.0], [2.0, 2.0]])
+
+
+def test_compact_label_tensor_widens_past_int16():
+    """A view with more than 32767 masks in a level keeps int32 labels (int16 would wrap them)."""
+    labels = np.zeros((2, 4, 4), dtype=np.int32)
+    labels[1, 0, 0] = 32767
+    assert label_tensor(labels).dtype == torch.int16
+    labels[1, 0, 1] = 32768
+    wide = label_tensor(labels)
+    assert wide.dtype == torch.int32 and int(wide.max()) == 32768
+    assert label_tensor(labels.astype(np.uint16)).dtype == torch.int32  # the vote cache's uint16, widened
+
+
+def test_voting_pixels_are_int32_flat_indices():
+    """The pixels with a vote at some level, as int32 row * W + column (half of int64's bytes per view)."""
+    labels = torch.tensor([[[0, 1, 1], [2, 0, 0]], [[0, 0, 3], [0, 0, 1]]], dtype=torch.int16)
+    centroids = torch.full((2, 4, 2), float("nan"))
+    centroids[0, 1] = torch.tensor([1.0, 0.0])  # level 0: mask 1 votes, mask 2 has no vote
+    centroids[1, 3] = torch.tensor([2.0, 0.0])  # level 1: mask 3 votes, mask 1 has no vote
+    voting = voting_pixels(labels, centroids)
+    assert voting.dtype == torch.int32 and voting.tolist() == [1, 2]

@@ -67,6 +67,10 @@ REDUCE_BLOCK = 1024
 WARM_UP_TIMEOUT_S = 300.0
 # distortion -> (kernel mode, l1 in pixels)
 _DIST = {"none": (0, False), "l1": (1, False), "l1_pixels": (1, True), "squared": (2, False)}
+# what vote_losses_sampled reads its vote maps in: the datamanager's compact dtypes (vote_maps.label_tensor,
+# voting_pixels) and the wider ones; the kernel widens what it loads
+LABEL_DTYPES = (torch.int16, torch.int32)
+INDEX_DTYPES = (torch.int32, torch.int64)
 
 
 def fused_unavailable_reason(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> Optional[str]:
@@ -246,9 +250,10 @@ def vote_losses_sampled(
         means [N,3] float32: the Gaussians' world positions (a gradient reaches them only if they require one).
         offsets [N,L,3] float32: the vote offsets, differentiable; the votes are ``means[:, None] + offsets``.
         sample [P] int64: the drawn entries of ``voting`` (in [0, C)).
-        voting [C] int64: flat indices (row * map_width + column) of the view's pixels that carry a
+        voting [C] int32 or int64: flat indices (row * map_width + column) of the view's pixels that carry a
             vote (``vote_maps.voting_pixels``); C >= 1.
-        flat_labels [L, H*W] int32: mask ids per level; centroids [L, K+1, 2] float32: pixel-index
+        flat_labels [L, H*W] int16 or int32: mask ids per level (``vote_maps.label_tensor``); each dtype is a
+            kernel variant of its own; centroids [L, K+1, 2] float32: pixel-index
             centroids, NaN where a mask has no vote (the datamanager's vote maps).
         map_width: W of the vote maps; scale: render resolution over the maps' resolution.
         weights: (w_vote, w_distortion) of "total".
@@ -325,13 +330,13 @@ def _check_sampled_inputs(
         raise ValueError(
             f"means must be float32 [{offsets.shape[0]}, 3] (one per offset row), got {means.dtype} {list(means.shape)}"
         )
-    if sample.ndim != 1 or voting.ndim != 1 or sample.dtype != torch.int64 or voting.dtype != torch.int64:
-        raise ValueError("sample and voting must be 1-D int64 tensors")
+    if sample.ndim != 1 or voting.ndim != 1 or sample.dtype != torch.int64 or voting.dtype not in INDEX_DTYPES:
+        raise ValueError("sample must be a 1-D int64 tensor and voting a 1-D int32 or int64 tensor")
     if voting.numel() == 0:
         raise ValueError("voting is empty: a view without voting pixels has no vote losses to sample")
-    if flat_labels.ndim != 2 or flat_labels.shape[0] != levels or flat_labels.dtype != torch.int32:
+    if flat_labels.ndim != 2 or flat_labels.shape[0] != levels or flat_labels.dtype not in LABEL_DTYPES:
         raise ValueError(
-            f"flat_labels must be int32 [{levels}, H*W], got {flat_labels.dtype} {list(flat_labels.shape)}"
+            f"flat_labels must be int16 or int32 [{levels}, H*W], got {flat_labels.dtype} {list(flat_labels.shape)}"
         )
     if (
         centroids.ndim != 3

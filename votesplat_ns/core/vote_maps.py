@@ -352,14 +352,30 @@ def gather_vote_targets(
     return targets, valid
 
 
+def label_tensor(labels: np.ndarray) -> torch.Tensor:
+    """A view's [L, H, W] mask ids as a training batch carries them: int16 while every id fits (up to 32767
+    masks a level; SAM makes hundreds), else int32. Half of int32's bytes in the vote maps kept in memory and
+    in each vote step's copy to the GPU; every reader widens the ids it looks up."""
+    labels = np.asarray(labels)
+    max_id = int(labels.max()) if labels.size else 0
+    if max_id > np.iinfo(np.int32).max:
+        raise ValueError(f"label id {max_id} does not fit in int32")
+    compact = max_id <= np.iinfo(np.int16).max
+    return torch.from_numpy(np.ascontiguousarray(labels, dtype=np.int16 if compact else np.int32))
+
+
 def voting_pixels(vote_labels: torch.Tensor, vote_centroids: torch.Tensor) -> torch.Tensor:
-    """int64 [C]: the flat indices (row * W + column), ascending, of the pixels that carry a vote at
+    """int32 [C]: the flat indices (row * W + column), ascending, of the pixels that carry a vote at
     some level (their mask there has a finite centroid), from the datamanager's [L, H, W] labels and
-    [L, K+1, 2] NaN-padded centroids. Training samples its vote pixels among these."""
+    [L, K+1, 2] NaN-padded centroids. Training samples its vote pixels among these. (int32: half of
+    int64's bytes, and a view's pixels are counted far below 2**31.)"""
+    if vote_labels[0].numel() > np.iinfo(np.int32).max:
+        raise ValueError(f"a view of {vote_labels[0].numel()} pixels is too large for int32 pixel indices")
     level_index = torch.arange(vote_labels.shape[0], device=vote_labels.device)[:, None]
     flat_labels = vote_labels.reshape(vote_labels.shape[0], -1).long()
     # finiteness tested on the [L, K+1] table, then looked up per pixel
-    return torch.isfinite(vote_centroids[..., 0])[level_index, flat_labels].any(dim=0).nonzero().squeeze(1)
+    voting = torch.isfinite(vote_centroids[..., 0])[level_index, flat_labels].any(dim=0).nonzero().squeeze(1)
+    return voting.to(torch.int32)
 
 
 def pixels_and_targets(

@@ -51,7 +51,8 @@ def warm_up(levels: int, options: VoteRenderOptions, device: torch.device, part:
         return torch.tensor(values, dtype=torch.float32, device=device)
 
     offsets = torch.zeros(1, levels, 3, dtype=torch.float32, device=device, requires_grad=True)
-    # the argument dtypes of a training step: gsplat's int32 tile lists, int64 pixel draws
+    # the argument dtypes of a training step: gsplat's int32 tile lists, int64 pixel draws, the datamanager's
+    # int32 voting pixels and int16 labels (vote_maps.voting_pixels, label_tensor)
     losses = vote_fused.vote_losses_sampled(
         f32([[8.0, 8.0]]),
         f32([[1.0, 0.0, 1.0]]),
@@ -61,8 +62,8 @@ def warm_up(levels: int, options: VoteRenderOptions, device: torch.device, part:
         torch.eye(4, dtype=torch.float32, device=device),
         f32([[8.0, 0.0, 8.0], [0.0, 8.0, 8.0], [0.0, 0.0, 1.0]]),
         torch.zeros(2, dtype=torch.int64, device=device),
-        torch.zeros(1, dtype=torch.int64, device=device),
-        torch.ones(levels, 1, dtype=torch.int32, device=device),
+        torch.zeros(1, dtype=torch.int32, device=device),
+        torch.ones(levels, 1, dtype=torch.int16, device=device),
         torch.full((levels, 2, 2), 0.5, dtype=torch.float32, device=device),
         1,
         1.0,

@@ -1,10 +1,11 @@
 """Full-image datamanager that adds each training view's 2D vote maps to the batch.
 
 ``next_train`` returns splatfacto's ``(camera, data)`` plus
-  - ``data["vote_labels"]``: int32 [L, H, W] mask ids (0 = no mask),
+  - ``data["vote_labels"]``: int16 [L, H, W] mask ids (0 = no mask; int32 for a view with more than 32767
+    masks in a level: ``core.vote_maps.label_tensor``),
   - ``data["vote_centroids"]``: float32 [L, Kmax+1, 2] (column, row) per id in pixel-index
     coordinates, NaN-padded (row 0 is always NaN),
-  - ``data["vote_pixels"]``: int64 [C] flat indices of the pixels that carry a vote
+  - ``data["vote_pixels"]``: int32 [C] flat indices of the pixels that carry a vote
     (``core.vote_maps.voting_pixels``), among which training samples its vote pixels,
 all at exactly the resolution of ``data["image"]``. The level names are published as
 ``train_dataset.metadata["vote_levels"]`` (the pipeline passes that metadata to the model).
@@ -61,6 +62,7 @@ from votesplat_ns.core.vote_cache import VoteCache, VoteOptions
 from votesplat_ns.core.vote_maps import (
     DEFAULT_BORDER_MASKS,
     VoteMaps,
+    label_tensor,
     resize_label_images,
     resize_vote_maps,
     vote_maps_from_labels,
@@ -103,7 +105,7 @@ class VoteDataManagerConfig(SamOptions, FullImageDatamanagerConfig):
     cache_dir: Optional[Path] = None
     """Where masks and 2D votes are cached (default: outputs/<dataset folder name>/votesplat_cache)."""
     vote_maps_in_memory: int = 128
-    """Training views whose vote maps stay in RAM (about 4 MB per view of 960x540 with 2 levels)."""
+    """Training views whose vote maps stay in RAM (up to 4 MB a 960x540 view with 2 levels: int16 ids, int32 pixels)."""
 
     @property
     def dataset_path(self) -> Path:
@@ -294,7 +296,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         assert camera.metadata is not None
         index = int(camera.metadata["cam_idx"])
         # Host tensors: the model copies them to its device only on the steps that vote
-        # (vote_every_n_steps), instead of ~4 MB host-to-device on every step.
+        # (vote_every_n_steps), instead of up to ~4 MB host-to-device on every step.
         data.update(self.host_vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
         if self._prefetch is None:
             self._start_prefetch()
@@ -346,7 +348,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
     def _vote_batch_tensors(self, index: int, height: int, width: int) -> Dict[str, torch.Tensor]:
         """The batch tensors of train view ``index`` at ``height`` x ``width`` (pinned on CUDA)."""
         vote_maps = self.vote_maps_for_train_view(index, height, width)
-        labels = torch.from_numpy(np.asarray(vote_maps.labels).astype(np.int32))
+        labels = label_tensor(vote_maps.labels)
         centroids = torch.from_numpy(vote_maps.padded_centroids())
         tensors = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
         if torch.device(self.device).type == "cuda":
