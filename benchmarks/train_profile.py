@@ -53,7 +53,7 @@ PHASES = (
     ("nerfstudio.engine.optimizers", "Optimizers", "zero_grad_some"),
     ("torch.autograd", None, "backward"),
     ("nerfstudio.engine.optimizers", "Optimizers", "scheduler_step_all"),
-    ("votesplat_ns.ns.datamanager", "VoteDataManager", "host_vote_batch"),
+    ("votesplat_ns.ns.datamanager", "VoteDataManager", "kept_vote_batch"),
     ("votesplat_ns.ns.model", "VoteSplatModel", "get_outputs"),
     ("votesplat_ns.ns.model", "VoteSplatModel", "get_metrics_dict"),
     ("votesplat_ns.ns.model", "VoteSplatModel", "get_loss_dict"),

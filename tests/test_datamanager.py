@@ -11,7 +11,7 @@ from PIL import Image
 
 from votesplat_ns.cli.masks_cli import MasksConfig, main as masks_main
 from votesplat_ns.core.vote_maps import round_half_away_from_zero
-from votesplat_ns.ns.datamanager import VoteDataManagerConfig, default_cache_dir
+from votesplat_ns.ns.datamanager import VoteDataManagerConfig, default_cache_dir, place_vote_batch
 
 WIDTH, HEIGHT, FRAMES = 32, 24, 3
 BORDER_ID = 3  # the instance id that touches the image border in every frame
@@ -130,7 +130,7 @@ def test_next_train_gives_vote_maps_equal_to_the_label_files(dataset, tmp_path):
         # compact: int16 ids and int32 pixel indices (half the bytes kept per view and copied per vote step)
         assert labels.dtype == torch.int16 and centroids.dtype == torch.float32
         assert data["vote_pixels"].dtype == torch.int32
-        # host tensors: the model copies them to its device only on the steps that vote
+        # host tensors (cache_vote_maps "cpu"): the model copies them to its device only on the steps that vote
         assert labels.device.type == "cpu" and centroids.device.type == "cpu"
         assert labels.shape == (2, *data["image"].shape[:2]) == (2, HEIGHT, WIDTH)
         instance, part = frame_labels(frame_number(manager, index))
@@ -168,6 +168,30 @@ def test_vote_maps_in_memory_bounds_the_views_kept_and_reuses_them(dataset, tmp_
     assert manager.vote_batch(FRAMES - 2, HEIGHT // 2, WIDTH // 2)["vote_labels"].shape == (2, HEIGHT // 2, WIDTH // 2)
     assert torch.equal(manager.vote_batch(0)["vote_labels"], first[0]["vote_labels"])
     assert len(manager._in_memory) == 2
+
+
+def test_cache_vote_maps_gpu_keeps_them_on_the_training_device(dataset, tmp_path):
+    """cache_vote_maps "gpu": the kept vote tensors are on the datamanager's device (so a vote step copies
+    nothing), with the values "cpu" keeps in host memory. (A "meta" device stands in for CUDA here.)"""
+    on_host = setup_manager(dataset, tmp_path / "cache")
+    on_device = setup_manager(dataset, tmp_path / "cache", cache_vote_maps="gpu")
+    on_device.device = torch.device("meta")
+    for index in range(FRAMES):
+        kept, expected = on_device.kept_vote_batch(index), on_host.kept_vote_batch(index)
+        assert set(kept) == set(expected) == {"vote_labels", "vote_centroids", "vote_pixels"}
+        for name, tensor in kept.items():
+            assert tensor.device.type == "meta" and expected[name].device.type == "cpu"
+            assert tensor.dtype == expected[name].dtype and tensor.shape == expected[name].shape
+        # kept: a second request hands out the same device tensors, not new copies
+        assert on_device.kept_vote_batch(index)["vote_labels"] is kept["vote_labels"]
+
+
+def test_place_vote_batch_moves_or_keeps_the_tensors():
+    tensors = {"vote_labels": torch.zeros(2, 3, 4, dtype=torch.int16), "vote_pixels": torch.arange(3).int()}
+    assert place_vote_batch(tensors, torch.device("cpu"), "cpu") is tensors  # host memory, unpinned off CUDA
+    moved = place_vote_batch(tensors, torch.device("meta"), "gpu")
+    assert all(tensor.device.type == "meta" for tensor in moved.values())
+    assert place_vote_batch(tensors, torch.device("cpu"), "gpu")["vote_labels"] is tensors["vote_labels"]
 
 
 def test_first_step_prepares_every_view_in_the_background(dataset, tmp_path, monkeypatch):

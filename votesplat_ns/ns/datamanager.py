@@ -7,7 +7,8 @@
     coordinates, NaN-padded (row 0 is always NaN),
   - ``data["vote_pixels"]``: int32 [C] flat indices of the pixels that carry a vote
     (``core.vote_maps.voting_pixels``), among which training samples its vote pixels,
-all at exactly the resolution of ``data["image"]``. The level names are published as
+all at exactly the resolution of ``data["image"]``, in host memory (``cache_vote_maps`` "cpu", pinned on CUDA)
+or on the training device ("gpu"). The level names are published as
 ``train_dataset.metadata["vote_levels"]`` (the pipeline passes that metadata to the model).
 
 Masks are made once per view by a :mod:`mask source <votesplat_ns.core.mask_sources>` at the image
@@ -105,7 +106,9 @@ class VoteDataManagerConfig(SamOptions, FullImageDatamanagerConfig):
     cache_dir: Optional[Path] = None
     """Where masks and 2D votes are cached (default: outputs/<dataset folder name>/votesplat_cache)."""
     vote_maps_in_memory: int = 128
-    """Training views whose vote maps stay in RAM (up to 4 MB a 960x540 view with 2 levels: int16 ids, int32 pixels)."""
+    """Training views whose vote maps stay in memory (up to 4 MB a 960x540 view with 2 levels; README.md, Masks)."""
+    cache_vote_maps: Literal["cpu", "gpu"] = "cpu"
+    """Where the vote maps are kept: cpu (pinned RAM, copied to the GPU each vote step) or gpu (on the device, as cache_images)."""
 
     @property
     def dataset_path(self) -> Path:
@@ -295,9 +298,9 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         camera, data = super().next_train(step)
         assert camera.metadata is not None
         index = int(camera.metadata["cam_idx"])
-        # Host tensors: the model copies them to its device only on the steps that vote
-        # (vote_every_n_steps), instead of up to ~4 MB host-to-device on every step.
-        data.update(self.host_vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
+        # The kept tensors: in host memory (cache_vote_maps "cpu") the model copies them to its device only on the
+        # steps that vote (vote_every_n_steps), instead of up to ~4 MB host-to-device on every step.
+        data.update(self.kept_vote_batch(index, int(data["image"].shape[0]), int(data["image"].shape[1])))
         if self._prefetch is None:
             self._start_prefetch()
         return camera, data
@@ -323,12 +326,13 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
 
         At the training image's resolution unless ``height``/``width`` are given.
         """
-        return {name: tensor.to(self.device) for name, tensor in self.host_vote_batch(index, height, width).items()}
+        return {name: tensor.to(self.device) for name, tensor in self.kept_vote_batch(index, height, width).items()}
 
-    def host_vote_batch(
+    def kept_vote_batch(
         self, index: int, height: Optional[int] = None, width: Optional[int] = None
     ) -> Dict[str, torch.Tensor]:
-        """``vote_batch`` in host memory (the kept copy: do not modify it)."""
+        """``vote_batch`` as kept: in host memory, or on the device under ``cache_vote_maps`` "gpu" (the kept
+        tensors: do not modify them)."""
         if height is None or width is None:
             camera = self.train_dataset.cameras[index]
             height, width = int(camera.height.item()), int(camera.width.item())
@@ -346,16 +350,25 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         return dict(cached)
 
     def _vote_batch_tensors(self, index: int, height: int, width: int) -> Dict[str, torch.Tensor]:
-        """The batch tensors of train view ``index`` at ``height`` x ``width`` (pinned on CUDA)."""
+        """The batch tensors of train view ``index`` at ``height`` x ``width``, where ``cache_vote_maps`` keeps them."""
         vote_maps = self.vote_maps_for_train_view(index, height, width)
         labels = label_tensor(vote_maps.labels)
         centroids = torch.from_numpy(vote_maps.padded_centroids())
         tensors = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
-        if torch.device(self.device).type == "cuda":
-            # page-locked: the model's non_blocking copy is then asynchronous (a pageable copy makes
-            # the host wait for the GPU's queue on every vote step)
-            tensors = {name: tensor.pin_memory() for name, tensor in tensors.items()}
-        return tensors
+        return place_vote_batch(tensors, torch.device(self.device), self.config.cache_vote_maps)
+
+
+def place_vote_batch(
+    tensors: Dict[str, torch.Tensor], device: torch.device, cache: Literal["cpu", "gpu"]
+) -> Dict[str, torch.Tensor]:
+    """A view's vote tensors where ``cache_vote_maps`` keeps them: on ``device`` for "gpu"; in host memory for
+    "cpu", page-locked when ``device`` is CUDA (the model's non_blocking copy is then asynchronous: a pageable
+    copy makes the host wait for the GPU's queue on every vote step)."""
+    if cache == "gpu":
+        return {name: tensor.to(device) for name, tensor in tensors.items()}
+    if device.type == "cuda":
+        return {name: tensor.pin_memory() for name, tensor in tensors.items()}
+    return tensors
 
 
 def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:

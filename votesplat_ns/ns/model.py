@@ -518,8 +518,8 @@ class VoteSplatModel(SplatfactoModel):
         self, batch: Dict[str, torch.Tensor], device: torch.device
     ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         # int16/int32 [L, H, W] at the datamanager's image resolution; [L, K+1, 2] pixel-index coordinates; int32
-        # [C] the pixels carrying a vote. non_blocking: the datamanager pins them on CUDA, so the copies do not
-        # wait for the GPU's queue.
+        # [C] the pixels carrying a vote. No copy when the datamanager keeps them on the device (cache_vote_maps
+        # gpu); non_blocking otherwise: it pins them on CUDA, so the copies do not wait for the GPU's queue.
         labels = batch["vote_labels"].to(device, non_blocking=True)
         centroids = batch["vote_centroids"].to(device, non_blocking=True)
         voting = batch["vote_pixels"].to(device, non_blocking=True)
