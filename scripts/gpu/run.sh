@@ -39,11 +39,13 @@
 #                     among the runs left. After each run $OUT/balanced_<experiment>.md (benchmarks/step_times.py
 #                     --table: a row per run, votesplat's means over splatfacto's) and .tar.gz (the runs' files)
 #                     are written again, so a call cut short keeps the runs it finished. 4 runs: ~300-450 s
-#   vote-step-ab [DATA]  a vote step's in-run cost, this tree against AB_TREE (another commit's files:
-#                     `git archive C | tar -x -C build/ab_tree`, carried): votesplat with a vote every 2nd step
-#                     (vote steps and the others alternate within a run, so the machine's drift falls on both),
-#                     the trees in the order AB_ORDER ("this other other this"); vote_step_ab.md (per run: vote
-#                     steps' and others' means and medians, refinement steps left out) and .tar.gz. ~400 s
+#   vote-step-ab [fox|DATA]  a vote step's in-run cost, this tree against "other": AB_TREE (another commit's
+#                     files: `git archive C | tar -x -C build/ab_tree`, carried), or without AB_TREE this tree with
+#                     AB_OTHER_ARGS added to votesplat's flags (e.g. "--pipeline.datamanager.cache-vote-maps gpu"):
+#                     votesplat with a vote every 2nd step (vote steps and the others alternate within a run, so
+#                     the machine's drift falls on both), in the order AB_ORDER ("this other other this"), on the
+#                     synthetic DATA (default .gpu/synthetic) or the fox; vote_step_ab.md (per run: vote steps' and
+#                     others' means and medians, refinement steps left out) and .tar.gz. ~400 s (4 synthetic runs)
 #   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
 #                     with votesplat/splatfacto ratios; prints it
 #
@@ -643,32 +645,54 @@ stage_train_balanced() {  # EXPERIMENT [DATA]
 }
 
 # ------------------------------------------------------------------------------------ vote-step-ab
-stage_vote_step_ab() {  # [DATA]
-  # A vote step's in-run cost, this tree against $AB_TREE: votesplat voting every 2nd step, so that vote steps and
-  # the others alternate within one run and the machine's drift (a whole run up to 25% faster) falls on both.
-  local data=${1:-.gpu/synthetic} tree=${AB_TREE:-} order=(${AB_ORDER:-this other other this}) label dir folder
-  local n=0 vote_start runs=$RUNS/vote_step_ab
+stage_vote_step_ab() {  # fox|DATA
+  # A vote step's in-run cost, this tree against another ($AB_TREE) or against this tree with $AB_OTHER_ARGS:
+  # votesplat voting every 2nd step, so that vote steps and the others alternate within one run and the machine's
+  # drift (a whole run up to 25% faster) falls on both.
+  local data=$1 tree=${AB_TREE:-} other_args=${AB_OTHER_ARGS:-} order=(${AB_ORDER:-this other other this})
+  local n=0 vote_start runs=$RUNS/vote_step_ab experiment=synthetic label dir folder args
   vote_start=$(vote_start_step)
-  [ -d "$tree/votesplat_ns" ] || { log "vote-step-ab: AB_TREE='$tree' holds no votesplat_ns (another commit's files)"; return 1; }
+  if [ -n "$tree" ] && [ -n "$other_args" ]; then
+    log "vote-step-ab: give AB_TREE (another commit's files) or AB_OTHER_ARGS (this tree with other flags), not both"
+    return 1
+  fi
+  [ -n "$tree$other_args" ] || { log "vote-step-ab: nothing to compare with: set AB_TREE or AB_OTHER_ARGS"; return 1; }
+  if [ -n "$tree" ] && [ ! -d "$tree/votesplat_ns" ]; then
+    log "vote-step-ab: AB_TREE='$tree' holds no votesplat_ns (another commit's files)"
+    return 1
+  fi
+  [ "$data" = fox ] && experiment=fox
   ensure_setup || return 1
-  data=$(cd "$data" && pwd) && tree=$(cd "$tree" && pwd) || return 1
-  # its setup check finds this tree's wheelhouse (real files: the check's find does not follow a link)
-  [ -e "$tree/.whl" ] || cp -rl .whl "$tree/" 2>/dev/null || cp -r .whl "$tree/" || return 1
-  # the same launcher and timing in both trees: only the product code differs
-  cp scripts/gpu/run.sh "$tree/scripts/gpu/run.sh" && cp benchmarks/train_profile.py "$tree/benchmarks/" || return 1
+  if [ "$experiment" = synthetic ]; then data=$(cd "$data" && pwd) || return 1; fi
+  if [ -n "$tree" ]; then
+    tree=$(cd "$tree" && pwd) || return 1
+    # its setup check finds this tree's wheelhouse (real files: the check's find does not follow a link)
+    [ -e "$tree/.whl" ] || cp -rl .whl "$tree/" 2>/dev/null || cp -r .whl "$tree/" || return 1
+    # the same launcher and timing in both trees: only the product code differs
+    cp scripts/gpu/run.sh "$tree/scripts/gpu/run.sh" && cp benchmarks/train_profile.py "$tree/benchmarks/" || return 1
+    # the fox's prepared capture, as this tree has it
+    if [ "$experiment" = fox ] && [ ! -e "$tree/$FOX" ]; then
+      mkdir -p "$(dirname "$tree/$FOX")" && cp -r "$FOX" "$tree/$FOX" || return 1
+    fi
+  fi
   rm -rf "$runs" && mkdir -p "$runs"
-  warm_up_run "$runs" synthetic "$data"
+  if [ "$experiment" = fox ]; then warm_up_run "$runs" fox; else warm_up_run "$runs" synthetic "$data"; fi
   : >"$OUT/vote_step_ab.md"
   for label in "${order[@]}"; do
     n=$((n + 1))
     dir=$runs/$n-$label
     folder=$PWD
-    [ "$label" = other ] && folder=$tree
-    log "vote-step-ab: run $n of ${#order[@]}, $label tree"
+    args="$VOTESPLAT_TRAIN_ARGS --pipeline.model.vote-every-n-steps 2"
+    if [ "$label" = other ]; then
+      [ -n "$tree" ] && folder=$tree
+      args="$args $other_args"
+    fi
+    log "vote-step-ab: run $n of ${#order[@]}, $label"
     (cd "$folder" && OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=votesplat EVAL=0 EVAL_RESERVE_S=5 \
       VOTESPLAT_STEP_TIMES=walls CALL_BUDGET_S=$(($(seconds_left) / (${#order[@]} - n + 1))) \
-      VOTESPLAT_TRAIN_ARGS="$VOTESPLAT_TRAIN_ARGS --pipeline.model.vote-every-n-steps 2" \
-      bash scripts/gpu/run.sh train-synthetic "$data") >"$dir.log" 2>&1 || log "vote-step-ab: run $n did not finish"
+      VOTESPLAT_TRAIN_ARGS="$args" \
+      bash scripts/gpu/run.sh "train-$experiment" $([ "$experiment" = synthetic ] && echo "$data")) >"$dir.log" 2>&1 \
+      || log "vote-step-ab: run $n did not finish"
     rm -rf "$dir/runs" "$dir/triton"
     tar czf "$OUT/vote_step_ab.tar.gz" -C "$runs" --exclude='warm_up*' . || return 1
     for f in "$dir"/steps_*.json; do
@@ -705,10 +729,10 @@ while [ "$#" -gt 0 ]; do
       stage_train_balanced "$experiment" "$data" || rc=1 ;;
     vote-step-ab)
       data=.gpu/synthetic
-      if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
+      if [ "$#" -gt 0 ] && { [ "$1" = fox ] || [ -d "$1" ]; }; then data=$1; shift; fi
       stage_vote_step_ab "$data" || rc=1 ;;
     compare) summarize - "$@" || rc=1; shift "$#" ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], vote-step-ab [DATA], compare FILE...)" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], vote-step-ab [fox|DATA], compare FILE...)" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2
