@@ -650,7 +650,7 @@ stage_vote_step_ab() {  # fox|DATA
   # votesplat voting every 2nd step, so that vote steps and the others alternate within one run and the machine's
   # drift (a whole run up to 25% faster) falls on both.
   local data=$1 tree=${AB_TREE:-} other_args=${AB_OTHER_ARGS:-} order=(${AB_ORDER:-this other other this})
-  local n=0 vote_start runs=$RUNS/vote_step_ab experiment=synthetic label dir folder args
+  local n=0 vote_start runs=$RUNS/vote_step_ab experiment=synthetic label dir folder args train
   vote_start=$(vote_start_step)
   if [ -n "$tree" ] && [ -n "$other_args" ]; then
     log "vote-step-ab: give AB_TREE (another commit's files) or AB_OTHER_ARGS (this tree with other flags), not both"
@@ -663,7 +663,8 @@ stage_vote_step_ab() {  # fox|DATA
   fi
   [ "$data" = fox ] && experiment=fox
   ensure_setup || return 1
-  if [ "$experiment" = synthetic ]; then data=$(cd "$data" && pwd) || return 1; fi
+  train=("train-$experiment")  # the fox's stage takes no DATA
+  if [ "$experiment" = synthetic ]; then data=$(cd "$data" && pwd) && train+=("$data") || return 1; fi
   if [ -n "$tree" ]; then
     tree=$(cd "$tree" && pwd) || return 1
     # its setup check finds this tree's wheelhouse (real files: the check's find does not follow a link)
@@ -676,7 +677,7 @@ stage_vote_step_ab() {  # fox|DATA
     fi
   fi
   rm -rf "$runs" && mkdir -p "$runs"
-  if [ "$experiment" = fox ]; then warm_up_run "$runs" fox; else warm_up_run "$runs" synthetic "$data"; fi
+  warm_up_run "$runs" "$experiment" "${train[@]:1}"
   : >"$OUT/vote_step_ab.md"
   for label in "${order[@]}"; do
     n=$((n + 1))
@@ -691,7 +692,7 @@ stage_vote_step_ab() {  # fox|DATA
     (cd "$folder" && OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=votesplat EVAL=0 EVAL_RESERVE_S=5 \
       VOTESPLAT_STEP_TIMES=walls CALL_BUDGET_S=$(($(seconds_left) / (${#order[@]} - n + 1))) \
       VOTESPLAT_TRAIN_ARGS="$args" \
-      bash scripts/gpu/run.sh "train-$experiment" $([ "$experiment" = synthetic ] && echo "$data")) >"$dir.log" 2>&1 \
+      bash scripts/gpu/run.sh "${train[@]}") >"$dir.log" 2>&1 \
       || log "vote-step-ab: run $n did not finish"
     rm -rf "$dir/runs" "$dir/triton"
     tar czf "$OUT/vote_step_ab.tar.gz" -C "$runs" --exclude='warm_up*' . || return 1
