@@ -356,7 +356,7 @@ def model_step(levels: int, n: int, width: int, height: int, pixels: int):
 
     from nerfstudio.data.scene_box import SceneBox
 
-    from votesplat_ns.core.vote_maps import voting_pixels
+    from votesplat_ns.core.vote_maps import label_tensor, voting_pixels
     from votesplat_ns.ns.model import VoteSplatModelConfig
     from votesplat_ns.ns.rasterizer import project_for_votes
 
@@ -408,7 +408,7 @@ def model_step(levels: int, n: int, width: int, height: int, pixels: int):
         centroids.append(table)
     size = max(len(t) for t in centroids)
     centroids = torch.stack([torch.cat([t, torch.full((size - len(t), 2), float("nan"))]) for t in centroids])
-    labels = labels.to(torch.int16)  # the datamanager's compact ids (vote_maps.label_tensor)
+    labels = label_tensor(labels.numpy())  # the datamanager's compact ids
     batch = {"vote_labels": labels, "vote_centroids": centroids, "vote_pixels": voting_pixels(labels, centroids)}
 
     def step(seed: Optional[int] = None):

@@ -255,11 +255,15 @@ def stack_labels(label_images: Sequence[np.ndarray]) -> np.ndarray:
     if len(shapes) != 1:
         raise ValueError(f"label images of one view must share one size, got shapes {sorted(shapes)}")
     stacked = np.stack([np.asarray(im) for im in label_images])
-    max_id = int(stacked.max()) if stacked.size else 0
-    dtype = LABEL_DTYPE_COMPACT if max_id <= np.iinfo(LABEL_DTYPE_COMPACT).max else np.int32
+    return stacked.astype(_label_dtype(stacked, LABEL_DTYPE_COMPACT))
+
+
+def _label_dtype(labels: np.ndarray, compact: type) -> type:
+    """``compact`` when every id of ``labels`` fits in it, else int32 (raises past int32)."""
+    max_id = int(labels.max()) if labels.size else 0
     if max_id > np.iinfo(np.int32).max:
         raise ValueError(f"label id {max_id} does not fit in int32")
-    return stacked.astype(dtype)
+    return compact if max_id <= np.iinfo(compact).max else np.int32
 
 
 def vote_maps_from_labels(
@@ -357,11 +361,8 @@ def label_tensor(labels: np.ndarray) -> torch.Tensor:
     masks a level; SAM makes hundreds), else int32. Half of int32's bytes in the vote maps kept in memory and
     in each vote step's copy to the GPU; every reader widens the ids it looks up."""
     labels = np.asarray(labels)
-    max_id = int(labels.max()) if labels.size else 0
-    if max_id > np.iinfo(np.int32).max:
-        raise ValueError(f"label id {max_id} does not fit in int32")
-    compact = max_id <= np.iinfo(np.int16).max
-    return torch.from_numpy(np.ascontiguousarray(labels, dtype=np.int16 if compact else np.int32))
+    # int16, not the cache's uint16: torch has few ops for uint16 tensors
+    return torch.from_numpy(np.ascontiguousarray(labels, dtype=_label_dtype(labels, np.int16)))
 
 
 def voting_pixels(vote_labels: torch.Tensor, vote_centroids: torch.Tensor) -> torch.Tensor:
