@@ -1,4 +1,5 @@
-"""LeanFusedAdam (the vote groups' optimizer) against torch.optim.Adam(fused=True)."""
+"""LeanFusedAdam (every Gaussian group's optimizer) against torch.optim.Adam(fused=True), and the Gaussians'
+groups' fused step against splatfacto's multi-tensor Adam."""
 
 from __future__ import annotations
 
@@ -81,14 +82,45 @@ def test_not_plain_steps_go_through_adam_with_hooks_once(monkeypatch):
     assert len(calls) == 2 and calls[-1] is not None and hooks == ["pre", "post"] * 3
 
 
-def test_the_vote_groups_use_them():
+def test_the_gaussian_groups_use_them():
     from votesplat_ns.ns.method import splatfacto_optimizers
+    from votesplat_ns.ns.run import SPLAT_PARAM_NAMES
 
     optimizers = splatfacto_optimizers()
-    offsets = optimizers["vote_offsets"]["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 2, 3))])
-    assert type(offsets) is LeanFusedAdam and offsets.param_groups[0]["fused"]
+    for name in (*SPLAT_PARAM_NAMES, "vote_offsets"):
+        optimizer = optimizers[name]["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 2, 3))])
+        assert type(optimizer) is LeanFusedAdam and optimizer.param_groups[0]["fused"], name
     support = optimizers["vote_support"]["optimizer"].setup([torch.nn.Parameter(torch.zeros(4, 2))])
     assert type(support) is NeverStepsOptimizer
+
+
+def _steps(make, steps: int = 200):
+    """A parameter after ``steps`` Adam steps of ``make`` at splatfacto's means settings, on fixed gradients."""
+    param = torch.nn.Parameter(torch.randn(500, 3, generator=torch.Generator().manual_seed(2)))
+    optimizer = make(param)
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(steps):
+        param.grad = (torch.randn(param.shape, generator=gen) + 2.0) * 1e-3  # mostly one sign: params travel
+        optimizer.step()
+    return param.detach()
+
+
+def test_the_fused_gaussian_step_is_splatfacto_adam_up_to_rounding_and_unfused_is_it_bitwise():
+    """The Gaussians' groups take torch's fused Adam, splatfacto's multi-tensor Adam's update in other rounding;
+    ``--optimizers.<group>.optimizer.fused False`` gives splatfacto's Adam back, bit for bit."""
+    from votesplat_ns.ns.method import splatfacto_optimizers
+
+    config = splatfacto_optimizers()["means"]["optimizer"]
+    splatfacto = _steps(lambda p: torch.optim.Adam([p], lr=config.lr, eps=config.eps, foreach=True))
+    fused = _steps(lambda p: config.setup([p]))
+    moved = (splatfacto - _steps(lambda p: torch.optim.SGD([p], lr=0.0))).abs()
+    assert moved.min() > 0.01  # every coordinate travelled 60-200 lr
+    torch.testing.assert_close(fused, splatfacto, rtol=0, atol=1e-6)
+    config.fused = False
+    unfused = config.setup([torch.nn.Parameter(torch.zeros(1))])
+    assert not unfused.param_groups[0]["fused"]
+    default = _steps(lambda p: torch.optim.Adam([p], lr=config.lr, eps=config.eps))  # splatfacto's, on this device
+    assert torch.equal(_steps(lambda p: config.setup([p])), default)
 
 
 @pytest.mark.parametrize(

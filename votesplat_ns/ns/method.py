@@ -29,13 +29,14 @@ from votesplat_ns.ns.model_config import VoteSplatModelConfig
 class FusedAdamOptimizerConfig(AdamOptimizerConfig):
     """Adam as one fused kernel per step (torch's ``fused=True``, CPU and CUDA).
 
-    For the vote groups: they step on every vote step, where torch's default multi-tensor Adam costs ~10
-    launches of host time each step, and torch's fused one mostly Python around its two ops (LeanFusedAdam
-    runs those two itself)."""
+    For every Gaussian group: each steps on every training step, where torch's default multi-tensor Adam
+    costs ~10 launches of host time, and torch's fused one mostly Python around its two ops (LeanFusedAdam
+    runs those two itself). The same update as splatfacto's Adam up to float rounding; ``fused`` False
+    (``--optimizers.<group>.optimizer.fused False``) gives torch's multi-tensor Adam, splatfacto's, back."""
 
     _target: Type = LeanFusedAdam
     fused: bool = True
-    """Passed to torch.optim.Adam."""
+    """One fused Adam kernel per step; False: torch's multi-tensor Adam (splatfacto's), the same update up to rounding."""
 
 
 @dataclass
@@ -49,17 +50,19 @@ class NeverStepsOptimizerConfig(OptimizerConfig):
 
 
 def splatfacto_optimizers(max_steps: int = 30000) -> dict:
-    """splatfacto's optimizer settings (nerfstudio 1.1.5 method_configs), plus the vote groups."""
+    """splatfacto's optimizer settings (nerfstudio 1.1.5 method_configs), plus the vote groups. The Gaussians'
+    groups take their Adam step as one fused kernel (``FusedAdamOptimizerConfig``): the host time of their six
+    multi-tensor steps was a larger part of a training step than a vote step (BENCHMARKS.md, session 18)."""
     return {
         "means": {
-            "optimizer": AdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
+            "optimizer": FusedAdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps),
         },
-        "features_dc": {"optimizer": AdamOptimizerConfig(lr=0.0025, eps=1e-15), "scheduler": None},
-        "features_rest": {"optimizer": AdamOptimizerConfig(lr=0.0025 / 20, eps=1e-15), "scheduler": None},
-        "opacities": {"optimizer": AdamOptimizerConfig(lr=0.05, eps=1e-15), "scheduler": None},
-        "scales": {"optimizer": AdamOptimizerConfig(lr=0.005, eps=1e-15), "scheduler": None},
-        "quats": {"optimizer": AdamOptimizerConfig(lr=0.001, eps=1e-15), "scheduler": None},
+        "features_dc": {"optimizer": FusedAdamOptimizerConfig(lr=0.0025, eps=1e-15), "scheduler": None},
+        "features_rest": {"optimizer": FusedAdamOptimizerConfig(lr=0.0025 / 20, eps=1e-15), "scheduler": None},
+        "opacities": {"optimizer": FusedAdamOptimizerConfig(lr=0.05, eps=1e-15), "scheduler": None},
+        "scales": {"optimizer": FusedAdamOptimizerConfig(lr=0.005, eps=1e-15), "scheduler": None},
+        "quats": {"optimizer": FusedAdamOptimizerConfig(lr=0.001, eps=1e-15), "scheduler": None},
         "camera_opt": {
             "optimizer": AdamOptimizerConfig(lr=1e-4, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(
