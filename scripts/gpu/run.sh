@@ -428,7 +428,9 @@ train_one() {
   local stats=$RUNS/stats_${experiment}_${method}.json eval_json=$RUNS/eval_${experiment}_${method}.json
   local gpu_log=$RUNS/gpu_${experiment}_${method}.csv
   rm -rf "$run_dir" "$result" "$stats" "$eval_json" "$gpu_log" "$gpu_log.meta"
-  local train_limit=$(( $(seconds_left) - EVAL_RESERVE_S ))
+  local reserve=$EVAL_RESERVE_S
+  [ "${EVAL:-1}" = 1 ] || reserve=5  # without ns-eval, the training takes what would be kept for it
+  local train_limit=$(( $(seconds_left) - reserve ))
   local status=ok eval_status="not run" rc=0 wall=0
   if [ "$train_limit" -lt 30 ]; then
     status="skipped: $(seconds_left) s left of CALL_BUDGET_S=$CALL_BUDGET_S"

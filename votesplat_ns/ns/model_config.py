@@ -40,7 +40,7 @@ class VoteSplatModelConfig(SplatfactoModelConfig):
     vote_pixels_per_step: int = 4096
     """Pixels with a 2D vote sampled per vote step, shared by all levels (the loss is a mean, so a sample suffices)."""
     vote_every_n_steps: int = 4
-    """Run the vote pass every n-th step (1: every step, as the paper, about 1.07-1.10x splatfacto's time; README.md)."""
+    """Run the vote pass every n-th step (1: every step, as the paper, about splatfacto's run time; README.md)."""
     vote_transmittance: float = 0.01
     """Voting transmittance threshold: a Gaussian votes while the transmittance in front of it stays above this."""
     vote_weighting: Literal["uniform", "alpha_t"] = "uniform"
