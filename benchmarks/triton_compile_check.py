@@ -118,20 +118,19 @@ def grid_launches():
     for fp, levels, dist in itertools.product(("fp32", "fp64"), (1, 4), (0, 1, 2)):
         lp = vk._pow2(levels)
         f, i32, i64, u8 = "*" + fp, "*i32", "*i64", "*u8"
-        d = f if dist else i32  # the member depths' buffer, the members' own without a distortion
         fwd = dict(LEVELS=levels, LP=lp, DIST=dist, IN_PIXELS=dist == 1, **fused_walk)
         # vote_losses_tiled: the sampling pointers are placeholders (the tile offsets), its map ints 1 and 1.0
         # (the vote means pointer is the votes' own placeholder there)
-        tiled = [f, f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, d, f]
+        tiled = [f, f, f, f, f, f, f, f, f, u8, i32, i32, i32, i32, i32, i32, f, i64, i32, f]
         out.append(entry("_fused_fwd_kernel", tiled + ["i32"] * 9 + ["fp32"], dict(fwd, SAMPLED=False, PROJECT=1)))
         if fp == "fp32":  # vote_losses_sampled takes float32 only
             # the target and valid pointers are placeholders too (the position buffer, the draws); the vote maps
             # as training passes them (int32 voting pixels, int16 labels) and in the wide dtypes it also takes
             for voting, labels in (("*i32", "*i16"), (i64, i32)):
-                sampled = [f, f, f, f, f, f, f, f, f, i64, i64, voting, labels, f, i32, i32, f, i64, i32, d, f]
+                sampled = [f, f, f, f, f, f, f, f, f, i64, i64, voting, labels, f, i32, i32, f, i64, i32, f]
                 sampled_fwd = dict(fwd, SAMPLED=True, PROJECT=2)
                 out.append(entry("_fused_fwd_kernel", sampled + ["i32"] * 9 + ["fp32"], sampled_fwd))
-        fused_bwd = [f, f, f, f, f, f, f, i32, f, i64, i32, d, f, f, f, "i32", f, "i32", f, "fp32", "fp32", f]
+        fused_bwd = [f, f, f, f, f, f, f, i32, f, i64, i32, f, f, f, "i32", f, "i32", f, "fp32", "fp32", f]
         for flags, support in (
             # vote_losses_tiled: no support count (its counts and stamps are the denominator's placeholder)
             (dict(HAS_VOTE=True, HAS_DIST=dist != 0, HAS_TOTAL=False, PROJECT=1, COUNT_SUPPORT=False), [f, f]),
@@ -143,8 +142,9 @@ def grid_launches():
         for alpha_t, d1 in itertools.product((False, True), (3, 4)):
             rows = fused_walk if dist else walk  # rows of member_slots with a distortion (none without)
             c = dict(LEVELS=levels, LP=lp, D1=d1, LDP=vk._pow2(levels * d1), ALPHA_T=alpha_t, DIST=dist, **rows)
-            out.append(entry("_vote_fwd_kernel", [f, f, f, i64, i64, i32, f, i32, i64, f, f, f, f, f, "i32"], c))
-            bwd = [f, f, f, i64, i64, i32, f, i32, f, f, f, f, f, f, f, "i32"]
+            # the member ids' row (int32), or the count's as its placeholder without a distortion
+            out.append(entry("_vote_fwd_kernel", [f, f, f, i64, i64, i32, f, i32, i64, f, f, f, f, i32, "i32"], c))
+            bwd = [f, f, f, i64, i64, i32, f, i32, f, f, f, f, f, f, i32, "i32"]
             out.append(entry("_vote_bwd_kernel", bwd, dict(c, GEOMETRY_GRAD=alpha_t)))
     out.append(
         entry(

@@ -206,7 +206,7 @@ def test_kernel_float32(kernel_scene, device):
 
 
 # ---------------------------------------------------------------------------
-# The distortion over the compacted member depths, and past their capacity
+# The distortion over the compacted members, and past their capacity
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -217,8 +217,8 @@ def test_kernel_float32(kernel_scene, device):
     ids=["compacted-several-pair-tiles", "more-members-than-cap", "rows-of-member-slots"],
 )
 def test_kernel_distortion_compacted_and_past_cap(device, distortion, cap, pair_block, monkeypatch):
-    """The spread and its gradient from the members' compacted depths, summed over several tiles of
-    pairs; and the exact slow path of pixels with more members than the scratch row holds."""
+    """The spread and its gradient over the compacted members (their depths computed from their ids), summed over
+    several tiles of pairs; and the exact slow path of pixels with more members than the scratch row holds."""
     set_block(monkeypatch, 16)
     if cap is not None:  # rows of cap slots, not as many as a voting set can have (vote_kernel.member_slots)
         monkeypatch.setattr(vote_kernel, "CAP", cap)

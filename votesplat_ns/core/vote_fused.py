@@ -12,11 +12,11 @@ kernels. Here everything per pixel happens in the kernels:
 
 * forward, one program per pixel: the pixel's tile run from ``pixel_xy`` and ``isect_offsets``
   (positions outside the tile grid have an empty run); the walk, summing the members' votes of
-  every level and their camera depths (from ``viewmat``); the members' ids (and, with a
-  distortion, their depths) to a compacted per-pixel scratch row of ``vote_kernel.member_slots`` slots; the
-  mean vote, its projection with ``K``, the L1 distance to the target where ``valid``, the
-  distortion (over the compacted depths; pixels with more members than the row holds take the
-  exact slow path of the vote kernels) and its scaling; per pixel and level it writes the loss
+  every level and their camera depths (from ``viewmat``); the members' ids to a compacted per-pixel
+  scratch row of ``vote_kernel.member_slots`` slots; the mean vote, its projection with ``K``, the L1
+  distance to the target where ``valid``, the distortion (over the compacted members, their depths
+  computed again from the ids as the walk computed them; pixels with more members than the row holds
+  take the exact slow path of the vote kernels) and its scaling; per pixel and level it writes the loss
   terms and the gradient of each term with respect to the mean vote and to a member depth.
 * a one-program reduction: the per-level means over the used pixels (valid and |M| > 0), in a
   fixed order (no atomics: the losses are deterministic).
@@ -430,9 +430,8 @@ def _fused_losses(
     # the sampling inputs, or placeholders (never read) and zeros when the pixels are given
     sampling, map_geometry = sampled if sampled is not None else ((offsets,) * 4, (1, 1, 1, 1.0))
     config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel(), map_geometry)
-    # a slot holds a member id (int32) and, with a distortion, a depth per level
-    slot_bytes = 4 + (levels * votes.element_size() if dist else 0)
-    slots = vote_kernel.member_slots(options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p, slot_bytes)
+    # a slot holds a member id (int32); the distortion computes the members' depths again from it
+    slots = vote_kernel.member_slots(options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p, 4)
     votes = votes.reshape(n, levels, 3).contiguous()
     inputs = (
         votes,
@@ -465,27 +464,26 @@ def _fused_losses(
 
 # The walk's scratch rows of the last call that ran its backward at once (``accumulate_grad``), kept for the next
 # such call of the same shapes: that backward ran in the same call, and the next call's kernels come after it on
-# the stream, so nothing reads the rows once they are written again. Four allocations less in a training step.
-_KEPT_SCRATCH: Dict[Tuple, Tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+# the stream, so nothing reads the rows once they are written again. Three allocations less in a training step.
+_KEPT_SCRATCH: Dict[Tuple, Tuple[Tensor, Tensor, Tensor]] = {}
 
 
 def _walk_scratch(
-    p: int, cap: int, levels: int, dist: int, dtype: torch.dtype, device: torch.device, keep: bool
-) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(walk, members, depths, terms): the forward's scratch rows, kept from the last call with ``keep``."""
-    key = (p, cap, levels, dist, dtype, device, torch.cuda.current_stream(device) if device.type == "cuda" else None)
+    p: int, cap: int, levels: int, dtype: torch.dtype, device: torch.device, keep: bool
+) -> Tuple[Tensor, Tensor, Tensor]:
+    """(walk, members, terms): the forward's scratch rows, kept from the last call with ``keep``."""
+    key = (p, cap, levels, dtype, device, torch.cuda.current_stream(device) if device.type == "cuda" else None)
     if keep and key in _KEPT_SCRATCH:
         return _KEPT_SCRATCH[key]
     walk = torch.empty(3, p, dtype=torch.int64, device=device)  # |M|, run start, last member's position
     members = torch.empty(p, cap, dtype=torch.int32, device=device)
-    depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else members
     # per pixel and level: loss terms (vote L1, distortion, used) and the backward's coefficients
     # (d vote-L1 / d member vote [3], d distortion / d member depth factor, mean member depth)
     terms = torch.empty(p, 8, levels, dtype=dtype, device=device)
     if keep:
         _KEPT_SCRATCH.clear()  # one shape at a time: a training run keeps its pixel count
-        _KEPT_SCRATCH[key] = (walk, members, depths, terms)
-    return walk, members, depths, terms
+        _KEPT_SCRATCH[key] = (walk, members, terms)
+    return walk, members, terms
 
 
 def _fused_forward(
@@ -500,7 +498,7 @@ def _fused_forward(
     levels, dist, in_pixels, tiles_wide, tiles_high, tile_size, n_isects, map_geometry = config
     map_pixels, map_width, cent_rows, pix_scale = map_geometry
     p, device, dtype = pixel_xy.shape[0], votes.device, votes.dtype
-    walk, members, depths, terms = _walk_scratch(p, cap, levels, dist, dtype, device, keep_scratch)
+    walk, members, terms = _walk_scratch(p, cap, levels, dtype, device, keep_scratch)
     vote = torch.empty(levels, dtype=dtype, device=device)
     distortion = torch.empty(levels, dtype=dtype, device=device)
     denominator = torch.empty(levels, dtype=dtype, device=device)
@@ -527,7 +525,6 @@ def _fused_forward(
             consts,
             walk,
             members,
-            depths,
             terms,
             p,
             n_isects,
@@ -565,7 +562,7 @@ def _fused_forward(
             num_warps=4,
         )
     # in the order of the backward kernel's leading arguments
-    saved = (*scene, pixel_xy, ids, consts, walk, members, depths, terms, denominator)
+    saved = (*scene, pixel_xy, ids, consts, walk, members, terms, denominator)
     return (vote, distortion, total, weighted), saved
 
 
@@ -573,7 +570,7 @@ def _fused_backward(saved, modes, grads: Tuple[Optional[Tensor], Optional[Tensor
     """The backward launch: (d loss / d votes [N, L, 3], d loss / d means [N, 3] when ``means_grad``) for the
     gradients ``grads`` = (of vote, of distortion, of total; None where none arrives); the support counted."""
     g_vote, g_distortion, g_total = grads
-    votes, pixel_xy, denominator = saved[3], saved[6], saved[13]
+    votes, pixel_xy, denominator = saved[3], saved[6], saved[12]
     config, cap, _sampled, split, (w_vote, w_dist), support = modes
     levels, dist = config[0], config[1]
     n_isects = config[6]
@@ -689,7 +686,6 @@ if triton is not None:
         consts_ptr,
         walk_ptr,
         members_ptr,
-        depths_ptr,
         terms_ptr,
         n_pixels,
         n_isects,
@@ -758,7 +754,6 @@ if triton is not None:
         geo = (means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss)
         zsrc = (votes_ptr, r20, r21, r22, t2, vote_means_ptr)
         member_row = members_ptr + pid * CAP
-        depth_row = depths_ptr + pid * (LEVELS * CAP)
 
         t = px * 0.0 + 1.0
         count = tl.sum(lane * 0, axis=0).to(tl.int32)
@@ -778,7 +773,7 @@ if triton is not None:
             sy += tl.sum(y, axis=0)
             sz += tl.sum(z, axis=0)
             zacc += tl.sum(depth, axis=0)
-            slot, count = _compact(depth_row, depth, member, count, lvl, LEVELS, CAP, DIST)
+            slot, count = _compact(member, count)
             tl.store(member_row + slot, gid.to(tl.int32), mask=member & (slot < CAP))
 
         n_members = tl.maximum(count, 1).to(px.dtype)
@@ -838,7 +833,7 @@ if triton is not None:
         if DIST != 0:
             runs = (geo, pix, zsrc, start, last + 1)
             spread = _member_spread(
-                depth_row, count, mean_z, runs, lvl, LEVELS, False, PROJECT, 3, DIST, BLOCK, CAP, PB
+                member_row, count, mean_z, runs, lvl, LEVELS, False, PROJECT, 3, DIST, BLOCK, CAP, PB
             )
             if DIST == 1:
                 distortion = spread
@@ -924,7 +919,6 @@ if triton is not None:
         consts_ptr,
         walk_ptr,
         members_ptr,
-        depths_ptr,
         terms_ptr,
         den_ptr,
         g_vote_ptr,
@@ -993,24 +987,22 @@ if triton is not None:
             r21 = tl.load(view_ptr + 9)
             r22 = tl.load(view_ptr + 10)
             t2 = tl.load(view_ptr + 11)
-            depth_row = depths_ptr + pid * (LEVELS * CAP)
+            zsrc = (votes_ptr, r20, r21, r22, t2, vote_means_ptr)
             if count <= CAP:
+                member_row = members_ptr + pid * CAP
                 r = tl.arange(0, PB)
                 for i0 in range(0, count, PB):
                     ri = i0 + r
                     ok = ri < count
-                    gid = tl.load(members_ptr + pid * CAP + ri, mask=ok, other=0).to(tl.int64)
+                    gid = tl.load(member_row + ri, mask=ok, other=0).to(tl.int64)
                     s = tl.zeros([PB, LP], dtype=denominator.dtype)
                     if DIST != 0 and (HAS_DIST or HAS_TOTAL):
+                        # the members' depths as the walk computed them (the same bits)
+                        z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, 3, gid, ok, lvl, LEVELS)
                         if DIST == 1:
-                            s = _compact_signs(depth_row + ri, ok, depth_row, count, lvl, LEVELS, CAP, CAP, PB)
+                            s = _compact_signs(z_i, member_row, count, zsrc, lvl, LEVELS, PROJECT, 3, PB)
                         if DIST == 2:
-                            z = tl.load(
-                                depth_row + lvl[None, :] * CAP + ri[:, None],
-                                mask=ok[:, None] & lvl_ok[None, :],
-                                other=0.0,
-                            )
-                            s = z - mean_z[None, :]
+                            s = z_i - mean_z[None, :]
                     _scatter_vote_grads(
                         g_votes_ptr, gid, ok, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
                     )
@@ -1020,7 +1012,6 @@ if triton is not None:
                 # more than CAP members: walk [start, last] again; its visible entries are the members
                 _pid, pix, _walk = _program_pixel(pix_ptr, consts_ptr)
                 geo = (means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss)
-                zsrc = (votes_ptr, r20, r21, r22, t2, vote_means_ptr)
                 start = tl.load(walk_ptr + n_pixels + pid)
                 stop = tl.load(walk_ptr + 2 * n_pixels + pid) + 1
                 runs = (geo, pix, zsrc, start, stop)

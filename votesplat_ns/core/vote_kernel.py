@@ -16,19 +16,21 @@ What a kernel program does (one program per sampled pixel):
   transmittance is at or below both the voting threshold and the colour stop, or the run
   ends. It sums, over the voting set M, the weights, the weighted table rows of every
   level, and the member depths; it records |M| and the run position of the last member.
-  With a distortion, the walk also writes each member's depths, compacted (slot = rank in
+  With a distortion, the walk also writes each member's id, compacted (slot = rank in
   M), to a per-pixel scratch row of ``member_slots`` slots (as many as a voting set can have members,
   unless that would take too much memory: then ``CAP``); the depth spread, sum_{i<j} |z_i - z_j|
   ("l1", "l1_pixels") or sum_i (z_i - mean)^2 ("squared"), is then summed over those
-  slots only, in [PAIR_BLOCK, PAIR_BLOCK] tiles of contiguous loads: |M| ~ 30-70 members
-  instead of the pairs of every run entry up to the last member (most of which are not
-  members) with their geometry gathered again for each pair of blocks. A pixel with more
+  slots only, in [PAIR_BLOCK, PAIR_BLOCK] tiles, the depths computed again from the ids
+  (``_entry_depths``, the walk's own computation, so the same bits; a row of depths per level
+  would take levels x the memory of the id row): |M| ~ 30-70 members instead of the pairs of
+  every run entry up to the last member (most of which are not members) with their geometry
+  gathered again for each pair of blocks. A pixel with more
   members than its row holds takes that exact slow path: every visible entry up to the last member
   is a member (the transmittance only falls), so pairs of run blocks with the visibility
   recomputed give the same sums.
 * backward: re-walks [run start, last member] and scatters, with atomic adds, the gradient
   of every member's table row (weight x row gradient, plus the depth term: sum_j
-  sign(z_i - z_j) over the members' compacted depths, or 2 (z_i - mean); with ties in z the
+  sign(z_i - z_j) over the compacted members' depths, or 2 (z_i - mean); with ties in z the
   sign sum gives each tied member the same subgradient, where the torch path's sort splits
   the tie unevenly: the sums over a tie agree) and, for alpha*T weights with geometry gradients, of
   its means2d, conic and opacity: a second walk, back to front as gsplat's backward, carries
@@ -79,7 +81,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 # The gradient scatters use relaxed atomics: only the sums matter, no ordering between programs.
 BLOCK = 32
 NUM_WARPS = 2
-# Member depths kept per pixel (compacted) for the distortion, and the side of the tiles their pairs are
+# Member ids kept per pixel (compacted) for the distortion, and the side of the tiles their depths' pairs are
 # summed in. |M| is ~35 on average and ~70 at most on the benchmark scenes; a pixel with more members is
 # exact too, on a slower path (module docstring).
 CAP = 128
@@ -162,8 +164,8 @@ def vote_sums(
     dtype = vote_table.dtype
     consts = _constants((threshold, alpha_max, open_above, alpha_min, colour_stop), dtype, vote_table.device)
     dist = _DIST_MODES[distortion]
-    # rows of a depth per level and slot, only with a distortion
-    slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0], levels * vote_table.element_size())
+    # rows of a member id (int32) per slot, only with a distortion
+    slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0], 4)
     config = (levels, width, bool(alpha_t), dist, slots if dist else CAP)
     count, weight_sum, value_sum, depth_sum, spread = _VoteSums.apply(
         geometry.contiguous(),
@@ -226,8 +228,8 @@ class _VoteSums(torch.autograd.Function):
         value_sum = torch.empty(p, levels * width, dtype=dtype, device=device)
         depth_sum = torch.empty(p, levels, dtype=dtype, device=device)
         spread = torch.empty(p, levels, dtype=dtype, device=device)
-        # member depths, compacted: [P, L, cap] (a dummy pointer without a distortion)
-        depths = torch.empty(p, levels, cap, dtype=dtype, device=device) if dist else spread
+        # member ids, compacted: [P, cap] (a dummy pointer without a distortion)
+        members = torch.empty(p, cap, dtype=torch.int32, device=device) if dist else count
         if p > 0:
             with _on(device):
                 _launch(
@@ -246,7 +248,7 @@ class _VoteSums(torch.autograd.Function):
                     value_sum,
                     depth_sum,
                     spread,
-                    depths,
+                    members,
                     geometry.shape[0],
                     LEVELS=levels,
                     LP=_pow2(levels),
@@ -256,14 +258,16 @@ class _VoteSums(torch.autograd.Function):
                     DIST=dist,
                     **_walk_options(cap),
                 )
-        ctx.save_for_backward(geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths)
+        ctx.save_for_backward(
+            geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, members
+        )
         ctx.config = config
         ctx.mark_non_differentiable(count, depth_sum)
         return count, weight_sum, value_sum, depth_sum, spread
 
     @staticmethod
     def backward(ctx, _g_count, g_weight_sum, g_value_sum, _g_depth_sum, g_spread):
-        geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, depths = ctx.saved_tensors
+        geometry, table, pixel_xy, run_start, flatten_ids, consts, count, last, depth_sum, members = ctx.saved_tensors
         levels, width, alpha_t, dist, cap = ctx.config
         p = pixel_xy.shape[0]
         geometry_grad = alpha_t and ctx.needs_input_grad[0]
@@ -296,7 +300,7 @@ class _VoteSums(torch.autograd.Function):
                 g_spread,
                 g_table,
                 g_geometry,
-                depths,
+                members,
                 geometry.shape[0],
                 LEVELS=levels,
                 LP=_pow2(levels),
@@ -433,19 +437,16 @@ if triton is not None:
         return tl.where(x > 0.0, 1.0, tl.where(x < 0.0, -1.0, 0.0))
 
     @triton.jit
-    def _compact(depth_row_ptr, depth, member, count, lvl, LEVELS: tl.constexpr, CAP: tl.constexpr, DIST: tl.constexpr):
+    def _compact(member, count):
         """Slots ``count`` (|M| before the block) + rank in the block of one walk block's members in the pixel's
-        scratch rows, and |M| after the block; with a distortion, writes their depths [BLOCK, LP] to the
-        [LEVELS, CAP] depth row (members past CAP are dropped: the caller knows from |M|)."""
+        scratch row, and |M| after the block. The caller stores the members' ids at their slots below CAP (those
+        past it are dropped: the readers know from |M|); their depths are computed again from the ids."""
         slot = count + tl.cumsum(member.to(tl.int32), axis=0) - 1
-        if DIST != 0:
-            at = depth_row_ptr + lvl[None, :] * CAP + slot[:, None]
-            tl.store(at, depth, mask=(member & (slot < CAP))[:, None] & (lvl < LEVELS)[None, :])
         return slot, count + tl.sum(member.to(tl.int32), axis=0)
 
     @triton.jit
     def _member_spread(
-        depth_row_ptr,
+        member_row_ptr,
         m,
         mean,
         runs,
@@ -460,14 +461,16 @@ if triton is not None:
         PB: tl.constexpr,
     ):
         """[LP] spread of the m members' depths of each level: sum_{i<j} |z_i - z_j| (DIST 1) or
-        sum_i (z_i - mean)^2 (DIST 2), 0 without a distortion. Up to CAP members: over the compacted depth row
-        (``_compact``), in [PB, PB] tiles of contiguous loads. Past CAP: M is the visible entries of the run
-        [start, last member] (the transmittance only falls), by pairs of run blocks; ``runs`` = (geo, pix,
-        zsrc, start, stop) for ``_entry_alpha`` / ``_entry_depths``."""
+        sum_i (z_i - mean)^2 (DIST 2), 0 without a distortion. ``runs`` = (geo, pix, zsrc, start, stop) for
+        ``_entry_alpha`` / ``_entry_depths``. Up to CAP members: over the compacted member row (``_compact``), in
+        [PB, PB] tiles, the depths computed from the ids as the walk computed them (``_entry_depths``: the same
+        bits). Past CAP: M is the visible entries of the run [start, last member] (the transmittance only falls),
+        by pairs of run blocks."""
         spread = tl.zeros([lvl.shape[0]], dtype=mean.dtype)
         lvl_ok = lvl < LEVELS
         if DIST != 0:
-            # the members' depths were written by other threads of this program
+            geo, pix, zsrc, start, stop = runs
+            # the members' ids were written by other threads of this program
             tl.debug_barrier()
             if m <= CAP:
                 spread = mean * 0.0
@@ -475,25 +478,27 @@ if triton is not None:
                 for i0 in range(0, m, PB):
                     ri = i0 + r
                     ok_i = ri < m
+                    gid_i = tl.load(member_row_ptr + ri, mask=ok_i, other=0).to(tl.int64)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_i, ok_i, lvl, LEVELS)
                     if DIST == 2:
-                        at = depth_row_ptr + lvl[None, :] * CAP + ri[:, None]
-                        z = tl.load(at, mask=ok_i[:, None] & lvl_ok[None, :], other=0.0)
-                        deviation = tl.where(ok_i[:, None] & lvl_ok[None, :], z - mean[None, :], 0.0)
+                        deviation = tl.where(ok_i[:, None] & lvl_ok[None, :], z_i - mean[None, :], 0.0)
                         spread += tl.sum(deviation * deviation, axis=0)
                     if DIST == 1:
-                        for level in range(LEVELS):
-                            z_i = tl.load(depth_row_ptr + level * CAP + ri, mask=ok_i, other=0.0)
-                            total = tl.sum(z_i * 0.0, axis=0)
-                            for j0 in range(i0, m, PB):
-                                rj = j0 + r
-                                ok_j = rj < m
-                                z_j = tl.load(depth_row_ptr + level * CAP + rj, mask=ok_j, other=0.0)
-                                pair = ok_j[None, :] & (ri[:, None] < rj[None, :])
-                                gap = tl.where(pair, tl.abs(z_i[:, None] - z_j[None, :]), 0.0)
-                                total += tl.sum(tl.sum(gap, axis=1), axis=0)
-                            spread += tl.where(lvl == level, total, 0.0)
+                        # per level, the sum over the j tiles in order, then added to the spread
+                        totals = mean * 0.0
+                        for j0 in range(i0, m, PB):
+                            rj = j0 + r
+                            ok_j = rj < m
+                            gid_j = tl.load(member_row_ptr + rj, mask=ok_j, other=0).to(tl.int64)
+                            z_j, _x2, _y2, _z2 = _entry_depths(zsrc, PROJECT, D1, gid_j, ok_j, lvl, LEVELS)
+                            pair = ok_j[None, :] & (ri[:, None] < rj[None, :])
+                            for level in range(LEVELS):
+                                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
+                                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
+                                gap = tl.where(pair, tl.abs(zi[:, None] - zj[None, :]), 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                                totals += tl.where(lvl == level, tl.sum(tl.sum(gap, axis=1), axis=0), 0.0)
+                        spread += totals
             else:
-                geo, pix, zsrc, start, stop = runs
                 lane = tl.arange(0, BLOCK).to(tl.int64)
                 for p0 in range(start, stop, BLOCK):
                     offs_i = p0 + lane
@@ -520,29 +525,33 @@ if triton is not None:
 
     @triton.jit
     def _compact_signs(
-        z_ptrs,
-        ok_i,
-        depth_row_ptr,
+        z_i,
+        member_row_ptr,
         m,
+        zsrc,
         lvl,
         LEVELS: tl.constexpr,
-        Z_STRIDE: tl.constexpr,
-        CAP: tl.constexpr,
+        PROJECT: tl.constexpr,
+        D1: tl.constexpr,
         PB: tl.constexpr,
     ):
-        """[B, LP]: sum_j sign(z_i - z_j) over the m (<= CAP) compacted member depths, for the entries whose
-        level-l depth is at ``z_ptrs + l * Z_STRIDE`` (``ok_i``: the entries to compute)."""
-        signs = tl.zeros([z_ptrs.shape[0], lvl.shape[0]], dtype=depth_row_ptr.dtype.element_ty)
+        """[B, LP]: sum_j sign(z_i - z_j) over the m (<= CAP) compacted members, for entries of depths ``z_i``
+        [B, LP]; the members' depths computed from their ids in the member row as the walk computed them
+        (``_entry_depths`` on ``zsrc``: the same bits, so a member's sign against itself is 0). Rows of entries
+        that are not members get a sum too: the callers' scatters mask them."""
+        signs = tl.zeros([z_i.shape[0], lvl.shape[0]], dtype=z_i.dtype)
         r = tl.arange(0, PB)
-        for level in range(LEVELS):
-            z_i = tl.load(z_ptrs + level * Z_STRIDE, mask=ok_i, other=0.0)
-            total = tl.sum(signs, axis=1) * 0.0
-            for j0 in range(0, m, PB):
-                rj = j0 + r
-                ok_j = rj < m
-                z_j = tl.load(depth_row_ptr + level * CAP + rj, mask=ok_j, other=0.0)
-                total += tl.sum(tl.where(ok_j[None, :], _sign(z_i[:, None] - z_j[None, :]), 0.0), axis=1)
-            signs += tl.where(lvl[None, :] == level, total[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+        for j0 in range(0, m, PB):
+            rj = j0 + r
+            ok_j = rj < m
+            gid_j = tl.load(member_row_ptr + rj, mask=ok_j, other=0).to(tl.int64)
+            z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_j, ok_j, lvl, LEVELS)
+            for level in range(LEVELS):
+                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
+                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
+                sign = _sign(zi[:, None] - zj[None, :])  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+                sign = tl.where(ok_j[None, :], sign, 0.0)
+                signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
         return signs
 
     @triton.jit
@@ -595,7 +604,7 @@ if triton is not None:
         vsum_ptr,
         zsum_ptr,
         spread_ptr,
-        depths_ptr,
+        members_ptr,
         n_gauss,
         LEVELS: tl.constexpr,
         LP: tl.constexpr,
@@ -618,7 +627,7 @@ if triton is not None:
         col_ok = cols < LD1
         lvl = tl.arange(0, LP)
         lvl_ok = lvl < LEVELS
-        depth_row = depths_ptr + pid * (LEVELS * CAP)
+        member_row = members_ptr + pid * CAP
 
         one = px * 0.0 + 1.0
         t = one
@@ -644,11 +653,13 @@ if triton is not None:
             vacc += tl.sum(w[:, None] * rows, axis=0)
             depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, member, lvl, LEVELS)
             zacc += tl.sum(depth, axis=0)
-            _slot, count = _compact(depth_row, depth, member, count, lvl, LEVELS, CAP, DIST)
+            slot, count = _compact(member, count)
+            if DIST != 0:
+                tl.store(member_row + slot, gid.to(tl.int32), mask=member & (slot < CAP))
 
         mean = zacc / tl.maximum(count, 1).to(px.dtype)
         runs = (geo, pix, (table_ptr,), start, last + 1)
-        spread = _member_spread(depth_row, count, mean, runs, lvl, LEVELS, True, False, D1, DIST, BLOCK, CAP, PB)
+        spread = _member_spread(member_row, count, mean, runs, lvl, LEVELS, True, False, D1, DIST, BLOCK, CAP, PB)
         tl.store(count_ptr + pid, count)
         tl.store(last_ptr + pid, last)
         tl.store(wsum_ptr + pid, wsum)
@@ -672,7 +683,7 @@ if triton is not None:
         g_spread_ptr,
         g_table_ptr,
         g_geom_ptr,
-        depths_ptr,
+        members_ptr,
         n_gauss,
         LEVELS: tl.constexpr,
         LP: tl.constexpr,
@@ -730,12 +741,11 @@ if triton is not None:
                 g_depth = 2.0 * (depth - mean[None, :]) * g_spread[None, :]
                 tl.atomic_add(g_table_ptr + depth_ptrs, g_depth, mask=depth_mask, sem="relaxed")
             if DIST == 1:
+                depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, visible, lvl, LEVELS)
                 if count <= CAP:
-                    depth_row = depths_ptr + pid * (LEVELS * CAP)
-                    z_ptrs = table_ptr + gid * LD1 + (D1 - 1)
-                    signs = _compact_signs(z_ptrs, visible, depth_row, count, lvl, LEVELS, D1, CAP, PB)
+                    member_row = members_ptr + pid * CAP
+                    signs = _compact_signs(depth, member_row, count, (table_ptr,), lvl, LEVELS, False, D1, PB)
                 else:
-                    depth, _x, _y, _z = _entry_depths((table_ptr,), False, D1, gid, visible, lvl, LEVELS)
                     signs = _run_signs(depth, runs, lvl, LEVELS, True, False, D1, BLOCK)
                 tl.atomic_add(g_table_ptr + depth_ptrs, signs * g_spread[None, :], mask=depth_mask, sem="relaxed")
             if ALPHA_T:
