@@ -112,7 +112,7 @@ def grid_launches():
         return {"kernel": kernel, "args": args, "constexprs": constexprs, "options": {"num_warps": vk.NUM_WARPS}}
 
     walk = dict(BLOCK=32, CAP=128, PB=32)
-    slots = vk.member_slots(VoteRenderOptions().vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, 1, 1)
+    slots = vk.member_slots(VoteRenderOptions().vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, 1)
     fused_walk = dict(walk, CAP=slots)
     out = []
     for fp, levels, dist in itertools.product(("fp32", "fp64"), (1, 4), (0, 1, 2)):

@@ -175,10 +175,10 @@ def test_member_bound_holds_the_deepest_voting_set():
         count = int(call(render_votes_reference, scene, pixel, VoteRenderOptions(vote_transmittance=threshold)).count)
         bound = vote_kernel.member_bound(threshold, ALPHA_MIN, COLOUR_STOP_T)
         assert bound - 3 <= count <= bound
-        slots = vote_kernel.member_slots(threshold, ALPHA_MIN, COLOUR_STOP_T, 4096, 4 * 5)
+        slots = vote_kernel.member_slots(threshold, ALPHA_MIN, COLOUR_STOP_T, 4096)
         assert slots >= bound and slots % vote_kernel.PAIR_BLOCK == 0
     # rows that would take more than MEMBER_SLOT_BYTES keep vote_kernel.CAP slots
-    assert vote_kernel.member_slots(0.01, ALPHA_MIN, COLOUR_STOP_T, 10**6, 4 * 3) == vote_kernel.CAP
+    assert vote_kernel.member_slots(0.01, ALPHA_MIN, COLOUR_STOP_T, 10**6) == vote_kernel.CAP
 
 
 @pytest.mark.parametrize("device", DEVICES)

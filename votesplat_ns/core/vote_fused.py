@@ -430,8 +430,7 @@ def _fused_losses(
     # the sampling inputs, or placeholders (never read) and zeros when the pixels are given
     sampling, map_geometry = sampled if sampled is not None else ((offsets,) * 4, (1, 1, 1, 1.0))
     config = (levels, dist, in_pixels, tiles_wide, tiles_high, int(tile_size), flatten_ids.numel(), map_geometry)
-    # a slot holds a member id (int32); the distortion computes the members' depths again from it
-    slots = vote_kernel.member_slots(options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p, 4)
+    slots = vote_kernel.member_slots(options.vote_transmittance, ALPHA_MIN, COLOUR_STOP_T, p)
     votes = votes.reshape(n, levels, 3).contiguous()
     inputs = (
         votes,

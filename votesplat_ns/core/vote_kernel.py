@@ -106,12 +106,12 @@ def member_bound(threshold: float, alpha_min: float, colour_stop: float) -> int:
     return int(math.log(floor) / math.log1p(-float(alpha_min))) + 2
 
 
-def member_slots(threshold: float, alpha_min: float, colour_stop: float, pixels: int, bytes_per_slot: int) -> int:
-    """Slots per pixel of a walk's scratch rows: ``member_bound`` rounded up to a whole number of pair tiles, so
-    that no voting set takes the slow path, unless ``pixels`` rows of ``bytes_per_slot`` a slot would take more than
-    MEMBER_SLOT_BYTES; then CAP."""
+def member_slots(threshold: float, alpha_min: float, colour_stop: float, pixels: int) -> int:
+    """Slots per pixel of a walk's scratch rows (a slot holds a member's int32 id: the distortion computes the
+    members' depths again from the ids): ``member_bound`` rounded up to a whole number of pair tiles, so that no
+    voting set takes the slow path, unless ``pixels`` such rows would take more than MEMBER_SLOT_BYTES; then CAP."""
     slots = -(-member_bound(threshold, alpha_min, colour_stop) // PAIR_BLOCK) * PAIR_BLOCK
-    return CAP if pixels * slots * bytes_per_slot > MEMBER_SLOT_BYTES else slots
+    return CAP if pixels * slots * 4 > MEMBER_SLOT_BYTES else slots
 
 
 def interpreter_enabled() -> bool:
@@ -164,8 +164,8 @@ def vote_sums(
     dtype = vote_table.dtype
     consts = _constants((threshold, alpha_max, open_above, alpha_min, colour_stop), dtype, vote_table.device)
     dist = _DIST_MODES[distortion]
-    # rows of a member id (int32) per slot, only with a distortion
-    slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0], 4)
+    # rows of member ids, only with a distortion
+    slots = member_slots(threshold, alpha_min, colour_stop, pixel_xy.shape[0])
     config = (levels, width, bool(alpha_t), dist, slots if dist else CAP)
     count, weight_sum, value_sum, depth_sum, spread = _VoteSums.apply(
         geometry.contiguous(),
@@ -524,6 +524,18 @@ if triton is not None:
         return spread
 
     @triton.jit
+    def _add_tile_signs(signs, z_i, z_j, ok_j, lvl, LEVELS: tl.constexpr):
+        """``signs`` [B, LP] plus, per level, sum_j sign(z_i - z_j) over one tile's entries j where ``ok_j`` (z_i
+        [B, LP], z_j [B2, LP]): each level's column taken out as a row, its [B, B2] sign tile summed over j."""
+        for level in range(LEVELS):
+            zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
+            zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
+            sign = _sign(zi[:, None] - zj[None, :])  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+            sign = tl.where(ok_j[None, :], sign, 0.0)
+            signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+        return signs
+
+    @triton.jit
     def _compact_signs(
         z_i,
         member_row_ptr,
@@ -546,12 +558,7 @@ if triton is not None:
             ok_j = rj < m
             gid_j = tl.load(member_row_ptr + rj, mask=ok_j, other=0).to(tl.int64)
             z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_j, ok_j, lvl, LEVELS)
-            for level in range(LEVELS):
-                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
-                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
-                sign = _sign(zi[:, None] - zj[None, :])  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
-                sign = tl.where(ok_j[None, :], sign, 0.0)
-                signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+            signs = _add_tile_signs(signs, z_i, z_j, ok_j, lvl, LEVELS)
         return signs
 
     @triton.jit
@@ -579,12 +586,7 @@ if triton is not None:
             offs_j = q0 + lane
             gid_j, _a, vis_j, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, PACKED, offs_j, stop, pix)
             z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_j, vis_j, lvl, LEVELS)
-            for level in range(LEVELS):
-                zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
-                zj = tl.sum(tl.where(lvl[None, :] == level, z_j, 0.0), axis=1)
-                sign = _sign(zi[:, None] - zj[None, :])  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
-                sign = tl.where(vis_j[None, :], sign, 0.0)
-                signs += tl.where(lvl[None, :] == level, tl.sum(sign, axis=1)[:, None], 0.0)  # pyright: ignore[reportArgumentType]  (triton tensor indexing)
+            signs = _add_tile_signs(signs, z_i, z_j, vis_j, lvl, LEVELS)
         return signs
 
     # n_gauss changes as the scene densifies and only clamps ids: not specialised on (Triton would compile a
