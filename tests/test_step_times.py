@@ -140,3 +140,39 @@ def test_vote_step_cost_can_leave_out_the_refinement_steps():
     assert "difference mean +2.76 / median +2.00 ms" in with_them
     assert "198 vote steps" in with_them and "195 vote steps" in without and "195 others" in without
     assert "difference mean +2.00 / median +2.00 ms" in without
+
+
+def test_psnr_over_seeds_takes_each_training_against_its_groups_first_and_leaves_out_unfinished_pairs(tmp_path, capsys):
+    """benchmarks/psnr_seeds.py over train_side_by_side.sh's group folders: differences per group, their mean and
+    standard error over the groups where both trainings trained and evaluated."""
+    psnr_seeds = load_benchmark("psnr_seeds.py", "psnr_seeds_under_test")
+
+    def group(index: int, seed: int, *runs) -> Path:
+        folder = tmp_path / f"g{index}-seed{seed}"
+        for k, (training, psnr, status) in enumerate(runs, start=1):
+            run = folder / f"{k}_{training}"
+            run.mkdir(parents=True)
+            method = "splatfacto" if training == "splatfacto" else "votesplat"
+            entry = {"status": status, "eval_status": "ok" if status == "ok" else "not run", "eval": {"psnr": psnr}}
+            (run / "train_fox.json").write_text(json.dumps({"methods": {method: entry}}))
+        return folder
+
+    folders = [
+        group(1, 42, ("splatfacto", 30.0, "ok"), ("votesplat", 30.3, "ok")),
+        group(2, 7, ("splatfacto", 31.0, "ok"), ("votesplat", 30.9, "ok")),
+        group(3, 1, ("splatfacto", 29.0, "ok"), ("votesplat", 20.0, "timeout after 100 s")),
+    ]
+    summary = psnr_seeds.summarize(psnr_seeds.read_groups(folders[::-1]))
+    assert summary["baseline"] == "1_splatfacto" and [g["seed"] for g in summary["groups"]] == [42, 7, 1]
+    votes = summary["trainings"]["2_votesplat"]
+    assert votes["paired_groups"] == 2  # group 3 has no votesplat PSNR
+    assert votes["difference_mean"] == pytest.approx(0.1)  # (+0.3 - 0.1) / 2
+    assert votes["difference_std"] == pytest.approx(0.4 / 2**0.5)
+    assert votes["difference_standard_error"] == pytest.approx(0.2)
+    psnr_seeds.main([*map(str, folders), "--json", str(tmp_path / "psnr.json")])
+    printed = capsys.readouterr().out
+    assert "| 3 (1) | 29.000 | — | — |" in printed and "| 1 (42) | 30.000 | 30.300 | +0.300 |" in printed
+    assert "2_votesplat − 1_splatfacto: mean **+0.100 dB** over 2 groups, std 0.283, standard error 0.200" in printed
+    assert json.loads((tmp_path / "psnr.json").read_text())["trainings"]["2_votesplat"]["paired_groups"] == 2
+    with pytest.raises(SystemExit, match="not a group folder"):
+        psnr_seeds.read_groups([tmp_path])

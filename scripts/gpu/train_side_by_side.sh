@@ -11,7 +11,10 @@
 # backward adds gradients atomically). STEPS (3000) and EXTRA_TRAIN_ARGS (default: full resolution from the
 # start) as for run.sh; four trainings at once slow every step, so read absolute per-step increments, not ratios.
 # Prints each training's eval PSNR and, per group, benchmarks/step_times.py on its first two trainings; copies
-# the step times to $OUT/side_<stage>_g<group>_<k>_<training>.json (8 files come back from a call).
+# the step times to $OUT/side_<stage>_g<group>_<k>_<training>.json (8 files come back from a call). Then the PSNR
+# table of benchmarks/psnr_seeds.py (each training against its group's first: per group, then the mean difference
+# over the groups with its standard error), also as $OUT/psnr_side_<stage>.json. A PSNR difference of 0.1 dB needs
+# many seeds (SEEDS="42 7 1 2 ..."): two runs of one seed differ by 0.3-3.7 dB.
 stage=${1:?train_side_by_side.sh: pass synthetic [DATA] or fox}; shift
 export STEPS=${STEPS:-3000} VOTESPLAT_STEP_TIMES=1
 EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-"--pipeline.model.num-downscales 0"}
@@ -34,7 +37,7 @@ for seed in ${SEEDS:-42 42}; do
       every1) vote_args="--pipeline.model.vote-every-n-steps 1" ;;
       every4) vote_args="--pipeline.model.vote-every-n-steps 4" ;;
     esac
-    dir=$work/g$group/${k}_$training
+    dir=$work/g$group-seed$seed/${k}_$training
     mkdir -p "$dir"
     RUNS=$dir/runs OUT=$dir METHODS=$method VOTESPLAT_TRAIN_ARGS=$vote_args \
       EXTRA_TRAIN_ARGS="$EXTRA_TRAIN_ARGS --machine.seed $seed" \
@@ -42,10 +45,11 @@ for seed in ${SEEDS:-42 42}; do
   done
 done
 wait
-for g in $(seq "$group"); do
+for folder in "$work"/g*-seed*; do
+  g=${folder##*/} && g=${g%%-*} && g=${g#g}
   echo "== group $g"
   steps=()
-  for dir in "$work/g$g"/*/; do
+  for dir in "$folder"/*/; do
     dir=${dir%/} name=${dir##*/}
     python3 - "$dir/train_$stage.json" "g$g/$name" <<'PY'
 import json, sys
@@ -64,3 +68,5 @@ PY
   [ "${#steps[@]}" -ge 2 ] && python3 benchmarks/step_times.py "${steps[0]}" "${steps[1]}" \
     --ranges 0:1 1:20 20:500 500:520 520:"$STEPS" | grep -v '^      '
 done
+echo "== eval PSNR, each training against its group's first"
+python3 benchmarks/psnr_seeds.py "$work"/g*-seed* --json "$OUT/psnr_side_$stage.json"
