@@ -124,7 +124,12 @@ votesplat_method = MethodSpecification(config=votesplat_trainer_config(), descri
 patches.apply()
 
 
-def setup_trainer_in_process(
+def setup_trainer_in_process(*args: Any, **kwargs: Any):
+    """A set-up (not yet trained) nerfstudio Trainer of :func:`trainer_config_in_process`'s config (its arguments)."""
+    return setup_trainer(trainer_config_in_process(*args, **kwargs))
+
+
+def trainer_config_in_process(
     data: Path,
     output_dir: Path,
     steps: int,
@@ -136,22 +141,15 @@ def setup_trainer_in_process(
     datamanager_overrides: Optional[Dict[str, Any]] = None,
     load_dir: Optional[Path] = None,
     **model_overrides,
-):
-    """A set-up (not yet trained) nerfstudio Trainer of ``steps`` steps, votes from ``vote_start`` on.
+) -> TrainerConfig:
+    """votesplat's TrainerConfig of ``steps`` steps, votes from ``vote_start`` on.
 
     No evaluation or intermediate checkpoints; the vote cache goes to ``output_dir/vote_cache``;
     ``mask_folder`` switches to the folder mask source. ``model_overrides`` set model config fields,
-    ``datamanager_overrides`` datamanager config fields (e.g. ``border_masks``). ``seed`` seeds
-    Python, NumPy and torch as ns-train does (``--machine.seed``). ``load_dir``: a run's
-    nerfstudio_models/ folder to resume from, as ``ns-train --load-dir`` (the ``steps`` more steps
-    continue from its latest checkpoint).
+    ``datamanager_overrides`` datamanager config fields (e.g. ``border_masks``). ``seed``: ``--machine.seed``.
+    ``load_dir``: a run's nerfstudio_models/ folder to resume from, as ``ns-train --load-dir`` (the ``steps``
+    more steps continue from its latest checkpoint).
     """
-    import random
-
-    import numpy as np
-    import torch
-    from nerfstudio.utils import writer
-
     config = votesplat_trainer_config()
     config.machine.device_type = device
     config.machine.seed = seed
@@ -177,6 +175,19 @@ def setup_trainer_in_process(
                 raise ValueError(f"votesplat's {type(target).__name__} has no field {name!r}")
             setattr(target, name, value)
     config.set_timestamp()
+    return config
+
+
+def setup_trainer(config: TrainerConfig):
+    """A set-up nerfstudio Trainer of ``config`` in this process, as ns-train's train_loop makes it: the config
+    saved, Python, NumPy and torch seeded with ``config.machine.seed``."""
+    import random
+
+    import numpy as np
+    import torch
+    from nerfstudio.utils import writer
+
+    seed = config.machine.seed
     config.save_config()
     # nerfstudio keeps its event writers in module globals: a second run in this process must not log into the first's
     for event_writer in list(writer.EVENT_WRITERS):
@@ -196,7 +207,7 @@ def setup_trainer_in_process(
 def train_in_process(*args: Any, **kwargs: Any) -> Path:
     """Train votesplat in this process (tests, benchmarks/quality.py); returns the run's config.yml.
 
-    The arguments are :func:`setup_trainer_in_process`'s.
+    The arguments are :func:`trainer_config_in_process`'s.
     """
     import torch
 
