@@ -116,7 +116,7 @@ def table(summary: Dict) -> str:
         if "difference_standard_error" in entry:
             spread = f", std {entry['difference_std']:.3f}, standard error {entry['difference_standard_error']:.3f}"
         lines.append(
-            f"{label} − {baseline}: mean **{entry['difference_mean']:+.3f} dB** over {entry['paired_groups']} groups{spread}"
+            f"{label} − {baseline}: mean **{entry['difference_mean']:+.3f} dB** over {entry['paired_groups']} group{'s' if entry['paired_groups'] != 1 else ''}{spread}"
         )
     return "\n".join(lines)
 

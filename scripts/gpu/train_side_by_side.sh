@@ -14,17 +14,20 @@
 # the step times to $OUT/side_<stage>_g<group>_<k>_<training>.json (8 files come back from a call). Then the PSNR
 # table of benchmarks/psnr_seeds.py (each training against its group's first: per group, then the mean difference
 # over the groups with its standard error), also as $OUT/psnr_side_<stage>.json. A PSNR difference of 0.1 dB needs
-# many seeds (SEEDS="42 7 1 2 ..."): two runs of one seed differ by 0.3-3.7 dB.
+# many seeds (SEEDS="42 7 1 2 ..."): two runs of one seed differ by 0.3-3.7 dB. STEP_TIMES=0 (for such PSNR-only
+# calls) runs without the step timer and copies no step files, so that psnr_side_<stage>.json is among the 8.
 stage=${1:?train_side_by_side.sh: pass synthetic [DATA] or fox}; shift
-export STEPS=${STEPS:-3000} VOTESPLAT_STEP_TIMES=1
+export STEPS=${STEPS:-3000}
+if [ "${STEP_TIMES:-1}" = 0 ]; then export VOTESPLAT_STEP_TIMES=; else export VOTESPLAT_STEP_TIMES=1; fi
 EXTRA_TRAIN_ARGS=${EXTRA_TRAIN_ARGS:-"--pipeline.model.num-downscales 0"}
 OUT=${OUT:-/tmp/votesplat_gpu_out}
+mkdir -p "$OUT"
 for training in ${TRAININGS:-splatfacto votesplat}; do  # all checked before any starts
   case $training in splatfacto|votesplat|every1|every4) ;;
     *) echo "TRAININGS: unknown training $training (splatfacto, votesplat, every1, every4)" >&2; exit 2 ;;
   esac
 done
-work=/tmp/train_side_by_side
+work=${WORK:-/tmp/train_side_by_side}  # set it (and OUT) apart to run two of these at once
 rm -rf "$work"
 group=0
 for seed in ${SEEDS:-42 42}; do
