@@ -19,23 +19,25 @@ import math
 import re
 import statistics
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 GROUP_NAME = re.compile(r"^g(?P<group>\d+)-seed(?P<seed>\d+)$")
 TRAINING_NAME = re.compile(r"^(?P<k>\d+)_(?P<training>\w+)$")
 
 
-def read_psnr(folder: Path) -> Optional[float]:
-    """The eval PSNR of one training's folder, or None when it did not both train and evaluate."""
+def read_psnr(folder: Path) -> Tuple[Optional[float], str]:
+    """(eval PSNR, "ok") of one training's folder, or (None, why not) when it did not both train and evaluate."""
     for path in folder.glob("train_*.json"):
         for entry in json.loads(path.read_text()).get("methods", {}).values():
             if entry.get("status") == "ok" and entry.get("eval_status") == "ok":
-                return (entry.get("eval") or {}).get("psnr")
-    return None
+                return (entry.get("eval") or {}).get("psnr"), "ok"
+            return None, f"training {entry.get('status')}, eval {entry.get('eval_status')}"
+    return None, f"no train_*.json (see {folder}/run.log)"
 
 
 def read_groups(folders: List[Path]) -> List[Dict]:
-    """[{"group", "seed", "trainings": {"<k>_<training>": PSNR or None}}], in the groups' order."""
+    """[{"group", "seed", "trainings": {"<k>_<training>": PSNR or None}, "unfinished": {"<k>_<training>": why}}],
+    in the groups' order."""
     groups = []
     for folder in folders:
         match = GROUP_NAME.match(folder.name)
@@ -43,23 +45,22 @@ def read_groups(folders: List[Path]) -> List[Dict]:
             raise SystemExit(
                 f"psnr_seeds.py: error: {folder} is not a group folder g<i>-seed<N> of train_side_by_side.sh"
             )
-        runs = sorted(
-            (p for p in folder.iterdir() if p.is_dir() and TRAINING_NAME.match(p.name)),
-            key=lambda p: int(p.name.split("_")[0]),
-        )
+        runs = {int(m["k"]): p for p in folder.iterdir() if p.is_dir() and (m := TRAINING_NAME.match(p.name))}
+        read = {runs[k].name: read_psnr(runs[k]) for k in sorted(runs)}
         groups.append(
             {
                 "group": int(match["group"]),
                 "seed": int(match["seed"]),
-                "trainings": {p.name: read_psnr(p) for p in runs},
+                "trainings": {label: psnr for label, (psnr, _) in read.items()},
+                "unfinished": {label: why for label, (psnr, why) in read.items() if psnr is None},
             }
         )
     return sorted(groups, key=lambda g: g["group"])
 
 
 def summarize(groups: List[Dict]) -> Dict:
-    """Per group each training's difference to the group's first; per training (after the first) the mean
-    difference over the groups where both have a PSNR, the differences' standard deviation and standard error."""
+    """Per training after the groups' first (the baseline): the mean of its differences to the baseline over the
+    groups where both have a PSNR, the differences' standard deviation and standard error."""
     labels: List[str] = []
     for group in groups:
         labels += [label for label in group["trainings"] if label not in labels]
@@ -108,6 +109,9 @@ def table(summary: Dict) -> str:
             + "".join(f" | {cell(d, True)}" for d in differences)
             + " |"
         )
+    for group in summary["groups"]:
+        for label, why in group.get("unfinished", {}).items():
+            lines.append(f"group {group['group']} ({group['seed']}), {label}: no PSNR: {why}")
     for label, entry in summary["trainings"].items():
         if not entry["paired_groups"]:
             lines.append(f"{label} − {baseline}: no group where both finished")

@@ -173,6 +173,7 @@ def test_psnr_over_seeds_takes_each_training_against_its_groups_first_and_leaves
     printed = capsys.readouterr().out
     assert "| 3 (1) | 29.000 | — | — |" in printed and "| 1 (42) | 30.000 | 30.300 | +0.300 |" in printed
     assert "2_votesplat − 1_splatfacto: mean **+0.100 dB** over 2 groups, std 0.283, standard error 0.200" in printed
+    assert "group 3 (1), 2_votesplat: no PSNR: training timeout after 100 s, eval not run" in printed
     assert json.loads((tmp_path / "psnr.json").read_text())["trainings"]["2_votesplat"]["paired_groups"] == 2
     with pytest.raises(SystemExit, match="not a group folder"):
         psnr_seeds.read_groups([tmp_path])

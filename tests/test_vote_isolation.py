@@ -71,7 +71,7 @@ def test_without_votes_and_with_splatfactos_adam_it_trains_splatfactos_gaussians
     config = trainer_config_in_process(DEMO_SCENE, tmp_path, STEPS, STEPS - 1, "cpu", "run", **BUDGET)
     for name in SPLAT_PARAM_NAMES:
         config.optimizers[name]["optimizer"].fused = False
-    runs = {}
+    runs, initial_counts = {}, {}
     # splatfacto on CPU as votesplat runs it: its hard-coded .cuda() calls kept on the CPU, LPIPS offline and the
     # rasterizer of ns/rasterizer.py (gsplat's own is CUDA-only; on CUDA that one calls gsplat's)
     install_rasterizer_in_splatfacto()
@@ -80,10 +80,10 @@ def test_without_votes_and_with_splatfactos_adam_it_trains_splatfactos_gaussians
             trainer = setup_trainer(method_config)
             assert trainer.config.method_name == method
             trainer.pipeline.model.strategy.pause_refine_after_reset = 0  # as make_trainer: densify in a short run
-            initial_count = trainer.pipeline.model.num_points
+            initial_counts[method] = trainer.pipeline.model.num_points
             trainer.train()
             model = trainer.pipeline.model
             runs[method] = {name: model.gauss_params[name].detach().clone() for name in SPLAT_PARAM_NAMES}
-    assert runs["splatfacto"]["means"].shape[0] != initial_count  # the runs densified
+    assert runs["splatfacto"]["means"].shape[0] != initial_counts["splatfacto"]  # the runs densified
     for name in SPLAT_PARAM_NAMES:
         assert torch.equal(runs["votesplat"][name], runs["splatfacto"][name]), name

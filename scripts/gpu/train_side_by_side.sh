@@ -10,7 +10,7 @@
 # voting every step / every 4th step). Splatfacto twice at one seed measures gsplat's run-to-run noise (its
 # backward adds gradients atomically). STEPS (3000) and EXTRA_TRAIN_ARGS (default: full resolution from the
 # start) as for run.sh; four trainings at once slow every step, so read absolute per-step increments, not ratios.
-# Prints each training's eval PSNR and, per group, benchmarks/step_times.py on its first two trainings; copies
+# Prints, per group, benchmarks/step_times.py on its first two trainings; copies
 # the step times to $OUT/side_<stage>_g<group>_<k>_<training>.json (8 files come back from a call). Then the PSNR
 # table of benchmarks/psnr_seeds.py (each training against its group's first: per group, then the mean difference
 # over the groups with its standard error), also as $OUT/psnr_side_<stage>.json. A PSNR difference of 0.1 dB needs
@@ -54,15 +54,6 @@ for folder in "$work"/g*-seed*; do
   steps=()
   for dir in "$folder"/*/; do
     dir=${dir%/} name=${dir##*/}
-    python3 - "$dir/train_$stage.json" "g$g/$name" <<'PY'
-import json, sys
-path, name = sys.argv[1:]
-try:
-    (entry,) = json.load(open(path))["methods"].values()
-    print(f"{name}: {entry['status']}, eval PSNR {(entry.get('eval') or {}).get('psnr', float('nan')):.3f}")
-except (OSError, ValueError, KeyError) as err:
-    print(f"{name}: no result ({err!r}; see {path.rsplit('/', 1)[0]}/run.log)")
-PY
     for file in "$dir"/steps_*.json; do
       [ -f "$file" ] || continue
       cp "$file" "$OUT/side_${stage}_g${g}_$name.json" && steps+=("$OUT/side_${stage}_g${g}_$name.json")
