@@ -9,6 +9,11 @@ then, per training, the mean difference over the groups where both finished, its
 standard error:
 
     python benchmarks/psnr_seeds.py /tmp/train_side_by_side/g*-seed* --json psnr_fox.json
+
+A device call fits 10-20 seeds; ``--pool`` takes the JSONs of several calls (written by ``--json``) and gives the
+same table over all their groups:
+
+    python benchmarks/psnr_seeds.py --pool call1/psnr_side_fox.json call2/psnr_side_fox.json
 """
 
 from __future__ import annotations
@@ -56,6 +61,20 @@ def read_groups(folders: List[Path]) -> List[Dict]:
             }
         )
     return sorted(groups, key=lambda g: g["group"])
+
+
+def pool_groups(paths: List[Path]) -> List[Dict]:
+    """The groups of several ``--json`` files, one after the other, numbered anew; each keeps its seed and the
+    file it came from."""
+    groups = []
+    for path in paths:
+        try:
+            read = json.loads(path.read_text())["groups"]
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise SystemExit(f"psnr_seeds.py: error: {path} is not a JSON written by psnr_seeds.py --json ({error})")
+        for group in read:
+            groups.append({**group, "group": len(groups) + 1, "source": str(path)})
+    return groups
 
 
 def summarize(groups: List[Dict]) -> Dict:
@@ -127,10 +146,13 @@ def table(summary: Dict) -> str:
 
 def main(argv: Optional[List[str]] = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("groups", nargs="+", type=Path, help="group folders g<i>-seed<N> of train_side_by_side.sh")
+    parser.add_argument("groups", nargs="*", type=Path, help="group folders g<i>-seed<N> of train_side_by_side.sh")
+    parser.add_argument("--pool", nargs="+", type=Path, default=None, help="instead, --json files of several calls")
     parser.add_argument("--json", type=Path, default=None, help="also write the groups and means here")
     args = parser.parse_args(argv)
-    summary = summarize(read_groups(args.groups))
+    if bool(args.groups) == bool(args.pool):
+        parser.error("pass either group folders or --pool FILE...")
+    summary = summarize(pool_groups(args.pool) if args.pool else read_groups(args.groups))
     print(table(summary))
     if args.json is not None:
         args.json.write_text(json.dumps(summary, indent=2) + "\n")

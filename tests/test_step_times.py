@@ -177,3 +177,18 @@ def test_psnr_over_seeds_takes_each_training_against_its_groups_first_and_leaves
     assert json.loads((tmp_path / "psnr.json").read_text())["trainings"]["2_votesplat"]["paired_groups"] == 2
     with pytest.raises(SystemExit, match="not a group folder"):
         psnr_seeds.read_groups([tmp_path])
+    # a later call's groups pool with this one's: group 3 there pairs, so three pairs over two files
+    psnr_seeds.main([str(folders[2]), "--json", str(tmp_path / "later.json")])
+    later = json.loads((tmp_path / "later.json").read_text())
+    later["groups"][0]["trainings"]["2_votesplat"], later["groups"][0]["unfinished"] = 29.6, {}
+    (tmp_path / "later.json").write_text(json.dumps(later))
+    capsys.readouterr()
+    psnr_seeds.main(["--pool", str(tmp_path / "psnr.json"), str(tmp_path / "later.json")])
+    printed = capsys.readouterr().out
+    assert "| 3 (1) | 29.000 | — | — |" in printed and "| 4 (1) | 29.000 | 29.600 | +0.600 |" in printed
+    assert "2_votesplat − 1_splatfacto: mean **+0.267 dB** over 3 groups" in printed  # (+0.3 - 0.1 + 0.6) / 3
+    with pytest.raises(SystemExit, match=r"later.json is not a JSON written by psnr_seeds.py --json"):
+        (tmp_path / "later.json").write_text("{}")
+        psnr_seeds.pool_groups([tmp_path / "psnr.json", tmp_path / "later.json"])
+    with pytest.raises(SystemExit):
+        psnr_seeds.main([str(folders[0]), "--pool", str(tmp_path / "psnr.json")])

@@ -16,6 +16,7 @@
 # over the groups with its standard error), also as $OUT/psnr_side_<stage>.json. A PSNR difference of 0.1 dB needs
 # many seeds (SEEDS="42 7 1 2 ..."): two runs of one seed differ by 0.3-3.7 dB. STEP_TIMES=0 (for such PSNR-only
 # calls) runs without the step timer and copies no step files, so that psnr_side_<stage>.json is among the 8.
+# `python benchmarks/psnr_seeds.py --pool` over several calls' psnr_side_<stage>.json gives the table over all their seeds.
 stage=${1:?train_side_by_side.sh: pass synthetic [DATA] or fox}; shift
 export STEPS=${STEPS:-3000}
 if [ "${STEP_TIMES:-1}" = 0 ]; then export VOTESPLAT_STEP_TIMES=; else export VOTESPLAT_STEP_TIMES=1; fi
