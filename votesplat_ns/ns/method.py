@@ -181,13 +181,9 @@ def trainer_config_in_process(
 def setup_trainer(config: TrainerConfig):
     """A set-up nerfstudio Trainer of ``config`` in this process, as ns-train's train_loop makes it: the config
     saved, Python, NumPy and torch seeded with ``config.machine.seed``."""
-    import random
-
-    import numpy as np
-    import torch
+    from nerfstudio.scripts.train import _set_random_seed
     from nerfstudio.utils import writer
 
-    seed = config.machine.seed
     config.save_config()
     # nerfstudio keeps its event writers in module globals: a second run in this process must not log into the first's
     for event_writer in list(writer.EVENT_WRITERS):
@@ -196,9 +192,7 @@ def setup_trainer(config: TrainerConfig):
     writer.EVENT_WRITERS.clear()
     writer.EVENT_STORAGE.clear()
     writer.GLOBAL_BUFFER.clear()
-    random.seed(seed)  # what ns-train's train_loop does before setting up the trainer
-    np.random.seed(seed)
-    torch.manual_seed(seed)
+    _set_random_seed(config.machine.seed)  # ns-train's train_loop's own seeding (rank 0)
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     return trainer
