@@ -23,7 +23,8 @@ from votesplat_ns.core.semantics import InstanceFeatures
 from votesplat_ns.eval.lerf_ovs import category_masks, load_scene_labels, mask_iou
 from votesplat_ns.eval.synthetic.labels import write_scene_labels
 from votesplat_ns.ns.query import evaluate_queries, run_click, run_query
-from votesplat_ns.ns.selection import ClusteringOptions, QueryScene, instances_of_level
+from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
+from votesplat_ns.ns.selection import QueryScene, instances_of_level
 
 DEMO_SCENE = Path(votesplat_ns.__file__).resolve().parent / "data" / "demo"
 TRANSFORMS = json.loads((DEMO_SCENE / "transforms.json").read_text())
@@ -248,16 +249,21 @@ def test_instances_from_an_export_are_the_ones_clustered_here(demo_scene, tmp_pa
     # votesplat-export clusters every level; --instances reads its instance_ids.npz back.
     params = demo_scene.params
     cluster_levels(params.means, params.vote_offsets, params.vote_support, params.level_names).save(tmp_path)
-    exported, source = instances_of_level(params, None, tmp_path, ClusteringOptions())
+    never = lambda: pytest.fail("--instances must not compute the run's instances")  # noqa: E731
+    exported, source = instances_of_level(params, None, tmp_path, never)
     np.testing.assert_array_equal(exported.ids, demo_scene.level.ids)
     assert source == f"export {tmp_path}"
-    part, _ = instances_of_level(params, "1", tmp_path, ClusteringOptions())
+    part, _ = instances_of_level(params, "1", tmp_path, never)
     assert part.name == "part"
     fewer = dataclasses.replace(params, means=params.means[:-1])
     with pytest.raises(ValueError, match="export again from this checkpoint or drop --instances"):
-        instances_of_level(fewer, None, tmp_path, ClusteringOptions())
+        instances_of_level(fewer, None, tmp_path, never)
     with pytest.raises(ValueError, match="unknown vote level 'shelf'"):
-        instances_of_level(params, "shelf", None, ClusteringOptions())
+        instances_of_level(params, "shelf", None, never)
+    # without --instances: the run's instances (the record every command reads), the asked level of them
+    run = run_instances(params, tmp_path / "run", InstanceSettings.make(mask_check=False))
+    chosen, source = instances_of_level(params, "part", None, lambda: run)
+    assert source == "run" and chosen is run.level("part")
 
 
 def test_labels_from_ground_truth_masks(tmp_path, capsys):

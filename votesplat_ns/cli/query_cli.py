@@ -20,9 +20,11 @@ import tyro
 from typing_extensions import Annotated
 
 from votesplat_ns.cli.cli_errors import check_writable_folder, writing_into
+from votesplat_ns.core.clustering import ClusteringOptions
 from votesplat_ns.core.semantics import DEFAULT_NEGATIVES, ClipEncoder, EncoderProtocol
 from votesplat_ns.eval.lerf_ovs import load_scene_labels
 from votesplat_ns.eval.synthetic.labels import write_scene_labels
+from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS
 from votesplat_ns.ns.query import (
     DEFAULT_CLIP_MODEL,
     FeatureOptions,
@@ -33,7 +35,8 @@ from votesplat_ns.ns.query import (
     run_query,
     write_json,
 )
-from votesplat_ns.ns.selection import ClusteringOptions, QueryScene
+from votesplat_ns.ns.run_instances import InstanceSettings
+from votesplat_ns.ns.selection import QueryScene
 
 
 @dataclass
@@ -50,12 +53,20 @@ class _RunArgs:
     """HDBSCAN min_samples (default as votesplat-export)."""
     seed: int = 0
     """Seed of the clustering subsample."""
+    mask_check: bool = True
+    """Check the instances against the run's training masks, as votesplat export does (--mask-check)."""
+    mask_check_views: int = DEFAULT_MASK_VIEWS
+    """Training views the mask check looks through (as votesplat export)."""
 
-    def clustering(self) -> ClusteringOptions:
-        return ClusteringOptions(min_cluster_size=self.min_cluster_size, min_samples=self.min_samples, seed=self.seed)
+    def instance_settings(self) -> InstanceSettings:
+        """The run's instances as votesplat export computes them with the same flags (one record per run)."""
+        clustering = ClusteringOptions(
+            min_cluster_size=self.min_cluster_size, min_samples=self.min_samples, seed=self.seed
+        )
+        return InstanceSettings.make(clustering, self.mask_check, self.mask_check_views)
 
     def load_scene(self) -> QueryScene:
-        return QueryScene.from_config(self.load_config, self.level, self.instances, self.clustering())
+        return QueryScene.from_config(self.load_config, self.level, self.instances, self.instance_settings(), log=print)
 
 
 @dataclass

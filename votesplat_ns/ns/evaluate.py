@@ -1,6 +1,6 @@
 """``votesplat eval --load-config outputs/.../config.yml`` loads the run (nerfstudio ``eval_setup``),
-clusters its votes exactly as the instance export does (``cluster_levels`` with the export's
-defaults), renders instance-id maps of the dataset's held-out views and scores them against the
+reads the run's instances exactly as the instance export does (``ns/run_instances.py``: the same
+record, computed once per checkpoint and settings), renders instance-id maps of the dataset's held-out views and scores them against the
 dataset's exact label images:
 
 * 2D (per vote level with a ground truth of the same name, ``instance`` / ``part``):
@@ -41,7 +41,7 @@ import torch
 
 from votesplat_ns.cli.cli_errors import VoteSplatInputError, read_run_config
 from votesplat_ns.core.cameras import PinholeView
-from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
+from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, ClusteringOptions
 from votesplat_ns.core.instances import render_id_maps  # noqa: F401 (re-exported: evaluation renders its id maps with it)
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.eval.evaluation import (
@@ -60,8 +60,8 @@ from votesplat_ns.eval.ground_truth import (
     score_level,
     write_json_atomic,
 )
-from votesplat_ns.ns.mask_views import mask_check as training_mask_check
 from votesplat_ns.ns.run import dataset_views, load_run
+from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"
@@ -219,6 +219,7 @@ def evaluate_run(
     mask_check: bool = True,
     mask_check_options: Optional[Dict[str, object]] = None,
     cluster_options: Optional[Dict[str, object]] = None,
+    log: Optional[Callable[[str], None]] = print,
 ) -> EvaluationResult:
     """Score a votesplat run (see the module doc); writes metrics.json and comparison PNGs.
 
@@ -226,7 +227,9 @@ def evaluate_run(
     (0..K-1, -1 = none) before rendering; tests use it to render the GT itself. ``mask_check``
     checks the instances against the training masks as ``ns-export votesplat-instances`` does
     (``mask_check_options``: keyword arguments of ``regroup_with_masks``); ``cluster_options`` are further keyword
-    arguments of ``cluster_levels`` (benchmark variants).
+    arguments of ``cluster_levels`` (benchmark variants). The instances are the run's record
+    (:func:`~votesplat_ns.ns.run_instances.run_instances`), computed and kept if it is missing or stale;
+    ``log`` gets its one-line messages.
     """
     from votesplat_ns.ns.rasterizer import rasterize
 
@@ -270,17 +273,20 @@ def evaluate_run(
     rgb = [render_rgb_psnr(pipeline.model, *sources[v.name]) for v in chosen]
     check = check_reconstruction([p for p, _ in rgb], [f for _, f in rgb], max_psnr_drop_db, min_gain_db)
 
-    instance_set = cluster_levels(
-        scene.means,
-        scene.vote_offsets,
-        scene.vote_support,
-        scene.level_names,
-        min_cluster_size=min_cluster_size,
-        min_samples=min_samples,
-        max_points=max_points,
-        seed=seed,
-        refine=training_mask_check(pipeline, scene, rasterize, **(mask_check_options or {})) if mask_check else None,
-        **(cluster_options or {}),
+    instance_set = run_instances(
+        scene,
+        load_config.parent,
+        InstanceSettings.make(
+            ClusteringOptions(
+                min_cluster_size=min_cluster_size, min_samples=min_samples, max_points=max_points, seed=seed
+            ),
+            mask_check,
+            mask_check_options=mask_check_options,
+            cluster_options=cluster_options,
+        ),
+        pipeline,
+        rasterize_fn=rasterize,
+        log=log,
     )
     means_world = points_to_dataset_frame(scene.means, transform, scale)
     gt_gaussians, gt_info = gaussian_ground_truth(

@@ -22,9 +22,10 @@ from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, ClusteringOptions
 from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY  # noqa: F401 (keys re-exported)
 from votesplat_ns.ns.instance_export import EXPORT_FILE_PATTERNS, check_output_dir, export_instances  # noqa: F401 (re-exported: the export's public names)
-from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
+from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS
 from votesplat_ns.ns.patches import EXPORTER_MODULE, SUBCOMMAND_NAME, install_ns_export_hook  # noqa: F401
 from votesplat_ns.ns.run import camera_view, evenly_spaced, load_run
+from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
 
 def training_views(pipeline, num_views: int, max_width: int = 320) -> List[PinholeView]:
@@ -106,6 +107,10 @@ class ExportVoteSplatInstances:
             **{name: getattr(self, name) for name in ClusteringOptions.__dataclass_fields__ if hasattr(self, name)}
         )
 
+    def instance_settings(self) -> InstanceSettings:
+        """The settings of the run's instances (the record every command reads, ``ns/run_instances.py``)."""
+        return InstanceSettings.make(self.clustering(), self.mask_check, self.mask_check_views)
+
     def main(self) -> None:
         from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -125,23 +130,17 @@ class ExportVoteSplatInstances:
                     CONSOLE.print(
                         f"[yellow]Training cameras unavailable ({type(err).__name__}: {err}); instances.png is skipped."
                     )
-            refine = None
-            if self.mask_check:
-                check_rasterizer = rasterize_fn or default_rasterizer()
-                if check_rasterizer is None:
-                    raise ValueError(
-                        "--mask-check needs a rasterizer (gsplat or the torch fallback); pass --mask-check False"
-                    )
-                try:
-                    refine = mask_check(pipeline, scene, check_rasterizer, max_views=self.mask_check_views)
-                except (OSError, ValueError) as err:  # the instances are still valid without it
-                    CONSOLE.print(
-                        f"Warning: the training masks are unavailable ({err}); exporting the vote clustering without the mask "
-                        "check (--mask-check False does this on purpose)",
-                        style="bold yellow",
-                        soft_wrap=True,
-                        markup=False,
-                    )
+            log = lambda message: CONSOLE.print(  # noqa: E731
+                message, style="bold yellow" if message.startswith("Warning") else None, soft_wrap=True, markup=False
+            )
+            instances = run_instances(
+                scene,
+                Path(self.load_config).parent,
+                self.instance_settings(),
+                pipeline=pipeline,
+                rasterize_fn=rasterize_fn or default_rasterizer(),
+                log=log,
+            )
             manifest = export_instances(
                 scene,
                 self.output_dir,
@@ -149,11 +148,10 @@ class ExportVoteSplatInstances:
                 remove=list(self.remove),
                 views=views,
                 rasterize_fn=rasterize_fn,
-                clustering=self.clustering(),
                 render_device=device,
                 source=str(self.load_config),
                 output_flag="--output-dir",
-                refine=refine,
+                instances=instances,
             )
         export = manifest["export"]
         for level_name, count in export["nonfinite_votes"].items():

@@ -183,6 +183,7 @@ def export_instances(
     source: Optional[str] = None,
     output_flag: str = "output_dir",
     refine: Optional[Callable[[int, str, np.ndarray], tuple]] = None,
+    instances: Optional[InstanceSet] = None,
 ) -> Dict[str, object]:
     """Cluster the votes of every level and write the export folder described in the module doc.
 
@@ -192,7 +193,9 @@ def export_instances(
     selects whose instances get their own PLY; ``remove`` lists instance ids of that level to cut
     out of the scene. ``views`` and ``rasterize_fn`` (gsplat ``rasterization`` signature) draw
     instances.png. ``output_flag`` names ``output_dir`` in error messages (the CLI's --output-dir).
-    ``clustering`` (HDBSCAN settings) and ``refine`` (the training-mask check) are passed to :func:`cluster_levels`.
+    ``clustering`` (HDBSCAN settings) and ``refine`` (the training-mask check) are passed to :func:`cluster_levels`;
+    ``instances`` (a run's instances, :func:`votesplat_ns.ns.run_instances.run_instances`) are written as they are
+    instead.
     Returns the manifest written to instances.json; its ``export.nonfinite_votes`` counts, per
     level, the supervised Gaussians whose vote is NaN/Inf and so became background.
     """
@@ -216,17 +219,25 @@ def export_instances(
         )
 
     with _progress(progress) as task:
-        advance = task("clustering votes", total=len(names))
-        instance_set = cluster_levels(
-            params.means,
-            params.vote_offsets,
-            params.vote_support,
-            names,
-            **clustering.kwargs(),
-            on_level=lambda index, name: advance(1) if index > 0 else None,
-            refine=refine,
-        )
-        advance(1)
+        if instances is None:
+            advance = task("clustering votes", total=len(names))
+            instance_set = cluster_levels(
+                params.means,
+                params.vote_offsets,
+                params.vote_support,
+                names,
+                **clustering.kwargs(),
+                on_level=lambda index, name: advance(1) if index > 0 else None,
+                refine=refine,
+            )
+            advance(1)
+        else:
+            instance_set = instances
+            if instance_set.num_gaussians != n or instance_set.level_names != tuple(names):
+                raise ValueError(
+                    f"the instances given cover {instance_set.num_gaussians} Gaussians of levels "
+                    f"{list(instance_set.level_names)}, the scene has {n} of {list(names)}"
+                )
         instance_set.validate()
         chosen = instance_set.levels[level_index]
         if not chosen.foreground.any():

@@ -1,8 +1,8 @@
 """A trained run ready for selection (paper §3.4): its Gaussians, the instances of one level, its cameras.
 
 :class:`QueryScene` is what ``votesplat query``, ``click`` and ``query-eval`` work on (see
-``ns/query.py``). The instances are clustered with the same defaults as ``votesplat export``, or
-read from an export's ``instance_ids.npz``. Instance id maps are rendered with
+``ns/query.py``). The instances are the run's (``ns/run_instances.py``: the same record the export and
+the viewer read), or those of an export's ``instance_ids.npz``. Instance id maps are rendered with
 :func:`~votesplat_ns.core.instances.render_instance_ids` and the last few are kept.
 """
 
@@ -11,18 +11,18 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, List, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
 
 from votesplat_ns.core.cameras import PinholeView, scaled_view
-from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.core.semantics import click_select, isolate
 from votesplat_ns.ns.rasterizer import rasterize
 from votesplat_ns.ns.run import dataset_views, load_run
+from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
 # Rendered instance id maps a QueryScene keeps (repeated clicks and feature rebuilds reuse them).
 ID_MAPS_KEPT = 8
@@ -84,14 +84,24 @@ class QueryScene:
         load_config: Path,
         level: Optional[str] = None,
         instances: Optional[Path] = None,
-        clustering: Optional[ClusteringOptions] = None,
+        settings: Optional[InstanceSettings] = None,
+        log: Optional[Callable[[str], None]] = None,
     ) -> "QueryScene":
-        """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``."""
+        """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``:
+        the run's instances (:func:`~votesplat_ns.ns.run_instances.run_instances`, as the export and the viewer
+        read them) or, with ``instances``, those of an export folder."""
         load_config = Path(load_config)
         pipeline, params, _ = load_run(load_config)
         model = pipeline.model
         device = torch.device(params.device)
-        level_instances, source = instances_of_level(params, level, instances, clustering or ClusteringOptions())
+        level_instances, source = instances_of_level(
+            params,
+            level,
+            instances,
+            lambda: run_instances(
+                params, load_config.parent, settings or InstanceSettings(), pipeline, rasterize_fn=rasterize, log=log
+            ),
+        )
         datamanager = pipeline.datamanager
         train_views = split_views(datamanager, "train")
         eval_views = split_views(datamanager, "eval")
@@ -232,9 +242,9 @@ class QueryScene:
 
 
 def instances_of_level(
-    params, level: Optional[str], instances_dir: Optional[Path], clustering: ClusteringOptions
+    params, level: Optional[str], instances_dir: Optional[Path], run_instances_fn: Callable[[], InstanceSet]
 ) -> Tuple[LevelInstances, str]:
-    """The instances of one vote level: read from an export folder, or clustered now (export defaults)."""
+    """The instances of one vote level: read from an export folder, or the run's (``run_instances_fn()``)."""
     names = params.level_names
     n = params.means.shape[0]
     if instances_dir is not None:
@@ -248,15 +258,8 @@ def instances_of_level(
         source = f"export {instances_dir}"
     else:
         index = vote_level_index(names, level)
-        # Levels are clustered independently, so clustering only the asked level gives the same ids.
-        chosen = cluster_levels(
-            params.means,
-            params.vote_offsets[:, index : index + 1],
-            params.vote_support[:, index : index + 1],
-            (names[index],),
-            **clustering.kwargs(),
-        ).levels[0]
-        source = "clustered"
+        chosen = run_instances_fn().levels[index]
+        source = "run"
     if chosen.num_instances == 0:
         raise ValueError(
             f"vote level {chosen.name!r} has no instances (no foreground Gaussians, or all votes were noise); "

@@ -22,13 +22,14 @@ from __future__ import annotations
 import threading
 import weakref
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Dict, Iterable, List, Mapping, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.core.instances import InstanceSet
 from votesplat_ns.core.scene import Gaussians
 from votesplat_ns.ns.run import camera_view, evenly_spaced
 from votesplat_ns.ns.viewer_render import (  # noqa: F401 (re-exported)
@@ -152,6 +153,7 @@ class VoteSplatViewerState:
         self.state = InstanceViewerState(
             config.vote_levels,
             rasterize_fn=None,
+            cluster_fn=self._run_instances,
             encoder_factory=self._make_encoder if self.clip_checkpoint else None,
             feature_views=self._feature_views,
         )
@@ -242,6 +244,37 @@ class VoteSplatViewerState:
         except ValueError as error:
             self.state.status = f"export failed: {error}"
         self._show_state()
+
+    # -------------------------------------------------------------- instances
+    def _run_instances(self, scene: ViewerScene, level_names: Sequence[str]) -> InstanceSet:
+        """The run's instances (``ns/run_instances.py``), the record the export and the commands read.
+
+        In ns-viewer (and the viewer of ns-train) the pipeline gives the mask check its training views
+        and the run folder keeps the record; without a viewer attached (tests) they are computed in memory.
+        """
+        from nerfstudio.utils.rich_utils import CONSOLE
+
+        from votesplat_ns.core.scene import TrainedScene
+        from votesplat_ns.ns.rasterizer import rasterize
+        from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
+
+        model = self.model
+        if "vote_offsets" not in model.gauss_params:
+            raise ValueError(
+                "this model has no vote offsets (gauss_params['vote_offsets']); load a votesplat checkpoint"
+            )
+        trained = TrainedScene.from_model(model, level_names)
+        viewer = getattr(model.instance_gui_viewer_control, "viewer", None)
+        pipeline = getattr(viewer, "pipeline", None)
+        run_dir = Path(viewer.log_filename).parent if viewer is not None else None
+        return run_instances(
+            trained,
+            run_dir,
+            InstanceSettings(),
+            pipeline,
+            rasterize_fn=rasterize,
+            log=lambda message: CONSOLE.print(message, soft_wrap=True, markup=False),
+        )
 
     # -------------------------------------------------------------- CLIP
     def _make_encoder(self) -> Any:
