@@ -1,7 +1,7 @@
 """Eval PSNR of trainings run side by side, each against its group's first, over the groups (seeds).
 
 Two runs of one method and seed differ on the GPU by 0.3 to 3.7 dB (gsplat's backward adds with atomics and
-densification amplifies the difference; BENCHMARKS.md, sessions 10 and 19), so one pair of runs cannot show a
+densification amplifies the difference; BENCHMARKS.md, "Eval PSNR"), so one pair of runs cannot show a
 0.1 dB difference. This reads the group folders of ``scripts/gpu/train_side_by_side.sh`` (``g<i>-seed<N>``,
 each holding one folder ``<k>_<training>`` per training with that run's ``train_<stage>.json``) and prints,
 per group, every training's PSNR and its difference to the group's first training (splatfacto, by default);

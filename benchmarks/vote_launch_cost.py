@@ -7,7 +7,7 @@ once, ``accumulate_grad``) with the JIT's launches and with direct ones (``core/
 forward alone, the draw, one zero fill and one allocation, and for each of the three kernel launches the full
 ``kernel[grid](...)``, the JIT's argument binding alone, the compiled kernel's runner (``compiled[grid]``) and
 its launcher called directly; then a cProfile of the training step's call with direct launches. Inside a training step every one of these costs two to three
-times as much (BENCHMARKS.md, session 12): compare parts here, not totals.
+times as much (BENCHMARKS.md, "Training time"): compare parts here, not totals.
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ EVAL_VIEWS = range(0, 30, 5)
 # Noise, measured with run_plain over seeds 42-46: resumed minus uninterrupted vote error +0.11, +0.07, +0.00,
 # -0.11, -0.01 px (uninterrupted 5.20-5.47 px across seeds; the 10 resumed steps lower it by 0.5-0.8 px) and
 # PSNR +0.22, -0.15, -0.08, -0.42, -0.38 dB (uninterrupted 16.81-17.70 dB across seeds). Measured again over
-# seeds 42-49 after a fresh install of the same pins (session 13: pillow 13.0, scipy 1.17.1, numpy 1.26.4) moved
+# seeds 42-49 after a fresh install of the same pins (pillow 13.0, scipy 1.17.1, numpy 1.26.4) moved
 # the CPU numbers: -0.345 (seed 42), -0.009, -0.063, -0.017, -0.042, -0.071, -0.194, -0.166 px, PSNR +0.36,
 # -0.39, -0.23, -0.05, -0.01, +0.27, +0.23, -0.24 dB. Tolerances: about |mean| + three standard deviations of
 # all thirteen differences (-0.065 +- 0.119 px).

@@ -67,7 +67,8 @@ DEFAULT_SMOOTHING_FRACTION = 1e-3
 DEFAULT_FILL_NEIGHBOURS = 8
 DEFAULT_FILL_RADIUS_FACTOR = 3.0
 # Fragment dissolution is off: on the tuning scenes it absorbed small objects resting on
-# larger ones (stacked, fruit in a bowl); the noise fill alone kept them (BENCHMARKS.md, #13).
+# larger ones (stacked, fruit in a bowl); the noise fill alone kept them (BENCHMARKS.md,
+# "Instance quality on the scene family").
 DEFAULT_MIN_INSTANCE_FRACTION = 0.0
 _FILL_MAX_ROUNDS = 64
 

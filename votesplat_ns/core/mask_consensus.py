@@ -53,7 +53,7 @@ from votesplat_ns.core.vote_render import project_to_pixels
 # Split groups from 5 Gaussians (was 10, HDBSCAN's own floor): small objects in containers (fruit in
 # a bowl) vote where their container does and have few Gaussians; over 16 tuning-scene trainings
 # (tuning and tuning-extra) 5 raised the mean instance mIoU by 0.004-0.008, the worst scene by 0.04,
-# and made no scene worse by more than 0.004 ("Training-mask check, round 3").
+# and made no scene worse by more than 0.004 (BENCHMARKS.md, "Training-mask check").
 DEFAULT_MIN_AGREEMENT = 0.5
 DEFAULT_MIN_VIEWS = 2
 DEFAULT_MIN_SHARE = 0.5

@@ -89,7 +89,7 @@ PAIR_BLOCK = 32
 # Scratch a call may take to give every pixel a row as long as a voting set can be (member_slots); past it, rows
 # keep CAP slots and longer voting sets take the slow exact path, whose pair sums re-walk the run once for each of
 # its blocks (a captured training step of a densified scene: 395 ms with 1.3% of its pixels on it, 1.2 ms
-# without; BENCHMARKS.md, session 13).
+# without; BENCHMARKS.md, "Fused vote kernels").
 MEMBER_SLOT_BYTES = 256 * 2**20
 _DIST_MODES = {"none": 0, "l1": 1, "l1_pixels": 1, "squared": 2}
 

@@ -7,7 +7,8 @@ the uniform mean of the votes in M (paper Eq. 8), blended in 3D and only then
 projected to the image (Eq. 9); the depth regulariser is the unweighted
 pairwise spread of the vote depths in M (Eq. 12).
 
-Membership rule for M (decided by the project lead):
+Membership rule for M (the paper says only "the depth-ordered points under the voting
+transmittance"; this is the rule the implementation reads it as):
     A Gaussian that the colour pass composites (sigma >= 0, alpha >= 1/255,
     and it does not end the colour walk by bringing T to <= 1e-4) joins M
     when the transmittance in front of it, T_i, is above the voting threshold
@@ -122,7 +123,7 @@ class VoteRenderOptions:
         depth regulariser uses the unclamped depth.
     backend: how ``render_votes_tiled`` walks and blends. "auto": the torch
         code (the separate Triton kernels of ``votesplat_ns.core.vote_kernel``
-        are not faster on an H100: BENCHMARKS.md, "Fused vote kernel"); the
+        are not faster on an H100: BENCHMARKS.md, "Fused vote kernels"); the
         environment variable VOTESPLAT_VOTE_BACKEND=torch|triton overrides
         "auto". "torch": always the torch code. "triton": always the kernels
         (an error where they cannot run; on CPU they run only under Triton's

@@ -2,11 +2,11 @@
 
 ``vote_fused.start_warm_up`` runs this module as child processes while training sets up: Triton's compiler is
 Python that holds the GIL for seconds, so compiling in a thread of the training process stalled its first
-steps by as much (BENCHMARKS.md, session 12). A child compiles by running the training step's variant of each
+steps by as much (BENCHMARKS.md, "Fused vote kernels"). A child compiles by running the training step's variant of each
 kernel on a one-Gaussian scene; the training process's first vote step then loads them from the cache. On CUDA
 two children share the work: one runs the forward (its walk and reduction kernels), the other only the backward
 kernel, on a forward that found no member anywhere, so the first vote step waits for the longer of the two
-compiles instead of their sum (BENCHMARKS.md, session 13). Both launch the kernels for real: the variant a
+compiles instead of their sum (BENCHMARKS.md, "Fused vote kernels"). Both launch the kernels for real: the variant a
 launch compiles is the one a training step looks up (Triton's compile-only ``warmup`` stored another on the
 H100).
 

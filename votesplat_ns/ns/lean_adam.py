@@ -4,11 +4,11 @@ never steps.
 A vote step's offsets take one Adam step; torch.optim.Adam(fused=True) spends most of that step's host time
 in Python around its two ops (grouping tensors by device, the functional wrapper's checks, the grad-mode
 decorator). ``LeanFusedAdam.step`` runs those two ops itself when nothing else is asked of it: inside
-training on the H100's host the offsets' step fell from 0.16 to 0.11-0.13 ms (BENCHMARKS.md, session 12).
+training on the H100's host the offsets' step fell from 0.16 to 0.11-0.13 ms (BENCHMARKS.md, "Training time").
 
 Both also clear gradients without Optimizer.zero_grad's profiler scope (two dispatcher calls around a loop):
 nerfstudio clears every group on every step, and on the H100's host the two vote groups' clears added
-0.03-0.16 ms to every step, voting or not (BENCHMARKS.md, session 14's step phases).
+0.03-0.16 ms to every step, voting or not (BENCHMARKS.md, "Training time").
 """
 
 from __future__ import annotations

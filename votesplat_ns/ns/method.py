@@ -52,7 +52,7 @@ class NeverStepsOptimizerConfig(OptimizerConfig):
 def splatfacto_optimizers(max_steps: int = 30000) -> dict:
     """splatfacto's optimizer settings (nerfstudio 1.1.5 method_configs), plus the vote groups. The Gaussians'
     groups take their Adam step as one fused kernel (``FusedAdamOptimizerConfig``): the host time of their six
-    multi-tensor steps was a larger part of a training step than a vote step (BENCHMARKS.md, session 18)."""
+    multi-tensor steps was a larger part of a training step than a vote step (BENCHMARKS.md, "Training time")."""
     return {
         "means": {
             "optimizer": FusedAdamOptimizerConfig(lr=1.6e-4, eps=1e-15),
