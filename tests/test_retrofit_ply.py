@@ -16,7 +16,6 @@ from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci, _spherical_harmonics
 from nerfstudio.utils.eval_utils import eval_setup
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.ply_io import (
     MIN_OPACITY_LOGIT,
     GaussianPlyError,
@@ -25,6 +24,7 @@ from votesplat_ns.core.ply_io import (
     write_gaussian_table,
     write_vertex_ply,
 )
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 from votesplat_ns.ns.rasterizer import rasterize
 from votesplat_ns.ns.retrofit import (

@@ -10,7 +10,7 @@
     votesplat synth        RECIPE --output-dir D [...]         render a synthetic scene (also: synth family-set)
     votesplat write-labels --scene S --output-dir L            LERF-OVS labels from GT masks
 
-Bad input (``ValueError``, which :class:`~votesplat_ns.cli.cli_errors.VoteSplatInputError` is, and a
+Bad input (``ValueError``, which :class:`~votesplat_ns.errors.VoteSplatInputError` is, and a
 missing optional package) ends every subcommand the same way: one line ``votesplat <sub>: error: ...``
 on stderr and exit status 1, no traceback. The older ``votesplat-masks``, ``votesplat-export``,
 ``votesplat-eval``, ``votesplat-noisy-masks`` and ``votesplat-synth`` scripts are aliases of the
@@ -27,7 +27,7 @@ import tyro
 from typing_extensions import Annotated
 
 from votesplat_ns.cli import evaluate_cli, masks_cli, query_cli
-from votesplat_ns.cli.cli_errors import one_line_errors
+from votesplat_ns.errors import one_line_errors
 from votesplat_ns.eval.synthetic import cli as synth_cli
 from votesplat_ns.ns.export import ExportVoteSplatInstances
 

@@ -19,8 +19,8 @@ from typing import Any, Dict, List, Optional, Tuple
 import tyro
 from typing_extensions import Annotated
 
-from votesplat_ns.cli.cli_errors import check_writable_folder, writing_into
 from votesplat_ns.core.semantics import DEFAULT_NEGATIVES, ClipEncoder, EncoderProtocol
+from votesplat_ns.errors import check_writable_folder, writing_into
 from votesplat_ns.eval.lerf_ovs import load_scene_labels
 from votesplat_ns.eval.synthetic.labels import write_scene_labels
 from votesplat_ns.ns.query import (

@@ -1,5 +1,5 @@
 """Checks of a training run's inputs, before any image is loaded or mask made, each failing with one
-actionable line (:class:`~votesplat_ns.cli.cli_errors.VoteSplatInputError`): the dataset and every
+actionable line (:class:`~votesplat_ns.errors.VoteSplatInputError`): the dataset and every
 frame of its transforms.json, the vote cache location, the vote loss schedule.
 
 Used by :class:`votesplat_ns.ns.datamanager.VoteDataManager` (``ns-train``) and ``votesplat masks``.
@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Dict, Optional
 import numpy as np
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.mask_sources import image_file_size
+from votesplat_ns.errors import VoteSplatInputError
 
 if TYPE_CHECKING:
     from votesplat_ns.ns.datamanager import VoteDataManagerConfig

@@ -39,11 +39,11 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple, Uni
 import numpy as np
 import torch
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, read_run_config
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, cluster_levels
 from votesplat_ns.core.instances import render_id_maps  # noqa: F401 (re-exported: evaluation renders its id maps with it)
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.eval.evaluation import (
     DEFAULT_MAX_PSNR_DROP_DB,
     DEFAULT_MIN_GAIN_DB,
@@ -61,7 +61,7 @@ from votesplat_ns.eval.ground_truth import (
     write_json_atomic,
 )
 from votesplat_ns.ns.mask_views import mask_check as training_mask_check
-from votesplat_ns.ns.run import dataset_views, load_run
+from votesplat_ns.ns.run import dataset_views, load_run, read_run_config
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"

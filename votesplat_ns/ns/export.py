@@ -17,10 +17,10 @@ from typing import Callable, List, Literal, Optional, Tuple
 
 import torch
 
-from votesplat_ns.cli.cli_errors import one_line_errors, writing_into
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, ClusteringOptions
 from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY  # noqa: F401 (keys re-exported)
+from votesplat_ns.errors import one_line_errors, writing_into
 from votesplat_ns.ns.instance_export import EXPORT_FILE_PATTERNS, check_output_dir, export_instances  # noqa: F401 (re-exported: the export's public names)
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 from votesplat_ns.ns.patches import EXPORTER_MODULE, SUBCOMMAND_NAME, install_ns_export_hook  # noqa: F401

@@ -17,10 +17,10 @@ from typing import Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, writing_into
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, load_image_rgb
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS
 from votesplat_ns.core.vote_preview import render_vote_preview, write_png
+from votesplat_ns.errors import VoteSplatInputError, writing_into
 from votesplat_ns.ns.mask_settings import SamOptions
 
 PREVIEW_FOLDER_NAME = "votesplat_previews"
