@@ -83,15 +83,15 @@ def test_program_name():
 
 def test_one_line_errors_catches_only_what_it_is_told(capsys):
     with pytest.raises(SystemExit) as exit_info:
-        with one_line_errors(catch=(ValueError,), prog="votesplat-masks"):
+        with one_line_errors(catch=(ValueError,), prog="votesplat masks"):
             raise ValueError("--preview must be >= 0\n  got -1")
     assert exit_info.value.code == 1
-    assert capsys.readouterr().err == "votesplat-masks: error: --preview must be >= 0; got -1\n"
+    assert capsys.readouterr().err == "votesplat masks: error: --preview must be >= 0; got -1\n"
     with pytest.raises(RuntimeError, match="a bug"):
-        with one_line_errors(prog="votesplat-masks"):
+        with one_line_errors(prog="votesplat masks"):
             raise RuntimeError("a bug")
     with pytest.raises(ValueError):  # only VoteSplatInputError by default
-        with one_line_errors(prog="votesplat-masks"):
+        with one_line_errors(prog="votesplat masks"):
             raise ValueError("not ours")
 
 

@@ -43,11 +43,11 @@ class _RunArgs:
     level: Optional[str] = None
     """Vote level whose instances are selected, by name or index (default: the first level)."""
     instances: Optional[Path] = None
-    """Reuse the instances of a votesplat-export folder (its instance_ids.npz) instead of clustering again."""
+    """Reuse the instances of a votesplat export folder (its instance_ids.npz) instead of clustering again."""
     min_cluster_size: Optional[int] = None
-    """Clustering as votesplat-export (ignored with --instances): smallest instance, in Gaussians."""
+    """Clustering as votesplat export (ignored with --instances): smallest instance, in Gaussians."""
     min_samples: Optional[int] = None
-    """HDBSCAN min_samples (default as votesplat-export)."""
+    """HDBSCAN min_samples (default as votesplat export)."""
     seed: int = 0
     """Seed of the clustering subsample."""
 
@@ -213,10 +213,3 @@ class WriteLabels:
         paths = write_scene_labels(self.scene, self.output_dir, self.frames)
         print(f"Wrote {len(paths)} label files to {self.output_dir}")
         return paths
-
-
-def entrypoint() -> None:
-    """``votesplat`` as installed before cli/main.py existed (lazy import: cli.main imports this module)."""
-    from votesplat_ns.cli.main import entrypoint as votesplat
-
-    votesplat()

@@ -69,18 +69,13 @@ from votesplat_ns.core.vote_maps import (
     voting_pixels,
 )
 from votesplat_ns.errors import VoteSplatInputError, check_device_available, writing_into
-from votesplat_ns.ns.data_checks import (  # noqa: F401 (re-exported: callers import the checks from here)
+from votesplat_ns.ns.data_checks import (
     CACHE_DIR_FLAG,
-    CACHE_FOLDER_NAME,
     DATASET_LEVELS,
-    DEFAULT_OUTPUT_DIR,
     check_cache_outside_dataset,
     check_data_input,
-    check_frames,
     check_vote_schedule,
-    dataset_dir,
     default_cache_dir,
-    frame_image_path,
 )
 from votesplat_ns.ns.mask_settings import SamOptions
 from votesplat_ns.ns.retrofit import retrofit_reference

@@ -76,14 +76,14 @@ def dataset_images(data: Path, downscale_factor: Optional[int]) -> List[Path]:
 
 def make_masks(config: MasksConfig) -> Dict[str, object]:
     """Make all views' vote maps and the previews; returns where they went."""
-    # the datamanager imports nerfstudio, which `votesplat --help` should not wait for
-    from votesplat_ns.ns.datamanager import (
-        VoteDataManagerConfig,
+    # the datamanager and its checks import nerfstudio, which `votesplat --help` should not wait for
+    from votesplat_ns.ns.data_checks import (
         check_cache_outside_dataset,
         check_data_input,
         dataset_dir,
         default_cache_dir,
     )
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 
     if config.preview < 0:
         raise VoteSplatInputError(f"--preview must be >= 0, got {config.preview}")

@@ -35,7 +35,7 @@ from votesplat_ns.ns.model_config import VoteSplatModelConfig
 from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit_source import retrofit_gaussians
-from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, gaussians_from_ply_arrays, latest_checkpoint, load_gaussians  # noqa: F401 (re-exported: tests and benchmarks import them from here)
+from votesplat_ns.ns.run import SPLAT_PARAM_NAMES
 from votesplat_ns.ns.viewer import VoteSplatViewerState
 from votesplat_ns.ns.vote_init import start_offsets_lifted
 

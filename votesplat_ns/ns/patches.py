@@ -93,7 +93,7 @@ def _extend_commands(exporter) -> bool:
         return True
     import tyro
 
-    # imported here: ns/export.py imports this module (for the hook's names)
+    # imported only when ns-export's commands are extended, not by every ns-* command that applies the patches
     from votesplat_ns.ns.export import ExportVoteSplatInstances
 
     markers: tuple = ()
