@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from votesplat_ns.core.clustering import ClusteringOptions, cluster_votes_detailed  # noqa: E402
 from votesplat_ns.core.ply_io import gaussian_vertex_table, write_gaussian_table  # noqa: E402
-from votesplat_ns.ns.export import export_instances  # noqa: E402
+from votesplat_ns.ns.instance_export import export_instances  # noqa: E402
 
 
 def synthetic_scene(num_gaussians: int, num_instances: int, seed: int = 0):

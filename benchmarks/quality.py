@@ -6,20 +6,20 @@
         --steps 400 --seeds 0 1 2
     python benchmarks/quality.py --merge runs/*/quality.json      # one table (+ mean over scenes) of parallel runs
 
-For every scene folder (written by ``votesplat-synth``) and every mask kind in ``--masks``:
+For every scene folder (written by ``votesplat synth``) and every mask kind in ``--masks``:
 
 * ``gt``: train votesplat with the dataset's exact instance/part masks;
 * ``noisy``: write the GT masks corrupted by ``MaskNoise`` (``--split-rate`` ...) into
   ``<work-dir>/<scene>/noisy_masks`` and train with ``mask_source=folder`` on them;
 
-then score the run with ``votesplat-eval`` (held-out views, every level of ``--levels``, by
+then score the run with ``votesplat eval`` (held-out views, every level of ``--levels``, by
 default instance and part: mIoU, precision and recall at IoU 0.5; 3D per-Gaussian purity) and
 print one markdown table with a row per scene, mask kind and level, and a mean row over the scenes.
-mIoU, precision and recall are votesplat-eval's ``*_valid_views`` scores (held-out views whose RGB
+mIoU, precision and recall are votesplat eval's ``*_valid_views`` scores (held-out views whose RGB
 reconstruction did not fail) where it reports them, else its scores over all held-out views; the
 "views" column says which (and how many views were valid).
 
-A family set (``votesplat-synth family-set``) is scored with ``benchmarks/sweep.py --family``,
+A family set (``votesplat synth family-set``) is scored with ``benchmarks/sweep.py --family``,
 which also compares training and clustering variants. ``--ablation`` trains the
 paper's Table 3 variants on each scene with GT masks instead: the full model, no depth distortion
 (``vote_distortion=none``), votes blended in 2D (``vote_blend_space=2d``) and alpha*T vote weights
@@ -190,7 +190,7 @@ def summary_table(rows: Sequence[dict], first_columns: Sequence[str]) -> str:
 def train_base_scene(scene: Path, args) -> Path:
     """The scene's geometry without votes (the retrofit source), trained once and reused."""
     from votesplat_ns.ns.method import train_in_process
-    from votesplat_ns.ns.model import latest_checkpoint
+    from votesplat_ns.ns.run import latest_checkpoint
 
     base_dir = args.work_dir / scene.resolve().name / f"base_{args.base_steps}"
     for config_path in sorted(base_dir.glob("*/votesplat/run/config.yml")):  # <experiment>/<method>/<timestamp>
@@ -228,7 +228,7 @@ def write_base_ply(base_config: Path) -> Path:
 
 
 def level_row(metrics: dict, level: str) -> dict:
-    """The table's numbers for one level of a votesplat-eval metrics.json: mIoU, precision and recall over the
+    """The table's numbers for one level of a votesplat eval metrics.json: mIoU, precision and recall over the
     valid views where it reports them (``*_valid_views``), else over all held-out views."""
     if level not in metrics["levels"]:
         return {"level": level, "error": f"no {level!r} level scored (metrics.json has {sorted(metrics['levels'])})"}
@@ -388,7 +388,7 @@ def parse_args(argv: Optional[List[str]] = None):
         parser.error(f"--steps ({args.steps}) must exceed --vote-start ({args.vote_start}) so the votes get trained")
     for scene in args.scenes:
         if not (scene / "transforms.json").is_file():
-            parser.error(f"{scene} has no transforms.json; pass folders written by votesplat-synth")
+            parser.error(f"{scene} has no transforms.json; pass folders written by votesplat synth")
     return args
 
 
@@ -456,7 +456,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             f"steps {args.steps}, vote start {args.vote_start}, vote pixels per step {args.vote_pixels or 'default (4096)'}, "
             f"vote every {1 if args.retrofit else args.vote_every or 'default (4)'} steps, "
             f"lambda_d {args.distortion_weight if args.distortion_weight is not None else 'default (0.1)'}, "
-            f"device {args.device}, levels {' '.join(args.levels)}; mIoU over the held-out views that votesplat-eval "
+            f"device {args.device}, levels {' '.join(args.levels)}; mIoU over the held-out views that votesplat eval "
             "counts as valid where it reports them (views column), else over all"
         )
         if args.retrofit:

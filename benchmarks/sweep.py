@@ -6,9 +6,9 @@
         --cluster fill 'nofill:fill=False' --steps 3000 --vote-start 500 --jobs 16 --work-dir build/sweep
 
 ``--family tuning|test`` takes every scene of that family set (``--family-dir``, default
-``build/family_<set>``, written by ``votesplat-synth family-set``), checked against the seeds in
+``build/family_<set>``, written by ``votesplat synth family-set``), checked against the seeds in
 votesplat_ns/eval/synthetic/family.py: defaults are chosen on the tuning set only, the test set reports
-them. ``--scenes`` takes any votesplat-synth folders instead.
+them. ``--scenes`` takes any votesplat synth folders instead.
 
 A training variant is ``name:field=value,...`` (model config fields; ``dm.<field>`` for the
 datamanager's); ``default`` alone trains with the defaults. A clustering variant is
@@ -17,7 +17,7 @@ datamanager's); ``default`` alone trains with the defaults. A clustering variant
 check (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`). Every
 (scene, masks, training variant, seed) trains once in its own process (``--jobs`` at a time: a
 small scene leaves most of a GPU idle); every clustering variant then scores that run with
-``votesplat-eval``'s scorer at the instance and the part level. Rows go to
+``votesplat eval``'s scorer at the instance and the part level. Rows go to
 ``<work-dir>/sweep.json`` and a table of means over scenes (plus the worst scene) to
 ``sweep.md``. Scores are mIoU over the views whose reconstruction did not fail, when the scorer
 reports them (``miou_valid_views``), else over all held-out views.
@@ -194,7 +194,7 @@ def write_text(path: Path, text: str) -> None:
 
 def parse_args(argv: Optional[List[str]] = None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="votesplat-synth scene folders")
+    parser.add_argument("--scenes", nargs="+", type=Path, default=None, help="votesplat synth scene folders")
     parser.add_argument(
         "--family",
         choices=["tuning", "tuning-extra", "test"],
@@ -234,7 +234,7 @@ def parse_args(argv: Optional[List[str]] = None):
         parser.error("pass --scenes or --family")
     for scene in args.scenes:
         if not (scene / "transforms.json").is_file():
-            parser.error(f"{scene} has no transforms.json; pass folders written by votesplat-synth")
+            parser.error(f"{scene} has no transforms.json; pass folders written by votesplat synth")
     return args
 
 

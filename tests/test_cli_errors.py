@@ -1,4 +1,4 @@
-"""The one-line error path (cli_errors) and the dataset checks, in process (issue #2); commands: test_bad_inputs.py."""
+"""The one-line error path (votesplat_ns/errors.py) and the dataset checks, in process (issue #2); commands: test_bad_inputs.py."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from votesplat_ns.cli import cli_errors
-from votesplat_ns.cli.cli_errors import (
+from votesplat_ns import errors
+from votesplat_ns.errors import (
     VoteSplatInputError,
     check_device_available,
     check_writable_folder,
@@ -68,31 +68,30 @@ def test_excepthook_shortens_only_input_errors(restore_excepthook, capsys, monke
 
 
 def test_program_name():
-    assert cli_errors.program_name(["/v/bin/ns-train", "votesplat", "--data", "x"]) == "ns-train votesplat"
-    assert cli_errors.program_name(["/v/bin/ns-viewer", "--load-config", "c.yml"]) == "ns-viewer"
+    assert errors.program_name(["/v/bin/ns-train", "votesplat", "--data", "x"]) == "ns-train votesplat"
+    assert errors.program_name(["/v/bin/ns-viewer", "--load-config", "c.yml"]) == "ns-viewer"
     assert (
-        cli_errors.program_name(["/v/bin/ns-export", "votesplat-instances", "--load-config", "c"])
+        errors.program_name(["/v/bin/ns-export", "votesplat-instances", "--load-config", "c"])
         == "ns-export votesplat-instances"
     )
-    assert cli_errors.program_name(["/v/bin/ns-export", "gaussian-splat"]) == "ns-export"
-    assert cli_errors.program_name(["/v/bin/votesplat", "click", "--view", "1"]) == "votesplat click"
-    assert cli_errors.program_name(["/v/bin/votesplat-masks", "--data", "x"]) == "votesplat-masks"
-    assert cli_errors.program_name(["pytest"]) == "votesplat"
+    assert errors.program_name(["/v/bin/ns-export", "gaussian-splat"]) == "ns-export"
+    assert errors.program_name(["/v/bin/votesplat", "click", "--view", "1"]) == "votesplat click"
+    assert errors.program_name(["pytest"]) == "votesplat"
     assert one_line_message(VoteSplatInputError(""), ["ns-eval"]) == "ns-eval: error: VoteSplatInputError"
     assert one_line_message(ValueError("a\nb"), prog="votesplat query") == "votesplat query: error: a; b"
 
 
 def test_one_line_errors_catches_only_what_it_is_told(capsys):
     with pytest.raises(SystemExit) as exit_info:
-        with one_line_errors(catch=(ValueError,), prog="votesplat-masks"):
+        with one_line_errors(catch=(ValueError,), prog="votesplat masks"):
             raise ValueError("--preview must be >= 0\n  got -1")
     assert exit_info.value.code == 1
-    assert capsys.readouterr().err == "votesplat-masks: error: --preview must be >= 0; got -1\n"
+    assert capsys.readouterr().err == "votesplat masks: error: --preview must be >= 0; got -1\n"
     with pytest.raises(RuntimeError, match="a bug"):
-        with one_line_errors(prog="votesplat-masks"):
+        with one_line_errors(prog="votesplat masks"):
             raise RuntimeError("a bug")
     with pytest.raises(ValueError):  # only VoteSplatInputError by default
-        with one_line_errors(prog="votesplat-masks"):
+        with one_line_errors(prog="votesplat masks"):
             raise ValueError("not ours")
 
 
@@ -103,7 +102,7 @@ def test_writable_folder_check(tmp_path, monkeypatch):
     with pytest.raises(VoteSplatInputError, match=r"^--output-dir .*file/sub: .*file is a file, not a folder"):
         check_writable_folder(tmp_path / "file" / "sub", "--output-dir")
     # os.access answers for this process: refuse where it says no (root may write anywhere, so simulate it)
-    monkeypatch.setattr(cli_errors.os, "access", lambda path, mode: Path(path) != tmp_path)
+    monkeypatch.setattr(errors.os, "access", lambda path, mode: Path(path) != tmp_path)
     with pytest.raises(
         VoteSplatInputError, match=rf"^--cache-dir {tmp_path}/c: cannot write in {tmp_path} \(permission denied"
     ):

@@ -8,12 +8,16 @@ from scipy.spatial import cKDTree
 from votesplat_ns.core.clustering import (
     background_mask,
     cluster_levels,
-    cluster_votes,
     cluster_votes_detailed,
     default_min_cluster_size,
     fill_from_neighbours,
     merge_spread_clusters,
 )
+
+
+def cluster_votes(votes, **options):
+    """The labels alone of ``cluster_votes_detailed``."""
+    return cluster_votes_detailed(votes, **options).labels
 
 
 def blobs(num_blobs=5, per_blob=200, spread=0.05, separation=4.0, strays=0, seed=0):

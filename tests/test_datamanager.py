@@ -1,4 +1,4 @@
-"""VoteDataManager on a tiny nerfstudio dataset: vote maps aligned with the training images; votesplat-masks."""
+"""VoteDataManager on a tiny nerfstudio dataset: vote maps aligned with the training images; votesplat masks."""
 
 import json
 from pathlib import Path

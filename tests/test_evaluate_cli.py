@@ -1,4 +1,4 @@
-"""votesplat-eval and votesplat-noisy-masks on the bundled demo scene (uses the shared trained_demo run)."""
+"""votesplat eval and votesplat noisy-masks on the bundled demo scene (uses the shared trained_demo run)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,6 @@ import json
 import os
 import shutil
 import stat
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ from PIL import Image
 
 import votesplat_ns.ns.evaluate as evaluate_module
 from votesplat_ns.cli import evaluate_cli
+from votesplat_ns.cli.main import main as votesplat
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.mask_sources import FolderMaskSource
 from votesplat_ns.eval.evaluation import match_instances
@@ -38,11 +38,11 @@ DEMO_PARTS = set(range(1, 12))
 EVAL_VIEWS = ["frame_00005.png", "frame_00013.png", "frame_00022.png", "frame_00030.png"]
 
 
-def run_cli(monkeypatch, capsys, entry, *argv) -> tuple:
-    monkeypatch.setattr(sys, "argv", ["prog", *map(str, argv)])
+def run_cli(monkeypatch, capsys, subcommand, *argv) -> tuple:
+    """``votesplat <subcommand> <argv>`` in process: (exit status, stdout, stderr)."""
     code = 0
     try:
-        entry()
+        votesplat([subcommand, *map(str, argv)])
     except SystemExit as exit_:
         code = exit_.code or 0
     out, err = capsys.readouterr()
@@ -142,14 +142,9 @@ def test_score_level_repeats_the_2d_scores_over_the_valid_views():
 
 @pytest.fixture(scope="module")
 def demo_eval(trained_demo, tmp_path_factory):
-    """votesplat-eval run through its console entry point on the shared demo run."""
+    """votesplat eval run through the command's entry point on the shared demo run."""
     output_dir = tmp_path_factory.mktemp("demo_eval")
-    mp = pytest.MonkeyPatch()
-    mp.setattr(sys, "argv", ["votesplat-eval", "--load-config", str(trained_demo), "--output-dir", str(output_dir)])
-    try:
-        evaluate_cli.entrypoint()
-    finally:
-        mp.undo()
+    votesplat(["eval", "--load-config", str(trained_demo), "--output-dir", str(output_dir)])
     return json.loads((output_dir / "metrics.json").read_text()), output_dir
 
 
@@ -246,9 +241,7 @@ def test_views_with_a_failed_reconstruction_are_flagged_and_scored_apart(trained
         return results[-1]
 
     monkeypatch.setattr(evaluate_cli, "evaluate_run", keep_result)
-    code, out, err = run_cli(
-        monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", trained_demo, "--output-dir", output_dir
-    )
+    code, out, err = run_cli(monkeypatch, capsys, "eval", "--load-config", trained_demo, "--output-dir", output_dir)
     assert code == 0, err
     metrics = json.loads((output_dir / "metrics.json").read_text())
     maps = results[0].maps
@@ -327,7 +320,7 @@ def test_view_splits():
 def test_eval_rejects_another_method(trained_demo, tmp_path, monkeypatch, capsys):
     other = tmp_path / "config.yml"
     other.write_text(trained_demo.read_text().replace("method_name: votesplat", "method_name: splatfacto"))
-    code, _, err = run_cli(monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", other)
+    code, _, err = run_cli(monkeypatch, capsys, "eval", "--load-config", other)
     assert code == 1
     assert "'splatfacto' run" in err and "votesplat" in err and len(err.strip().splitlines()) == 1
 
@@ -349,7 +342,7 @@ def test_eval_rejects_a_dataset_without_gt_masks(trained_demo, tmp_path, monkeyp
     data = tmp_path / "no_masks"
     data.mkdir()
     (data / "transforms.json").write_text(json.dumps(meta))
-    code, _, err = run_cli(monkeypatch, capsys, evaluate_cli.entrypoint, "--load-config", trained_demo, "--data", data)
+    code, _, err = run_cli(monkeypatch, capsys, "eval", "--load-config", trained_demo, "--data", data)
     assert code == 1
     assert "no ground-truth masks" in err and len(err.strip().splitlines()) == 1
 
@@ -363,7 +356,7 @@ def test_eval_rejects_bad_options(trained_demo, tmp_path, monkeypatch, capsys):
         code, _, err = run_cli(
             monkeypatch,
             capsys,
-            evaluate_cli.entrypoint,
+            "eval",
             "--load-config",
             trained_demo,
             "--output-dir",
@@ -392,7 +385,7 @@ def test_noisy_masks_are_a_folder_mask_source_with_the_datasets_views(tmp_path, 
     code, stdout, err = run_cli(
         monkeypatch,
         capsys,
-        evaluate_cli.noisy_masks_entrypoint,
+        "noisy-masks",
         "--data",
         DEMO_SCENE,
         "--output",
@@ -463,7 +456,7 @@ def test_noisy_masks_bad_inputs(tmp_path, monkeypatch, capsys):
     code, _, err = run_cli(
         monkeypatch,
         capsys,
-        evaluate_cli.noisy_masks_entrypoint,
+        "noisy-masks",
         "--data",
         DEMO_SCENE,
         "--output",

@@ -23,7 +23,9 @@ from votesplat_ns.core.clustering import ClusteringOptions
 from votesplat_ns.core.instances import InstanceSet
 from votesplat_ns.core.ply_io import read_gaussian_ply, read_ply_header
 from votesplat_ns.core.scene import TrainedScene
-from votesplat_ns.ns.export import SUBCOMMAND_NAME, ExportVoteSplatInstances, export_instances, install_ns_export_hook
+from votesplat_ns.ns.export import ExportVoteSplatInstances
+from votesplat_ns.ns.instance_export import export_instances
+from votesplat_ns.ns.patches import SUBCOMMAND_NAME, install_ns_export_hook
 from votesplat_ns.ns.run import LoadedRun
 
 LEVELS = ("instance", "part")
@@ -457,7 +459,7 @@ def subcommands(commands):
 def test_hook_extends_the_exporter_commands(tmp_path, monkeypatch, case):
     name = f"fake_exporter_{case}"
     hook = (
-        f"import votesplat_ns.ns.export\nvotesplat_ns.ns.export.install_ns_export_hook({name!r})"
+        f"import votesplat_ns.ns.patches\nvotesplat_ns.ns.patches.install_ns_export_hook({name!r})"
         if case == "during_import"
         else ""
     )
@@ -511,10 +513,10 @@ def test_ns_export_lists_the_votesplat_subcommand():
 
 
 def test_votesplat_export_console_script():
-    script = console_script("votesplat-export")
-    assert script, "votesplat-export is not installed (pip install -e .)"
+    script = console_script("votesplat")
+    assert script, "votesplat is not installed (pip install -e .)"
     result = subprocess.run(
-        [script, "--help"],
+        [script, "export", "--help"],
         capture_output=True,
         check=False,
         text=True,

@@ -208,42 +208,9 @@ def test_reader_rejects_non_gaussian_ply(tmp_path):
         read_gaussian_ply(tmp_path / "txt.ply")
 
 
-def test_trained_scene_from_ply_is_the_file_without_votes(tmp_path):
-    from votesplat_ns.core.ply_io import GaussianPlyError
-    from votesplat_ns.core.scene import TrainedScene
-
-    p = random_params(n=12, k=15, seed=5)
-    write(tmp_path / "g.ply", p, filter_invalid=False)
-    scene = TrainedScene.from_ply(tmp_path / "g.ply")
-    for field, key in (
-        ("means", "means"),
-        ("sh_dc", "features_dc"),
-        ("sh_rest", "features_rest"),
-        ("opacity_logits", "opacity_logits"),
-        ("log_scales", "log_scales"),
-        ("quats", "quats"),
-    ):
-        np.testing.assert_array_equal(getattr(scene, field), p[key], err_msg=field)
-    assert scene.sh_degree == 3 and scene.level_names == ()
-    assert scene.vote_offsets.shape == (12, 0, 3) and scene.vote_support.shape == (12, 0)
-    # written back, the record is the same file
-    scene_table = scene.vertex_table()
-    np.testing.assert_array_equal(scene_table[:, :3], p["means"])
-    gaussians = scene.gaussians()
-    assert gaussians.sh_degree == 3 and gaussians.colors.shape == (12, 16, 3)
-    np.testing.assert_allclose(gaussians.scales.numpy(), np.exp(p["log_scales"]), rtol=1e-6)
-
-    with_levels = TrainedScene.from_ply(tmp_path / "g.ply", level_names=("instance", "part"))
-    assert with_levels.level_names == ("instance", "part")
-    assert with_levels.vote_offsets.shape == (12, 2, 3) and not with_levels.vote_offsets.any()
-    assert with_levels.vote_support.shape == (12, 2) and not with_levels.vote_support.any()
-
-    dc_only = random_params(n=3, k=0, seed=6)
-    write(tmp_path / "dc.ply", dc_only, filter_invalid=False)
-    flat = TrainedScene.from_ply(tmp_path / "dc.ply")
-    assert flat.sh_degree == 0 and flat.sh_rest is None
-    np.testing.assert_array_equal(flat.sh_dc, dc_only["features_dc"])  # a PLY's f_dc are SH DC at every degree
+def test_3dgs_reader_names_a_file_without_gaussians(tmp_path):
+    from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
 
     write_vertex_ply(tmp_path / "pts.ply", {"x": np.zeros(2, np.float32)})
     with pytest.raises(GaussianPlyError, match=r"pts\.ply is not a 3DGS PLY: it lacks the properties"):
-        TrainedScene.from_ply(tmp_path / "pts.ply")
+        read_3dgs_ply(tmp_path / "pts.ply")

@@ -246,7 +246,7 @@ def test_query_end_to_end_with_random_clip_weights(trained_demo, demo_scene, tmp
 
 
 def test_instances_from_an_export_are_the_ones_clustered_here(demo_scene, tmp_path):
-    # votesplat-export clusters every level; --instances reads its instance_ids.npz back.
+    # votesplat export clusters every level; --instances reads its instance_ids.npz back.
     params = demo_scene.params
     cluster_levels(params.means, params.vote_offsets, params.vote_support, params.level_names).save(tmp_path)
     never = lambda: pytest.fail("--instances must not compute the run's instances")  # noqa: E731

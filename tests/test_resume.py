@@ -13,7 +13,7 @@ from conftest import DEMO_SCENE
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
 from votesplat_ns.ns.method import setup_trainer_in_process
-from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
+from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
 FIRST_STEPS = 22  # densifies at step 20, so the checkpoint's N differs from the initial one
 MORE_STEPS = 10  # densifies again at step 30

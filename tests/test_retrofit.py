@@ -7,7 +7,7 @@ import torch
 from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from nerfstudio.utils.eval_utils import eval_setup
 
-from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
+from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 from votesplat_ns.ns.vote_init import lifted_offsets
 
 

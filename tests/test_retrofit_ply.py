@@ -16,7 +16,6 @@ from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci, _spherical_harmonics
 from nerfstudio.utils.eval_utils import eval_setup
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.ply_io import (
     MIN_OPACITY_LOGIT,
     GaussianPlyError,
@@ -25,7 +24,7 @@ from votesplat_ns.core.ply_io import (
     write_gaussian_table,
     write_vertex_ply,
 )
-from votesplat_ns.ns.model import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.rasterizer import rasterize
 from votesplat_ns.ns.retrofit import (
     RetrofitReference,
@@ -38,6 +37,7 @@ from votesplat_ns.ns.retrofit import (
     similarity_parts,
     transform_gaussians,
 )
+from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
 NS_TRAIN = Path(sys.executable).parent / "ns-train"
 
@@ -312,7 +312,7 @@ def test_frame_checks_on_the_demo_scene(demo_reference, trained_demo, ns_exporte
     ns_ply, (ds_ply, _) = ns_exported_ply, dataset_frame_ply
     g = trained_gaussians(Path(trained_demo))
     keep = exported_rows(g)
-    from votesplat_ns.ns.model import gaussians_from_ply_arrays
+    from votesplat_ns.ns.run import gaussians_from_ply_arrays
 
     def load(path):
         return gaussians_from_ply_arrays(read_3dgs_ply(path)[0])

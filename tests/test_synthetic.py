@@ -376,7 +376,7 @@ def scene_digest(scene) -> str:
     )
 
 
-# family_<seed> at SET_OPTIONS, as written by `votesplat-synth family-set`; a change here changes the benchmark
+# family_<seed> at SET_OPTIONS, as written by `votesplat synth family-set`; a change here changes the benchmark
 # (BENCHMARKS.md numbers no longer apply): bump GENERATOR_VERSION and re-render the sets instead of editing these
 PINNED_FAMILY_SCENES = {
     1006: "6447b3af:ed23ae87:e7385255:6b4e7975",

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from votesplat_ns.core.ply_io import read_gaussian_ply
-from votesplat_ns.ns.viewer import DISPLAY_ISOLATE, OUTPUT_OVERLAY, VIEWER_OUTPUTS
+from votesplat_ns.ns.viewer_render import DISPLAY_ISOLATE, OUTPUT_OVERLAY, VIEWER_OUTPUTS
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"

@@ -6,10 +6,10 @@ import torch
 
 from votesplat_ns.core.vote_maps import (
     VoteMaps,
-    gather_vote_targets,
     label_tensor,
     labels_from_binary_masks,
     mask_centroids,
+    pixels_and_targets,
     resize_label_images,
     resize_vote_maps,
     round_half_away_from_zero,
@@ -17,6 +17,11 @@ from votesplat_ns.core.vote_maps import (
     vote_maps_from_labels,
     voting_pixels,
 )
+
+
+def flat_labels(maps: VoteMaps) -> torch.Tensor:
+    """A view's mask ids as training looks them up: [L, H*W]."""
+    return torch.from_numpy(maps.labels.reshape(maps.labels.shape[0], -1).astype(np.int32))
 
 
 def test_centroids_hand_computed_with_rounding_and_renumbering():
@@ -65,10 +70,10 @@ def test_border_mask_rules():
     maps = vote_maps_from_labels([labels], border_masks="mask_only")
     votes, valid = maps.targets(0)
     assert np.array_equal(valid, labels == 2)
-    targets, valid_t = gather_vote_targets(
-        torch.from_numpy(maps.labels.astype(np.int32)), torch.from_numpy(maps.padded_centroids())
+    _, _, valid_t = pixels_and_targets(
+        torch.arange(labels.size), labels.shape[1], flat_labels(maps), torch.from_numpy(maps.padded_centroids()), 1.0
     )
-    assert torch.equal(valid_t[0], torch.from_numpy(labels == 2))
+    assert torch.equal(valid_t[:, 0], torch.from_numpy(labels == 2).reshape(-1))
 
     with pytest.raises(ValueError, match="border_masks must be one of"):
         mask_centroids(labels, border_masks="keep")
@@ -128,13 +133,13 @@ def test_targets_in_index_and_continuous_frames():
     np.testing.assert_array_equal(continuous[valid_c], np.tile([2.5, 2.5], (6, 1)))
     assert np.array_equal(to_continuous(np.array([0.0])), [0.5])
 
-    targets, valid_t = gather_vote_targets(
-        torch.from_numpy(maps.labels.astype(np.int32)), torch.from_numpy(maps.padded_centroids())
+    # the training lookup of every pixel: its 2D vote in the continuous frame, where the pixel carries one
+    _, targets, valid_t = pixels_and_targets(
+        torch.arange(labels.size), 5, flat_labels(maps), torch.from_numpy(maps.padded_centroids()), 1.0
     )
-    assert targets.shape == (1, 5, 5, 2)
-    np.testing.assert_array_equal(targets[valid_t].numpy(), votes[valid])
-    targets_c, _ = gather_vote_targets(torch.from_numpy(labels), torch.from_numpy(maps.centroids[0]), continuous=True)
-    np.testing.assert_array_equal(targets_c[torch.from_numpy(valid)].numpy(), continuous[valid])
+    assert targets.shape == (25, 1, 2)
+    assert torch.equal(valid_t[:, 0], torch.from_numpy(valid).reshape(-1))
+    np.testing.assert_array_equal(targets[:, 0][valid_t[:, 0]].numpy(), continuous[valid])
 
 
 def test_padded_centroids_pad_with_nan():

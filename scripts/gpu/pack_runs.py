@@ -7,7 +7,7 @@ view-dependent colour (``features_rest``, zeros after ``unpack``: renders keep t
 PSNR figures of unpacked runs are not the trained ones) -- and splits the runs over at most
 ``--max-files`` archives. ``unpack`` rewrites every path that pointed into the device's folders
 (the repository root, the sweep's work folder) to this machine's and writes a normal run folder
-that ``votesplat-eval`` / ``ns-export`` load.
+that ``votesplat eval`` / ``ns-export`` load.
 
     python scripts/gpu/pack_runs.py pack /tmp/votesplat_runs/sweep $OUT --root "$PWD"
     python scripts/gpu/pack_runs.py unpack /work/.device/.../runs_*.pt --dest build/runs_tuning

@@ -398,7 +398,7 @@ stage_quality() {
   return "$rc"
 }
 
-# benchmarks/sweep.py on $SWEEP_SCENES (carried folders of votesplat-synth scenes) with $SWEEP_ARGS
+# benchmarks/sweep.py on $SWEEP_SCENES (carried folders of votesplat synth scenes) with $SWEEP_ARGS
 # (training/clustering variants, masks, steps, --jobs); sweep.md / sweep.json come back, rewritten
 # after every finished run, so a call cut short still reports what finished.
 stage_sweep() {

@@ -1,6 +1,5 @@
 """Options of ``votesplat eval`` (score a run on a synthetic scene, ``ns/evaluate.py``) and
-``votesplat noisy-masks`` (GT masks with SAM-like errors, ``eval/mask_noise.py``); aliases
-``votesplat-eval`` and ``votesplat-noisy-masks``.
+``votesplat noisy-masks`` (GT masks with SAM-like errors, ``eval/mask_noise.py``).
 """
 
 from __future__ import annotations
@@ -45,7 +44,7 @@ class EvaluateVoteSplat:
     min_weight: float = 0.5
     """A pixel shows an instance if that instance makes up at least this share of the pixel."""
     gaussian_gt: Literal["auto", "geometry", "projection"] = "auto"
-    """GT label per Gaussian: scene geometry (exact, needs votesplat-synth's generator) or the majority label in the training views."""
+    """GT label per Gaussian: scene geometry (exact, needs votesplat synth's generator) or the majority label in the training views."""
     surface_tolerance_px: float = 3.0
     """geometry: a Gaussian farther than this many pixels (at the median camera distance) from every surface is background."""
     max_psnr_drop_db: float = DEFAULT_MAX_PSNR_DROP_DB
@@ -79,13 +78,6 @@ class EvaluateVoteSplat:
         print(f"wrote {result.output_dir / METRICS_NAME}")
 
 
-def entrypoint() -> None:
-    """Console script ``votesplat-eval``, an alias of ``votesplat eval`` (lazy import: cli.main imports this module)."""
-    from votesplat_ns.cli.main import alias
-
-    alias("eval", "votesplat-eval")
-
-
 @dataclass
 class WriteNoisyMasks:
     """Write a synthetic dataset's GT masks with seeded SAM-like errors (split, merge, boundary jitter,
@@ -93,7 +85,7 @@ class WriteNoisyMasks:
     --pipeline.datamanager.mask-folder <output>."""
 
     data: Path
-    """Dataset folder with GT masks (written by votesplat-synth)."""
+    """Dataset folder with GT masks (written by votesplat synth)."""
     output: Path
     """Folder to write (<output>/<level>/<image_stem>.png)."""
     split_rate: float = 0.15
@@ -123,14 +115,3 @@ class WriteNoisyMasks:
             f"wrote noisy masks for {manifest['num_views']} views, levels {manifest['levels']} to {out}; train with "
             f"--pipeline.datamanager.mask-source folder --pipeline.datamanager.mask-folder {out}"
         )
-
-
-def noisy_masks_entrypoint() -> None:
-    """Console script ``votesplat-noisy-masks``, an alias of ``votesplat noisy-masks`` (lazy import: cli.main imports this module)."""
-    from votesplat_ns.cli.main import alias
-
-    alias("noisy-masks", "votesplat-noisy-masks")
-
-
-if __name__ == "__main__":
-    entrypoint()

@@ -10,12 +10,10 @@
     votesplat synth        RECIPE --output-dir D [...]         render a synthetic scene (also: synth family-set)
     votesplat write-labels --scene S --output-dir L            LERF-OVS labels from GT masks
 
-Bad input (``ValueError``, which :class:`~votesplat_ns.cli.cli_errors.VoteSplatInputError` is, and a
+Bad input (``ValueError``, which :class:`~votesplat_ns.errors.VoteSplatInputError` is, and a
 missing optional package) ends every subcommand the same way: one line ``votesplat <sub>: error: ...``
-on stderr and exit status 1, no traceback. The older ``votesplat-masks``, ``votesplat-export``,
-``votesplat-eval``, ``votesplat-noisy-masks`` and ``votesplat-synth`` scripts are aliases of the
-subcommands (:func:`alias`); ``ns-train votesplat``, ``ns-viewer`` and ``ns-export votesplat-instances``
-are nerfstudio's own commands and unchanged.
+on stderr and exit status 1, no traceback. ``ns-train votesplat``, ``ns-viewer`` and ``ns-export
+votesplat-instances`` are nerfstudio's own commands and unchanged.
 """
 
 from __future__ import annotations
@@ -27,7 +25,7 @@ import tyro
 from typing_extensions import Annotated
 
 from votesplat_ns.cli import evaluate_cli, masks_cli, query_cli
-from votesplat_ns.cli.cli_errors import one_line_errors
+from votesplat_ns.errors import one_line_errors
 from votesplat_ns.eval.synthetic import cli as synth_cli
 from votesplat_ns.ns.export import ExportVoteSplatInstances
 
@@ -60,16 +58,12 @@ def _run(command: Any) -> Any:
     return command.main()
 
 
-def main(args: Optional[Sequence[str]] = None, alias: Optional[str] = None) -> Any:
-    """Parse ``args`` (default: sys.argv[1:]) and run the subcommand.
-
-    ``alias`` is an old script name (``votesplat-masks``): ``args`` then hold that subcommand
-    first, and messages name the old script as the user typed it.
-    """
+def main(args: Optional[Sequence[str]] = None) -> Any:
+    """Parse ``args`` (default: sys.argv[1:]) and run the subcommand."""
     args = list(sys.argv[1:] if args is None else args)
     tyro.extras.set_accent_color("bright_yellow")
     name = args[0] if args and args[0] in SUBCOMMANDS else None
-    prog = alias or (f"votesplat {name}" if name else "votesplat")
+    prog = f"votesplat {name}" if name else "votesplat"
     if name == SYNTH:
         with one_line_errors(catch=INPUT_ERRORS, prog=prog):
             return synth_cli.main(args[1:], prog=prog)
@@ -94,8 +88,3 @@ def main(args: Optional[Sequence[str]] = None, alias: Optional[str] = None) -> A
 def entrypoint() -> None:
     """Console script ``votesplat``."""
     main()
-
-
-def alias(subcommand: str, script: str) -> None:
-    """Run an old ``votesplat-*`` console script as ``votesplat <subcommand>``."""
-    main([subcommand, *sys.argv[1:]], alias=script)

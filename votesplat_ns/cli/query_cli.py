@@ -19,9 +19,9 @@ from typing import Any, Dict, List, Optional, Tuple
 import tyro
 from typing_extensions import Annotated
 
-from votesplat_ns.cli.cli_errors import check_writable_folder, writing_into
 from votesplat_ns.core.clustering import ClusteringOptions
 from votesplat_ns.core.semantics import DEFAULT_NEGATIVES, ClipEncoder, EncoderProtocol
+from votesplat_ns.errors import check_writable_folder, writing_into
 from votesplat_ns.eval.lerf_ovs import load_scene_labels
 from votesplat_ns.eval.synthetic.labels import write_scene_labels
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS
@@ -46,11 +46,11 @@ class _RunArgs:
     level: Optional[str] = None
     """Vote level whose instances are selected, by name or index (default: the first level)."""
     instances: Optional[Path] = None
-    """Reuse the instances of a votesplat-export folder (its instance_ids.npz) instead of clustering again."""
+    """Reuse the instances of a votesplat export folder (its instance_ids.npz) instead of clustering again."""
     min_cluster_size: Optional[int] = None
-    """Clustering as votesplat-export (ignored with --instances): smallest instance, in Gaussians."""
+    """Clustering as votesplat export (ignored with --instances): smallest instance, in Gaussians."""
     min_samples: Optional[int] = None
-    """HDBSCAN min_samples (default as votesplat-export)."""
+    """HDBSCAN min_samples (default as votesplat export)."""
     seed: int = 0
     """Seed of the clustering subsample."""
     mask_check: bool = True
@@ -224,10 +224,3 @@ class WriteLabels:
         paths = write_scene_labels(self.scene, self.output_dir, self.frames)
         print(f"Wrote {len(paths)} label files to {self.output_dir}")
         return paths
-
-
-def entrypoint() -> None:
-    """``votesplat`` as installed before cli/main.py existed (lazy import: cli.main imports this module)."""
-    from votesplat_ns.cli.main import entrypoint as votesplat
-
-    votesplat()

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from votesplat_ns.cli.cli_errors import load_failure_reason
+from votesplat_ns.errors import load_failure_reason
 
 # The smallest open_clip 2.32 architecture whose config needs neither timm nor a Hugging Face
 # text tower/tokenizer (vision ViT width 384 / patch 32, text width 256, 43 M parameters).

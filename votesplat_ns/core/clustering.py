@@ -245,14 +245,6 @@ def cluster_votes_detailed(
     return VoteClustering(labels=labels, params=params)
 
 
-def cluster_votes(votes, **options: Any) -> np.ndarray:
-    """Cluster 3D votes [M, 3]; returns labels [M] int64 (0..K-1 by decreasing size, -1 noise).
-
-    ``options`` are those of ``cluster_votes_detailed`` (the parameters; the module docstring has the rules).
-    """
-    return cluster_votes_detailed(votes, **options).labels
-
-
 def typical_spacing(points: np.ndarray, neighbours: int = DEFAULT_FILL_NEIGHBOURS) -> float:
     """Median distance of a point to its ``neighbours``-th nearest other point (0 if too few)."""
     from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stubs)

@@ -9,7 +9,7 @@ from typing import Tuple, Union
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.errors import VoteSplatInputError
 
 PathLike = Union[str, Path]
 

@@ -7,8 +7,8 @@ from typing import Any, Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.image_files import PathLike
+from votesplat_ns.errors import VoteSplatInputError
 
 
 class MaskSource(abc.ABC):

@@ -19,7 +19,6 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.image_files import (
     PathLike as PathLike,
     check_label_size as check_label_size,
@@ -36,6 +35,7 @@ from votesplat_ns.core.sam_masks import (
     SamMaskSource as SamMaskSource,
     check_sam_checkpoint as check_sam_checkpoint,
 )
+from votesplat_ns.errors import VoteSplatInputError
 
 
 def _is_hidden_folder(name: str) -> bool:

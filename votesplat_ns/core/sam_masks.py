@@ -12,10 +12,10 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, load_failure_reason
 from votesplat_ns.core.image_files import PathLike
 from votesplat_ns.core.mask_source_base import MaskSource, validate_levels
 from votesplat_ns.core.vote_maps import labels_from_binary_masks
+from votesplat_ns.errors import VoteSplatInputError, load_failure_reason
 
 SAM_CHECKPOINT_FILES = {
     "vit_h": "sam_vit_h_4b8939.pth",

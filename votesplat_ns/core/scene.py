@@ -14,7 +14,7 @@ from typing import Any, Callable, Mapping, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from votesplat_ns.core.ply_io import SH_C0, PathLike, gaussian_vertex_table, read_3dgs_ply
+from votesplat_ns.core.ply_io import SH_C0, gaussian_vertex_table
 
 VOTE_OFFSETS_KEY = "vote_offsets"
 VOTE_SUPPORT_KEY = "vote_support"
@@ -157,33 +157,6 @@ class TrainedScene:
             vote_support=support,
             level_names=level_names,
             sh_degree=int(round(math.sqrt(rest.shape[1] + 1))) - 1 if rest is not None else 0,
-        )
-
-    @classmethod
-    def from_ply(cls, path: PathLike, level_names: Sequence[str] = ()) -> "TrainedScene":
-        """A standard 3DGS PLY (any writer) as a scene without votes.
-
-        Read and checked by :func:`~votesplat_ns.core.ply_io.read_3dgs_ply`: bad input raises its
-        one-line :class:`~votesplat_ns.core.ply_io.GaussianPlyError`. A PLY's f_dc are SH DC
-        coefficients at every degree, so they are stored as they are (``sh_rest`` None for degree 0).
-        A PLY holds no votes: ``vote_offsets`` [N, L, 3] and ``vote_support`` [N, L] are zeros for the
-        L ``level_names`` (default none, L = 0), the state of a model's vote parameters before any vote
-        step (support 0: no level has supervised the Gaussian yet).
-        """
-        arrays, sh_degree = read_3dgs_ply(path)
-        n, levels = arrays["means"].shape[0], len(level_names)
-        rest = arrays["features_rest"]
-        return cls(
-            means=arrays["means"],
-            log_scales=arrays["log_scales"],
-            quats=arrays["quats"],
-            opacity_logits=arrays["opacity_logits"],
-            sh_dc=arrays["features_dc"],
-            sh_rest=rest if sh_degree > 0 else None,
-            vote_offsets=np.zeros((n, levels, 3), dtype=np.float32),
-            vote_support=np.zeros((n, levels), dtype=np.float32),
-            level_names=tuple(str(name) for name in level_names),
-            sh_degree=sh_degree,
         )
 
     # ------------------------------------------------------------------ views of the record

@@ -319,43 +319,6 @@ def resize_vote_maps(vote_maps: VoteMaps, new_h: int, new_w: int) -> VoteMaps:
     return VoteMaps(labels=np.ascontiguousarray(labels), centroids=centroids, level_names=vote_maps.level_names)
 
 
-def gather_vote_targets(
-    vote_labels: torch.Tensor, vote_centroids: torch.Tensor, continuous: bool = False
-) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Dense vote targets from the datamanager's tensors.
-
-    Args:
-        vote_labels: integer [L, H, W] (or [H, W]).
-        vote_centroids: float [L, K+1, 2] (or [K+1, 2]), NaN-padded, pixel-index coordinates.
-        continuous: return targets in the continuous frame (index + 0.5).
-
-    Returns:
-        targets [L, H, W, 2] (NaN where no vote) and valid [L, H, W] bool (the pixel carries a vote:
-        a mask with a finite centroid; masks without a vote target are not valid).
-    """
-    squeeze = vote_labels.dim() == 2
-    if squeeze:
-        vote_labels, vote_centroids = vote_labels[None], vote_centroids[None]
-    if vote_labels.dim() != 3 or vote_centroids.dim() != 3 or vote_centroids.shape[-1] != 2:
-        raise ValueError(
-            f"expected vote_labels [L,H,W] and vote_centroids [L,K+1,2], got {tuple(vote_labels.shape)} and {tuple(vote_centroids.shape)}"
-        )
-    if vote_labels.shape[0] != vote_centroids.shape[0]:
-        raise ValueError(f"{vote_labels.shape[0]} label levels but {vote_centroids.shape[0]} centroid levels")
-    labels = vote_labels.long()
-    if labels.numel() and int(labels.max()) >= vote_centroids.shape[1]:
-        raise ValueError("a vote label exceeds the centroid table; labels and centroids do not belong together")
-    num_levels = labels.shape[0]
-    level_index = torch.arange(num_levels, device=labels.device).view(num_levels, 1, 1)
-    targets = vote_centroids[level_index, labels]
-    if continuous:
-        targets = targets + 0.5
-    valid = torch.isfinite(targets[..., 0])
-    if squeeze:
-        return targets[0], valid[0]
-    return targets, valid
-
-
 def label_tensor(labels: np.ndarray) -> torch.Tensor:
     """A view's [L, H, W] mask ids as a training batch carries them: int16 while every id fits (up to 32767
     masks a level; SAM makes hundreds), else int32. Half of int32's bytes in the vote maps kept in memory and

@@ -165,7 +165,7 @@ class GroundTruthDataset:
         data = Path(data)
         path = data if data.suffix == ".json" else data / "transforms.json"
         if not path.is_file():
-            raise ValueError(f"{path} not found; point at a dataset folder written by votesplat-synth")
+            raise ValueError(f"{path} not found; point at a dataset folder written by votesplat synth")
         meta = json.loads(path.read_text(encoding="utf-8"))
         frames: Dict[str, dict] = {}
         for frame in meta.get("frames", []):
@@ -177,7 +177,7 @@ class GroundTruthDataset:
         if "instance" not in levels:
             raise ValueError(
                 f"dataset {path.parent} has no ground-truth masks (its frames lack 'instance_mask_path'); "
-                "evaluate on a synthetic dataset written by votesplat-synth"
+                "evaluate on a synthetic dataset written by votesplat synth"
             )
         return cls(path.parent.resolve(), meta, frames, levels)
 
@@ -218,7 +218,7 @@ class GroundTruthDataset:
 
         try:
             return scene_from_dataset(self.meta)
-        except Exception:  # not a votesplat-synth dataset, or another generator version
+        except Exception:  # not a votesplat synth dataset, or another generator version
             return None
 
 
@@ -241,7 +241,7 @@ def gaussian_ground_truth(
     scene = dataset.scene() if method in ("auto", "geometry") else None
     if method == "geometry" and scene is None:
         raise ValueError(
-            f"the scene of {dataset.root} cannot be rebuilt (not written by this votesplat-synth version); "
+            f"the scene of {dataset.root} cannot be rebuilt (not written by this votesplat synth version); "
             "use --gaussian-gt projection"
         )
     info: Dict[str, object] = {"pixel_footprint": footprint}

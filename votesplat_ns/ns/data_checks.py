@@ -1,5 +1,5 @@
 """Checks of a training run's inputs, before any image is loaded or mask made, each failing with one
-actionable line (:class:`~votesplat_ns.cli.cli_errors.VoteSplatInputError`): the dataset and every
+actionable line (:class:`~votesplat_ns.errors.VoteSplatInputError`): the dataset and every
 frame of its transforms.json, the vote cache location, the vote loss schedule.
 
 Used by :class:`votesplat_ns.ns.datamanager.VoteDataManager` (``ns-train``) and ``votesplat masks``.
@@ -10,20 +10,36 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Dict, Optional
+from typing import Any, Dict, Optional, Protocol, Tuple
 
 import numpy as np
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.mask_sources import image_file_size
-
-if TYPE_CHECKING:
-    from votesplat_ns.ns.datamanager import VoteDataManagerConfig
+from votesplat_ns.errors import VoteSplatInputError
 
 DEFAULT_OUTPUT_DIR = Path("outputs")
 DATASET_LEVELS = ("instance", "part")
 CACHE_FOLDER_NAME = "votesplat_cache"
+
+
+class DataInput(Protocol):
+    """What the dataset checks read of the datamanager's options (``VoteDataManagerConfig`` has them all)."""
+
+    @property
+    def data(self) -> Optional[Path]: ...
+
+    @property
+    def dataparser(self) -> Any: ...
+
+    @property
+    def dataset_path(self) -> Path: ...
+
+    @property
+    def mask_source(self) -> str: ...
+
+    @property
+    def mask_levels(self) -> Optional[Tuple[str, ...]]: ...
 
 
 def dataset_dir(data: Path) -> Path:
@@ -86,7 +102,7 @@ def frame_image_path(data_dir: Path, file_path: str, downscale_factor: Optional[
 
 
 def check_data_input(
-    config: "VoteDataManagerConfig",
+    config: DataInput,
     check_images: bool = True,
     where: Optional[str] = None,
     mask_source_flag: str = "--pipeline.datamanager.mask-source",
@@ -152,7 +168,7 @@ def _frame_name(number: int, frame: dict) -> str:
 def check_frames(
     transforms: Path,
     meta: dict,
-    config: "VoteDataManagerConfig",
+    config: DataInput,
     where: str,
     mask_source_flag: str = "--pipeline.datamanager.mask-source",
 ) -> None:

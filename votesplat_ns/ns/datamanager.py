@@ -49,7 +49,6 @@ from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatama
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_device_available, writing_into
 from votesplat_ns.core.mask_sources import (
     SAM_CHECKPOINT_FILES,
     SAM_LEVELS,
@@ -69,18 +68,14 @@ from votesplat_ns.core.vote_maps import (
     vote_maps_from_labels,
     voting_pixels,
 )
-from votesplat_ns.ns.data_checks import (  # noqa: F401 (re-exported: callers import the checks from here)
+from votesplat_ns.errors import VoteSplatInputError, check_device_available, writing_into
+from votesplat_ns.ns.data_checks import (
     CACHE_DIR_FLAG,
-    CACHE_FOLDER_NAME,
     DATASET_LEVELS,
-    DEFAULT_OUTPUT_DIR,
     check_cache_outside_dataset,
     check_data_input,
-    check_frames,
     check_vote_schedule,
-    dataset_dir,
     default_cache_dir,
-    frame_image_path,
 )
 from votesplat_ns.ns.mask_settings import SamOptions
 from votesplat_ns.ns.retrofit import retrofit_reference
@@ -171,7 +166,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
     def __init__(
         self, config: VoteDataManagerConfig, device="cpu", test_mode="val", world_size=1, local_rank=0, **kwargs
     ):
-        # bad input fails here with one actionable line (cli_errors), before images are loaded or masks made
+        # bad input fails here with one actionable line (votesplat_ns/errors.py), before images are loaded or masks made
         check_device_available(device)
         where = None if test_mode == "val" else f"dataset {config.dataset_path} (the data path of the run's config.yml)"
         check_data_input(config, check_images=test_mode != "inference", where=where)

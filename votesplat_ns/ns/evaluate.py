@@ -16,7 +16,7 @@ dataset's exact label images:
   so a broken render shows as what it is instead of silently lowering the instance score.
 * 3D: :func:`~votesplat_ns.eval.evaluation.gaussian_purity` of the per-Gaussian instance ids. The GT
   label of a Gaussian comes from the scene's exact geometry when the dataset was written by
-  ``votesplat-synth`` (see :func:`surface_labels`): its mean is mapped back from nerfstudio's
+  ``votesplat synth`` (see :func:`surface_labels`): its mean is mapped back from nerfstudio's
   normalised frame to the dataset's world frame with the run's ``dataparser_transforms.json``, and
   takes the label of the nearest surface if that surface lies within ``surface_tolerance_px``
   pixels (at the typical camera distance). Otherwise it falls back to the majority label under the
@@ -39,11 +39,11 @@ from typing import Callable, Dict, List, Literal, Optional, Sequence, Tuple, Uni
 import numpy as np
 import torch
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, read_run_config
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, ClusteringOptions
-from votesplat_ns.core.instances import render_id_maps  # noqa: F401 (re-exported: evaluation renders its id maps with it)
+from votesplat_ns.core.instances import render_id_maps
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.eval.evaluation import (
     DEFAULT_MAX_PSNR_DROP_DB,
     DEFAULT_MIN_GAIN_DB,
@@ -60,7 +60,7 @@ from votesplat_ns.eval.ground_truth import (
     score_level,
     write_json_atomic,
 )
-from votesplat_ns.ns.run import dataset_views, load_run
+from votesplat_ns.ns.run import dataset_views, load_run, read_run_config
 from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
 METRICS_NAME = "metrics.json"
@@ -102,7 +102,7 @@ def load_votesplat_config(config_path: Union[str, Path]):
         raise ValueError(f"{config_path} is not a nerfstudio config.yml (no method_name)")
     if method != "votesplat":
         raise ValueError(
-            f"{config_path} is a {method!r} run; votesplat-eval scores votesplat runs (train with ns-train votesplat)"
+            f"{config_path} is a {method!r} run; votesplat eval scores votesplat runs (train with ns-train votesplat)"
         )
     checkpoints = sorted(config_path.parent.joinpath(config.relative_model_dir).glob("step-*.ckpt"))
     if not checkpoints:
@@ -130,7 +130,7 @@ def _views_of(dataset) -> List[PinholeView]:
     for index, filename in enumerate(dataset.image_filenames):
         if distortion is not None and bool(torch.any(distortion[index] != 0)):
             raise ValueError(
-                f"view {Path(filename).name} has lens distortion; votesplat-eval supports undistorted (pinhole) datasets"
+                f"view {Path(filename).name} has lens distortion; votesplat eval supports undistorted (pinhole) datasets"
             )
     return [dataclasses.replace(view, name=Path(view.name).name) for view in dataset_views(dataset)]
 
@@ -262,7 +262,7 @@ def evaluate_run(
     chosen = select_views(
         views, lambda: _views_of(datamanager.eval_dataset), lambda: _views_of(datamanager.train_dataset)
     )
-    # nerfstudio loads the "test" split for evaluation; votesplat-synth writes it equal to val_filenames
+    # nerfstudio loads the "test" split for evaluation; votesplat synth writes it equal to val_filenames
     held_out = {Path(p).name for p in dataset.meta.get("test_filenames") or dataset.meta.get("val_filenames") or []}
     if views == "eval" and held_out and {v.name for v in chosen} != held_out:
         raise ValueError(

@@ -1,8 +1,7 @@
 """``ns-export votesplat-instances`` / ``votesplat export``: the command's options and its run on a trained run.
 
 The writing itself (folder layout, what is replaced) is :func:`votesplat_ns.ns.instance_export.export_instances`;
-the hook that adds the subcommand to ``ns-export`` is in :mod:`votesplat_ns.ns.patches`. Names are
-re-exported here so that ``votesplat_ns.ns.export`` keeps every name it had.
+the hook that adds the subcommand to ``ns-export`` is in :mod:`votesplat_ns.ns.patches`.
 
 This module keeps nerfstudio imports inside functions: the plugin's method entry point imports it
 (through the ``ns-export`` hook) while nerfstudio is still importing its method configs.
@@ -17,13 +16,11 @@ from typing import Callable, List, Literal, Optional, Tuple
 
 import torch
 
-from votesplat_ns.cli.cli_errors import one_line_errors, writing_into
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, ClusteringOptions
-from votesplat_ns.core.scene import VOTE_OFFSETS_KEY, VOTE_SUPPORT_KEY  # noqa: F401 (keys re-exported)
-from votesplat_ns.ns.instance_export import EXPORT_FILE_PATTERNS, check_output_dir, export_instances  # noqa: F401 (re-exported: the export's public names)
+from votesplat_ns.errors import one_line_errors, writing_into
+from votesplat_ns.ns.instance_export import check_output_dir, export_instances
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS
-from votesplat_ns.ns.patches import EXPORTER_MODULE, SUBCOMMAND_NAME, install_ns_export_hook  # noqa: F401
 from votesplat_ns.ns.run import camera_view, evenly_spaced, load_run
 from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
@@ -168,10 +165,3 @@ class ExportVoteSplatInstances:
             f"[bold green]Exported {chosen['num_instances']} instances of level {export['level']!r} "
             f"({export['ply_counts']['scene']} Gaussians) to {self.output_dir}"
         )
-
-
-def entrypoint() -> None:
-    """Console script ``votesplat-export``, an alias of ``votesplat export`` (lazy import: cli.main imports this module)."""
-    from votesplat_ns.cli.main import alias
-
-    alias("export", "votesplat-export")

@@ -36,7 +36,6 @@ from typing import Callable, Dict, Iterator, List, Mapping, Optional, Sequence, 
 import numpy as np
 import torch
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_writable_folder
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import (
@@ -49,6 +48,7 @@ from votesplat_ns.core.instances import (
 )
 from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.errors import VoteSplatInputError, check_writable_folder
 
 
 def _scene_of(model_or_params, level_names: Optional[Sequence[str]], sh_degree: Optional[int]) -> TrainedScene:

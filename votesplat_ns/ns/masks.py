@@ -17,10 +17,10 @@ from typing import Dict, List, Literal, Optional, Tuple
 
 import numpy as np
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, writing_into
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, load_image_rgb
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS
 from votesplat_ns.core.vote_preview import render_vote_preview, write_png
+from votesplat_ns.errors import VoteSplatInputError, writing_into
 from votesplat_ns.ns.mask_settings import SamOptions
 
 PREVIEW_FOLDER_NAME = "votesplat_previews"
@@ -76,14 +76,14 @@ def dataset_images(data: Path, downscale_factor: Optional[int]) -> List[Path]:
 
 def make_masks(config: MasksConfig) -> Dict[str, object]:
     """Make all views' vote maps and the previews; returns where they went."""
-    # the datamanager imports nerfstudio, which `votesplat --help` should not wait for
-    from votesplat_ns.ns.datamanager import (
-        VoteDataManagerConfig,
+    # the datamanager and its checks import nerfstudio, which `votesplat --help` should not wait for
+    from votesplat_ns.ns.data_checks import (
         check_cache_outside_dataset,
         check_data_input,
         dataset_dir,
         default_cache_dir,
     )
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 
     if config.preview < 0:
         raise VoteSplatInputError(f"--preview must be >= 0, got {config.preview}")

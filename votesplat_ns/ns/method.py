@@ -22,7 +22,7 @@ from nerfstudio.plugins.types import MethodSpecification
 from votesplat_ns.ns import patches
 from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 from votesplat_ns.ns.lean_adam import LeanFusedAdam, NeverStepsOptimizer
-from votesplat_ns.ns.model_config import VoteSplatModelConfig
+from votesplat_ns.ns.model import VoteSplatModelConfig
 
 
 @dataclass

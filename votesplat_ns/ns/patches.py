@@ -8,9 +8,9 @@ Process-wide, applied by :func:`apply` when nerfstudio imports the method (every
 * ``checkpoint safe globals`` (:func:`register_checkpoint_safe_globals`): adds the numpy types that
   nerfstudio 1.1.5 pickles into checkpoints to torch's ``weights_only`` allow-list (torch >= 2.6
   refuses them). Also applied on import of the package (``votesplat_ns/__init__.py``).
-* ``one-line input errors`` (``cli/cli_errors.py`` ``install_excepthook``): wraps ``sys.excepthook``
+* ``one-line input errors`` (``votesplat_ns/errors.py`` ``install_excepthook``): wraps ``sys.excepthook``
   so that a ``VoteSplatInputError`` ends any ``ns-*`` command with one line instead of a traceback.
-  Its body stays beside the error type: ``core`` modules import ``cli_errors`` and must not import ``ns``.
+  Its body stays beside the error type, which every layer imports.
 * ``ns-export votesplat-instances`` (:func:`install_ns_export_hook`): a meta-path finder that adds our
   subcommand to ``nerfstudio.scripts.exporter``'s command union while it is imported (nerfstudio
   has no plugin point for exporters).
@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from typing_extensions import Annotated
 
-from votesplat_ns.cli.cli_errors import install_excepthook
+from votesplat_ns.errors import install_excepthook
 
 WRITTEN_FOR: Dict[str, str] = {"nerfstudio": "1.1.5", "gsplat": "1.4.0"}
 
@@ -93,7 +93,7 @@ def _extend_commands(exporter) -> bool:
         return True
     import tyro
 
-    # imported here: ns/export.py imports this module (for the hook's names)
+    # imported only when ns-export's commands are extended, not by every ns-* command that applies the patches
     from votesplat_ns.ns.export import ExportVoteSplatInstances
 
     markers: tuple = ()

@@ -39,8 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.cameras import PinholeView, scaled_view
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.run import camera_view
 
 FRAMES = ("dataparser", "dataset", "colmap")

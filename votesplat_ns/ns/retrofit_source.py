@@ -10,8 +10,8 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.rasterizer import rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
 from votesplat_ns.ns.run import gaussians_from_ply_arrays, latest_checkpoint, load_gaussians, splatfacto_dc_from_ply

@@ -1,7 +1,7 @@
 """A trained run through nerfstudio: the one checkpoint loader and the one camera-to-view conversion.
 
-:func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (``cli_errors.check_run``)
-and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`; :func:`latest_checkpoint`
+:func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (:func:`check_run` checks the config.yml,
+read by :func:`read_run_config`, and its checkpoint first) and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`; :func:`latest_checkpoint`
 and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retrofit's source). :func:`camera_view` and
 :func:`dataset_views` turn nerfstudio ``Cameras`` into :class:`~votesplat_ns.core.cameras.PinholeView`s
 (gsplat's conventions). The checkpoint safe-globals are registered when ``votesplat_ns`` is imported.
@@ -17,13 +17,80 @@ from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Un
 import numpy as np
 import torch
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoint_problem
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.ply_io import SH_C0
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.errors import VoteSplatInputError, file_format_problem, load_failure_reason
 
 SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 DAMAGED_HINT = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
+
+
+def _run_checkpoint(config) -> Optional[Path]:
+    """The step-*.ckpt nerfstudio's eval_setup loads for a run config (the newest), or None."""
+    folder = Path(config.load_dir) if getattr(config, "load_dir", None) else Path(config.get_checkpoint_dir())
+    if getattr(config, "load_step", None) is not None:
+        return folder / f"step-{config.load_step:09d}.ckpt"
+    checkpoints = sorted(folder.glob("step-*.ckpt")) if folder.is_dir() else []
+    return checkpoints[-1] if checkpoints else None
+
+
+def checkpoint_problem(checkpoint: Path) -> Optional[str]:
+    """Why ``checkpoint`` cannot be loaded (it is read again only on this error path), or None."""
+    try:
+        torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a damaged file
+        return load_failure_reason(error, checkpoint)
+    return None
+
+
+def _not_a_run_config(load_config: Path, flag: str, error: Exception) -> VoteSplatInputError:
+    return VoteSplatInputError(
+        f"{flag} {load_config}: not a nerfstudio run config ({type(error).__name__}); pass the config.yml that ns-train wrote"
+    )
+
+
+def read_run_config(load_config: Union[str, Path], flag: str = "--load-config"):
+    """A run's config.yml as nerfstudio wrote it (its TrainerConfig); a missing or unreadable file raises
+    :class:`VoteSplatInputError` naming ``flag`` and the file."""
+    import yaml
+
+    load_config = Path(load_config)
+    if not load_config.is_file():
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)"
+        )
+    try:
+        return yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
+    except Exception as error:  # not YAML, or a YAML of classes that are not importable here
+        raise _not_a_run_config(load_config, flag, error) from None
+
+
+def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:
+    """The checkpoint :func:`load_run` will load for a run's config.yml, checked before any model is built.
+
+    A missing config file, a run without checkpoints or a checkpoint that is truncated or damaged
+    raise :class:`VoteSplatInputError` naming the file.
+    """
+    load_config = Path(load_config)
+    config = read_run_config(load_config, flag)
+    try:
+        checkpoint = _run_checkpoint(config) if hasattr(config, "get_checkpoint_dir") else None
+    except Exception as error:  # a YAML file that is not a nerfstudio run config
+        raise _not_a_run_config(load_config, flag, error) from None
+    if checkpoint is None or not checkpoint.is_file():
+        folder = checkpoint.parent if checkpoint is not None else "its nerfstudio_models/ folder"
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: the run has no checkpoint (looked in {folder}); "
+            "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
+        )
+    problem = file_format_problem(checkpoint)  # before the model is built
+    if problem is not None:
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; "
+            "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
+        )
+    return checkpoint
 
 
 class LoadedRun(NamedTuple):

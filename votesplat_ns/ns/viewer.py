@@ -32,41 +32,8 @@ from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.instances import InstanceSet
 from votesplat_ns.core.scene import Gaussians
 from votesplat_ns.ns.run import camera_view, evenly_spaced
-from votesplat_ns.ns.viewer_render import (  # noqa: F401 (re-exported)
-    DISPLAY_ALL,
-    DISPLAY_HIDE,
-    DISPLAY_ISOLATE,
-    DISPLAY_MODES,
-    INSTANCE_OUTPUTS,
-    OUTPUT_INSTANCES,
-    OUTPUT_OVERLAY,
-    OUTPUT_VOTES,
-    OVERLAY_OPACITY,
-    SELECTED_OPACITY,
-    UNSELECTED_OPACITY,
-    VIEWER_OUTPUTS,
-    VOTE_BACKGROUND_GREY,
-    VOTE_COLOUR_QUANTILES,
-    RasterizeFn,
-    ViewerScene,
-    display_keep_mask,
-    instance_colour_image,
-    overlay_instances,
-    palette_rgb,
-    render_instance_map,
-    render_rgb,
-    render_vote_picture,
-    screen_to_pixel,
-    vote_colours,
-)
-from votesplat_ns.ns.viewer_state import (  # noqa: F401 (re-exported)
-    CLIP_DISABLED_HINT,
-    ClusterFn,
-    EncoderFactory,
-    FeatureViewsFn,
-    InstanceViewerState,
-    cluster_scene,
-)
+from votesplat_ns.ns.viewer_render import DISPLAY_ALL, DISPLAY_MODES, VIEWER_OUTPUTS, ViewerScene
+from votesplat_ns.ns.viewer_state import CLIP_DISABLED_HINT, InstanceViewerState
 
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras

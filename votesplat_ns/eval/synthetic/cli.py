@@ -162,10 +162,3 @@ def main(argv: Optional[List[str]] = None, prog: str = "votesplat synth") -> int
         names = ", ".join(obj.name for obj in scene.objects)
         print(f"\nwrote {out} ({len(scene.cameras)} views, {len(scene.objects)} objects: {names})", file=sys.stderr)
     return 0
-
-
-def entrypoint() -> None:
-    """``votesplat-synth`` as installed before ``votesplat synth``; the cycle-free alias needs the lazy import."""
-    from votesplat_ns.cli.main import alias
-
-    alias("synth", "votesplat-synth")

@@ -132,7 +132,7 @@ def scene_from_dataset(meta: dict) -> Scene:
     """Rebuild the generating scene (exact geometry, no rendering) from a dataset's transforms.json."""
     info = meta.get("votesplat_synthetic")
     if info is None:
-        raise ValueError("transforms.json has no 'votesplat_synthetic' entry; it was not written by votesplat-synth")
+        raise ValueError("transforms.json has no 'votesplat_synthetic' entry; it was not written by votesplat synth")
     if info.get("generator_version") != GENERATOR_VERSION:
         raise ValueError(
             f"dataset made by generator version {info.get('generator_version')}, this is {GENERATOR_VERSION}; regenerate it"
@@ -145,7 +145,7 @@ def read_views(dataset_dir) -> Tuple[dict, List[DatasetView]]:
     dataset_dir = Path(dataset_dir)
     path = dataset_dir / "transforms.json"
     if not path.exists():
-        raise ValueError(f"{path} not found; point at a folder written by votesplat-synth")
+        raise ValueError(f"{path} not found; point at a folder written by votesplat synth")
     meta = json.loads(path.read_text(encoding="utf-8"))
     K = np.array([[meta["fl_x"], 0.0, meta["cx"]], [0.0, meta["fl_y"], meta["cy"]], [0.0, 0.0, 1.0]])
     val = set(meta.get("val_filenames", []))

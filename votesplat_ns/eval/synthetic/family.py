@@ -11,7 +11,7 @@ next two such blocks after the tuning block, for decisions that one set of six c
 the recipe's properties alone, before any scene was rendered or scored; a test checks that the rule
 still gives these seeds.
 
-A set is written as ``<output>/family_<seed>/`` datasets (``votesplat-synth family-set``) at
+A set is written as ``<output>/family_<seed>/`` datasets (``votesplat synth family-set``) at
 :data:`SET_OPTIONS` with JPEG images (masks and depth stay lossless PNG), plus ``family_set.json``.
 """
 
@@ -151,7 +151,7 @@ def read_family_set(folder) -> Tuple[str, List[Path]]:
     manifest = folder / SET_MANIFEST
     if not manifest.is_file():
         raise ValueError(
-            f"{manifest} not found; write the set with: votesplat-synth family-set --set <tuning|test> --output-dir {folder}"
+            f"{manifest} not found; write the set with: votesplat synth family-set --set <tuning|test> --output-dir {folder}"
         )
     data = json.loads(manifest.read_text(encoding="utf-8"))
     name = data.get("set")

@@ -1,5 +1,6 @@
-"""One-line errors for bad input to ``ns-train votesplat`` (and the other ns-* commands).
+"""Bad user input as one line: the error type, how it is printed, and the checks every layer shares.
 
+Below every layer (core, eval, ns and cli all import it; it imports none of them, nor nerfstudio).
 Code that finds a bad input (a missing data folder, a device this machine lacks, ...) raises
 :class:`VoteSplatInputError` with a message that says what to do. The ``sys.excepthook`` that
 :func:`install_excepthook` adds (the method entry point installs it, so every ns-* command has
@@ -12,13 +13,12 @@ its normal traceback: only errors we raise on purpose, with an actionable messag
 shortened. ``VoteSplatInputError`` is a ``ValueError``, so callers catching ``ValueError``
 still catch it.
 
-The plugin's own console scripts (``votesplat``, ``votesplat-masks``, ``votesplat-export`` and
-``ns-export votesplat-instances``) wrap their work in :func:`one_line_errors`, which prints the
-same line and exits 1. The helpers below turn the usual causes of a traceback into such an
-error in one place each: a folder that cannot be written (:func:`check_writable_folder`,
-:func:`writing_into`), a weights or checkpoint file torch cannot read (:func:`load_failure_reason`,
-never relaying torch's advice to load with ``weights_only=False``) and a run whose checkpoint is
-damaged (:func:`check_run`, used by ``ns/run.load_run``).
+The plugin's own commands (``votesplat <subcommand>`` and ``ns-export votesplat-instances``) wrap
+their work in :func:`one_line_errors`, which prints the same line and exits 1. The helpers below
+turn the usual causes of a traceback into such an error in one place each: a folder that cannot be
+written (:func:`check_writable_folder`, :func:`writing_into`) and a weights or checkpoint file torch
+cannot read (:func:`load_failure_reason`, never relaying torch's advice to load with
+``weights_only=False``). A run's config and checkpoint are checked in ``ns/run.py`` (``check_run``).
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ def writing_into(folder: Union[str, Path], flag: str) -> Iterator[None]:
         raise converted from error
 
 
-def _file_format_problem(path: Union[str, Path]) -> Optional[str]:
+def file_format_problem(path: Union[str, Path]) -> Optional[str]:
     """What is wrong with a file torch.load should read, judged from its bytes alone (None: looks fine)."""
     if not os.path.isfile(path) or zipfile.is_zipfile(path):  # torch.save writes a zip
         return None
@@ -203,7 +203,7 @@ def load_failure_reason(error: BaseException, path: Union[str, Path, None] = Non
     with arbitrary exceptions). Never relays torch's text, which for a file that is not a weights
     file suggests loading it with ``weights_only=False``: unsafe for a file of unknown origin.
     """
-    problem = _file_format_problem(path) if path is not None else None
+    problem = file_format_problem(path) if path is not None else None
     if problem is not None:
         return problem
     text = str(error)
@@ -216,72 +216,3 @@ def load_failure_reason(error: BaseException, path: Union[str, Path, None] = Non
     if "state_dict" in text or "size mismatch" in text or isinstance(error, KeyError):
         return "it holds weights of another model"
     return f"torch could not read it ({type(error).__name__})"
-
-
-def _latest_checkpoint(config) -> Optional[Path]:
-    """The step-*.ckpt nerfstudio's eval_setup loads for a run config (the newest), or None."""
-    folder = Path(config.load_dir) if getattr(config, "load_dir", None) else Path(config.get_checkpoint_dir())
-    if getattr(config, "load_step", None) is not None:
-        return folder / f"step-{config.load_step:09d}.ckpt"
-    checkpoints = sorted(folder.glob("step-*.ckpt")) if folder.is_dir() else []
-    return checkpoints[-1] if checkpoints else None
-
-
-def checkpoint_problem(checkpoint: Path) -> Optional[str]:
-    """Why ``checkpoint`` cannot be loaded (it is read again only on this error path), or None."""
-    import torch
-
-    try:
-        torch.load(checkpoint, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for a damaged file
-        return load_failure_reason(error, checkpoint)
-    return None
-
-
-def _not_a_run_config(load_config: Path, flag: str, error: Exception) -> VoteSplatInputError:
-    return VoteSplatInputError(
-        f"{flag} {load_config}: not a nerfstudio run config ({type(error).__name__}); pass the config.yml that ns-train wrote"
-    )
-
-
-def read_run_config(load_config: Union[str, Path], flag: str = "--load-config"):
-    """A run's config.yml as nerfstudio wrote it (its TrainerConfig); a missing or unreadable file raises
-    :class:`VoteSplatInputError` naming ``flag`` and the file."""
-    import yaml
-
-    load_config = Path(load_config)
-    if not load_config.is_file():
-        raise VoteSplatInputError(
-            f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)"
-        )
-    try:
-        return yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
-    except Exception as error:  # not YAML, or a YAML of classes that are not importable here
-        raise _not_a_run_config(load_config, flag, error) from None
-
-
-def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:
-    """The checkpoint ``ns/run.load_run`` will load for a run's config.yml, checked before any model is built.
-
-    A missing config file, a run without checkpoints or a checkpoint that is truncated or damaged
-    raise :class:`VoteSplatInputError` naming the file.
-    """
-    load_config = Path(load_config)
-    config = read_run_config(load_config, flag)
-    try:
-        checkpoint = _latest_checkpoint(config) if hasattr(config, "get_checkpoint_dir") else None
-    except Exception as error:  # a YAML file that is not a nerfstudio run config
-        raise _not_a_run_config(load_config, flag, error) from None
-    if checkpoint is None or not checkpoint.is_file():
-        folder = checkpoint.parent if checkpoint is not None else "its nerfstudio_models/ folder"
-        raise VoteSplatInputError(
-            f"{flag} {load_config}: the run has no checkpoint (looked in {folder}); "
-            "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
-        )
-    problem = _file_format_problem(checkpoint)  # before the model is built
-    if problem is not None:
-        raise VoteSplatInputError(
-            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; "
-            "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
-        )
-    return checkpoint
