@@ -245,19 +245,12 @@ def _not_a_run_config(load_config: Path, flag: str, error: Exception) -> VoteSpl
 
 
 def read_run_config(load_config: Union[str, Path], flag: str = "--load-config"):
-    """A run's config.yml as nerfstudio wrote it (its TrainerConfig); a missing or unreadable file raises
-    :class:`VoteSplatInputError` naming ``flag`` and the file."""
-    import yaml
+    """A run's config.yml as nerfstudio wrote it (its TrainerConfig), read without running code
+    (``ns/run_config.py``); a missing or unreadable file, or one that names anything but config classes,
+    paths, enums and tuples, raises :class:`VoteSplatInputError` naming ``flag`` and the file."""
+    from votesplat_ns.ns.run_config import load_run_config
 
-    load_config = Path(load_config)
-    if not load_config.is_file():
-        raise VoteSplatInputError(
-            f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)"
-        )
-    try:
-        return yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
-    except Exception as error:  # not YAML, or a YAML of classes that are not importable here
-        raise _not_a_run_config(load_config, flag, error) from None
+    return load_run_config(load_config, flag)
 
 
 def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:

@@ -12,15 +12,16 @@ from __future__ import annotations
 import pickle
 import zipfile
 from pathlib import Path
-from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Union
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoint_problem
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoint_problem, load_failure_reason
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.ply_io import SH_C0
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.ns.run_config import load_run_config
 
 SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 DAMAGED_HINT = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
@@ -38,28 +39,69 @@ def load_run(
     test_mode: str = "inference",
     update_config_callback: Optional[Callable[[Any], Any]] = None,
 ) -> LoadedRun:
-    """Load a run's newest checkpoint with nerfstudio's ``eval_setup``; bad input raises one-line errors.
+    """Load a run's newest checkpoint as nerfstudio's ``eval_setup`` does, without running code from its files.
 
-    A missing config file, a run without checkpoints or a damaged checkpoint raise
-    :class:`VoteSplatInputError` naming the file, before the model is built where possible;
-    a checkpoint without votes raises ``ValueError`` (not a votesplat run).
+    The config.yml is read by :func:`~votesplat_ns.ns.run_config.load_run_config` (config classes, paths, enums
+    and tuples only; nerfstudio's ``eval_setup`` reads it with ``yaml.Loader``, which builds anything) and the
+    checkpoint with ``weights_only=True``. A missing config file, one that names anything else, a run without
+    checkpoints or a damaged checkpoint raise :class:`VoteSplatInputError` naming the file, before the model is
+    built where possible; a checkpoint without votes raises ``ValueError`` (not a votesplat run).
     """
-    from nerfstudio.utils.eval_utils import eval_setup  # nerfstudio imports its method configs, which import us
-
     load_config = Path(load_config)
-    checkpoint = check_run(load_config, flag)
-    try:
-        _, pipeline, _, step = eval_setup(
-            load_config, test_mode=test_mode, update_config_callback=update_config_callback
+    check_run(load_config, flag)  # the config and its checkpoint, before any model is built
+    config = load_run_config(load_config, flag)
+    pipeline, _, step = setup_run(config, load_config, flag, test_mode, update_config_callback)
+    return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), step)
+
+
+def setup_run(
+    config: Any,
+    load_config: Path,
+    flag: str = "--load-config",
+    test_mode: str = "inference",
+    update_config_callback: Optional[Callable[[Any], Any]] = None,
+) -> Tuple[Any, Path, int]:
+    """(pipeline, checkpoint, step): nerfstudio 1.1.5 ``eval_setup``'s steps on a config already loaded, the
+    checkpoint read with ``weights_only=True`` whatever torch's default (``TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD``
+    changes only calls that do not say)."""
+    from nerfstudio.configs.method_configs import all_methods  # imports the method configs, which import us
+
+    if config.method_name not in all_methods:
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: the run was trained with method {config.method_name!r}, which is not installed here"
         )
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
+    config.pipeline.datamanager._target = all_methods[config.method_name].pipeline.datamanager._target
+    if update_config_callback is not None:
+        config = update_config_callback(config)
+    config.load_dir = config.get_checkpoint_dir()
+    if config.load_step is not None:
+        checkpoint = Path(config.load_dir) / f"step-{config.load_step:09d}.ckpt"
+    else:
+        found = sorted(Path(config.load_dir).glob("step-*.ckpt")) if Path(config.load_dir).is_dir() else []
+        checkpoint = found[-1] if found else Path(config.load_dir) / "step-*.ckpt"
+    if not checkpoint.is_file():
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: the run has no checkpoint (looked in {config.load_dir}); "
+            "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
+        )
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    pipeline = config.pipeline.setup(device=device, test_mode=test_mode)
+    pipeline.eval()
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        pipeline.load_pipeline(state["pipeline"], state["step"])
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, KeyError, TypeError) as error:
         problem = checkpoint_problem(checkpoint)
-        if problem is None:
+        if problem is None and not isinstance(error, (KeyError, TypeError)):
             raise
         raise VoteSplatInputError(
-            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {DAMAGED_HINT}"
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: "
+            f"{problem or 'it is not a nerfstudio checkpoint'}; {DAMAGED_HINT}"
         ) from error
-    return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), int(step))
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    CONSOLE.print(f":white_check_mark: Done loading checkpoint from {checkpoint}")
+    return pipeline, checkpoint, int(state["step"])
 
 
 def latest_checkpoint(path: Path) -> Path:
@@ -77,15 +119,24 @@ def latest_checkpoint(path: Path) -> Path:
     return candidates[-1]
 
 
-def load_gaussians(checkpoint: Path, names: Sequence[str] = SPLAT_PARAM_NAMES) -> Dict[str, torch.Tensor]:
+def load_gaussians(
+    checkpoint: Path, names: Sequence[str] = SPLAT_PARAM_NAMES, flag: str = "--pipeline.model.retrofit-from"
+) -> Dict[str, torch.Tensor]:
     """splatfacto's Gaussian parameters (or the ``gauss_params`` in ``names``, e.g. with a votesplat run's
-    vote offsets and support) from a nerfstudio checkpoint (splatfacto or votesplat)."""
-    state = torch.load(checkpoint, map_location="cpu")
+    vote offsets and support) from a nerfstudio checkpoint (splatfacto or votesplat), read with
+    ``weights_only=True``: a file that is not one (a pickle of anything else) raises one line naming ``flag``."""
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a file that is not a checkpoint
+        raise VoteSplatInputError(
+            f"{flag} {checkpoint} cannot be loaded: {load_failure_reason(error, checkpoint)}; "
+            "give a step-*.ckpt written by ns-train splatfacto or votesplat, its run folder, or a 3DGS .ply"
+        ) from None
     pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
     missing = [name for name in names if f"_model.gauss_params.{name}" not in pipeline_state]
     if missing:
         raise VoteSplatInputError(
-            f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
+            f"{flag} {checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
             "retrofit needs one written by ns-train splatfacto or votesplat"
         )
     return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in names}
