@@ -26,6 +26,7 @@ from nerfstudio.models.splatfacto import SplatfactoModel, get_viewmat
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.nn import Parameter
 
+from votesplat_ns.cli.cli_errors import VoteSplatInputError
 from votesplat_ns.core.foreground import foreground_from_exposure, mask_exposure
 from votesplat_ns.core.vote_fused import KernelWarmUp, start_warm_up, use_fused, vote_losses_sampled
 from votesplat_ns.core.vote_maps import pixels_and_targets
@@ -131,7 +132,7 @@ class VoteSplatModel(SplatfactoModel):
 
     def get_training_callbacks(self, training_callback_attributes):
         if self.vote_only and not self.retrofitted:
-            raise ValueError(
+            raise VoteSplatInputError(
                 f"--pipeline.model.retrofit-from {self.config.retrofit_from} does not exist: "
                 "give the trained splatfacto run folder or its step-*.ckpt"
             )

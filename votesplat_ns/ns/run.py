@@ -1,6 +1,7 @@
 """A trained run through nerfstudio: the one checkpoint loader and the one camera-to-view conversion.
 
-:func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (``cli_errors.check_run``)
+:func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (``cli_errors.check_run``), reading the
+run's config.yml without running code (``ns/run_config.py``) and its checkpoint with ``weights_only=True``,
 and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`; :func:`latest_checkpoint`
 and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retrofit's source). :func:`camera_view` and
 :func:`dataset_views` turn nerfstudio ``Cameras`` into :class:`~votesplat_ns.core.cameras.PinholeView`s
@@ -9,7 +10,6 @@ and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retr
 
 from __future__ import annotations
 
-import pickle
 import zipfile
 from pathlib import Path
 from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
@@ -17,7 +17,7 @@ from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Tu
 import numpy as np
 import torch
 
-from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, checkpoint_problem, load_failure_reason
+from votesplat_ns.cli.cli_errors import VoteSplatInputError, check_run, load_failure_reason
 from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.ply_io import SH_C0
 from votesplat_ns.core.scene import TrainedScene
@@ -65,6 +65,7 @@ def setup_run(
     checkpoint read with ``weights_only=True`` whatever torch's default (``TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD``
     changes only calls that do not say)."""
     from nerfstudio.configs.method_configs import all_methods  # imports the method configs, which import us
+    from nerfstudio.utils.rich_utils import CONSOLE
 
     if config.method_name not in all_methods:
         raise VoteSplatInputError(
@@ -84,39 +85,53 @@ def setup_run(
             f"{flag} {load_config}: the run has no checkpoint (looked in {config.load_dir}); "
             "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
         )
+    try:  # before the model is built
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a damaged or foreign file
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: "
+            f"{checkpoint_failure_reason(error, checkpoint)}; {DAMAGED_HINT}"
+        ) from None
+    if not isinstance(state, dict) or not {"step", "pipeline"} <= set(state):
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) is not a nerfstudio checkpoint (no step and pipeline); "
+            f"{DAMAGED_HINT}"
+        )
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     pipeline = config.pipeline.setup(device=device, test_mode=test_mode)
     pipeline.eval()
-    try:
-        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        pipeline.load_pipeline(state["pipeline"], state["step"])
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, KeyError, TypeError) as error:
-        problem = checkpoint_problem(checkpoint)
-        if problem is None and not isinstance(error, (KeyError, TypeError)):
-            raise
-        raise VoteSplatInputError(
-            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: "
-            f"{problem or 'it is not a nerfstudio checkpoint'}; {DAMAGED_HINT}"
-        ) from error
-    from nerfstudio.utils.rich_utils import CONSOLE
-
+    pipeline.load_pipeline(state["pipeline"], state["step"])
     CONSOLE.print(f":white_check_mark: Done loading checkpoint from {checkpoint}")
     return pipeline, checkpoint, int(state["step"])
 
 
-def latest_checkpoint(path: Path) -> Path:
-    """``path`` itself if it is a file, else the newest step-*.ckpt under it (or its nerfstudio_models/)."""
+def latest_checkpoint(path: Path, flag: str = "--pipeline.model.retrofit-from") -> Path:
+    """``path`` itself if it is a .ckpt file, else the newest step-*.ckpt under it (or its nerfstudio_models/).
+
+    Anything else raises one line naming ``flag``."""
     path = Path(path)
     if path.suffix == ".ckpt" and path.is_file():
         return path
     if path.name == "config.yml":
         path = path.parent
+    if path.is_file():
+        raise VoteSplatInputError(
+            f"{flag} {path}: not a checkpoint; give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
+        )
     candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
     if not candidates:
         raise VoteSplatInputError(
-            f"no checkpoint found at {path}: give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
+            f"{flag} {path}: no checkpoint found there; give a step-*.ckpt file, a run folder with nerfstudio_models/ "
+            "or a 3DGS .ply"
         )
     return candidates[-1]
+
+
+def checkpoint_failure_reason(error: BaseException, path: Path) -> str:
+    """Why ``torch.load(path, weights_only=True)`` failed, in a few words that never advise ``weights_only=False``."""
+    if zipfile.is_zipfile(path) and "Weights only load failed" in str(error):
+        return "it holds Python objects besides weights, which could run code when loaded"
+    return load_failure_reason(error, path)
 
 
 def load_gaussians(
@@ -129,7 +144,7 @@ def load_gaussians(
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a file that is not a checkpoint
         raise VoteSplatInputError(
-            f"{flag} {checkpoint} cannot be loaded: {load_failure_reason(error, checkpoint)}; "
+            f"{flag} {checkpoint} cannot be loaded: {checkpoint_failure_reason(error, checkpoint)}; "
             "give a step-*.ckpt written by ns-train splatfacto or votesplat, its run folder, or a 3DGS .ply"
         ) from None
     pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
