@@ -20,6 +20,7 @@ import torch
 import yaml
 
 from votesplat_ns.cli.cli_errors import VoteSplatInputError
+from votesplat_ns.eval.synthetic.labels import write_scene_labels
 from votesplat_ns.ns.method import trainer_config_in_process
 from votesplat_ns.ns.run import latest_checkpoint, load_gaussians, load_run
 from votesplat_ns.ns.run_config import RefusedTag, load_run_config, parse_run_config
@@ -156,7 +157,7 @@ def test_a_yaml_that_is_no_run_config_is_named_as_such(tmp_path):
             load_run_config(path)
 
 
-def commands(config: Path, tmp_path: Path) -> List[List[str]]:
+def commands(config: Path, tmp_path: Path, labels: Path) -> List[List[str]]:
     votesplat = str(BIN / "votesplat")
     given = ["--load-config", str(config)]
     return [
@@ -168,7 +169,7 @@ def commands(config: Path, tmp_path: Path) -> List[List[str]]:
             "query-eval",
             *given,
             "--labels",
-            str(DEMO_SCENE),
+            str(labels),
             "--clip-random-init",
             "--clip-model",
             "ViT-S-32-alt",
@@ -184,7 +185,9 @@ def test_every_command_refuses_a_crafted_config_in_one_line(index, tmp_path):
     config = tmp_path / "evil" / "config.yml"
     config.parent.mkdir()
     config.write_text(APPLY_OS_SYSTEM.format(marker=marker) + "\n")
-    argv = commands(config, tmp_path)[index]
+    labels = tmp_path / "evil" / "labels"  # query-eval reads them first
+    write_scene_labels(DEMO_SCENE, labels)
+    argv = commands(config, tmp_path, labels)[index]
     done = run_command(argv)
     assert done.returncode == 1, done.stderr
     assert "Traceback" not in done.stderr + done.stdout
@@ -244,7 +247,9 @@ def test_resume_skips_a_half_written_newest_checkpoint_for_the_previous_one(tmp_
     (tmp_path / "step-000000300.ckpt").write_bytes(data[: len(data) // 2])  # killed during the save
     (tmp_path / "step-000000400.ckpt").write_bytes(b"")  # killed before its first write
     (tmp_path / "notes.txt").write_text("nerfstudio's own listing fails on a file like this")
-    path, state = resume_state(tmp_path, None, None)
+    found = resume_state(tmp_path, None, None)
+    assert found is not None
+    path, state = found
     assert path == tmp_path / "step-000000200.ckpt" and state["step"] == 200
     out = capsys.readouterr().out
     assert "skipping checkpoint" in out and "step-000000300.ckpt" in out and "step-000000400.ckpt" in out

@@ -27,7 +27,7 @@ import enum
 import importlib
 import pathlib
 from pathlib import Path
-from typing import Any, Iterator, Optional, Tuple, Union
+from typing import Any, Dict, Iterator, Optional, Tuple, Union
 
 import yaml
 from yaml.constructor import ConstructorError
@@ -102,10 +102,13 @@ def _construct_object(loader: "RunConfigLoader", suffix: str, node: Node) -> Ite
     yield instance
     state = loader.construct_mapping(node, deep=True)
     fields = {field.name for field in dataclasses.fields(cls)}
-    for key in state:
+    values: Dict[str, Any] = {}
+    for key, value in state.items():
+        # a key that is no field may be one an older nerfstudio wrote, but never one that hides a method
         if not isinstance(key, str) or key.startswith("__") or (key not in fields and hasattr(cls, key)):
             raise RefusedTag(tag, node, f"{key!r} is not a field of {suffix}")
-    instance.__dict__.update(state)
+        values[key] = value
+    instance.__dict__.update(values)
 
 
 def _construct_name(loader: "RunConfigLoader", suffix: str, node: Node) -> type:
@@ -147,8 +150,7 @@ def _construct_tuple(loader: "RunConfigLoader", node: Node) -> tuple:
     return tuple(loader.construct_sequence(node, deep=True))
 
 
-def _refuse(loader: "RunConfigLoader", suffix_or_node: Any, node: Optional[Node] = None) -> Any:
-    node = suffix_or_node if node is None else node
+def _refuse(loader: "RunConfigLoader", node: Node) -> Any:
     raise RefusedTag(node.tag, node, "not a tag of a nerfstudio config")
 
 
@@ -160,7 +162,8 @@ RunConfigLoader.add_multi_constructor(YAML_PREFIX + "python/object:", _construct
 RunConfigLoader.add_multi_constructor(YAML_PREFIX + "python/name:", _construct_name)
 RunConfigLoader.add_multi_constructor(YAML_PREFIX + "python/object/apply:", _construct_apply)
 RunConfigLoader.add_constructor(YAML_PREFIX + "python/tuple", _construct_tuple)
-RunConfigLoader.add_constructor(None, _refuse)  # every other tag, with the same one-line refusal
+# every other tag, with the same one-line refusal (None: PyYAML's key for "no constructor of its own")
+RunConfigLoader.add_constructor(None, _refuse)  # pyright: ignore[reportArgumentType]
 
 
 def parse_run_config(text: str) -> Any:
