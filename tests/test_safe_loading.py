@@ -327,3 +327,23 @@ def test_ns_train_refuses_a_payload_checkpoint_in_one_line(source, tmp_path):
     assert len(lines) == 1 and lines[0].startswith(f"ns-train votesplat: error: {flag[0]} "), done.stderr
     assert "Python objects besides weights" in lines[0] and "weights_only" not in lines[0]
     assert not marker.exists()
+
+
+def test_ns_train_resumes_a_real_checkpoint_past_a_half_written_newer_one(tmp_path, capsys):
+    from votesplat_ns.ns.method import setup_trainer_in_process
+    from votesplat_ns.ns.trainer import VoteSplatTrainer
+
+    first = setup_trainer_in_process(DEMO_SCENE, tmp_path, 1, 0, "cpu", "first")
+    assert isinstance(first, VoteSplatTrainer)
+    first.pipeline.model.gauss_params["means"].data += 1.0  # unlike any fresh start
+    first.save_checkpoint(7)  # what a run writes every --steps-per-save steps (no training needed for a real file)
+    models = first.config.get_checkpoint_dir()
+    saved = first.pipeline.model.gauss_params["means"].detach().clone()
+    save_resumable(models / "step-000000009.ckpt", 9)
+    data = (models / "step-000000009.ckpt").read_bytes()
+    (models / "step-000000009.ckpt").write_bytes(data[: len(data) // 3])  # killed during the save
+
+    resumed = setup_trainer_in_process(DEMO_SCENE, tmp_path, 1, 0, "cpu", "resumed", load_dir=models)
+    assert resumed._start_step == 8
+    assert torch.equal(resumed.pipeline.model.gauss_params["means"].detach(), saved)
+    assert "skipping checkpoint" in capsys.readouterr().out
