@@ -1,6 +1,6 @@
-"""``votesplat eval --load-config outputs/.../config.yml`` loads the run (nerfstudio ``eval_setup``),
-clusters its votes exactly as the instance export does (``cluster_levels`` with the export's
-defaults), renders instance-id maps of the dataset's held-out views and scores them against the
+"""``votesplat eval --load-config outputs/.../config.yml`` loads the run (``ns/run.load_run``: nerfstudio
+``eval_setup``'s steps on a safely read config), clusters its votes exactly as the instance export
+does (``cluster_levels`` with the export's defaults), renders instance-id maps of the dataset's held-out views and scores them against the
 dataset's exact label images:
 
 * 2D (per vote level with a ground truth of the same name, ``instance`` / ``part``):

@@ -25,6 +25,8 @@ from votesplat_ns.ns.run_config import load_run_config
 
 SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 DAMAGED_HINT = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
+PICKLED_OBJECTS = "it holds Python objects besides weights, which could run code when loaded"
+FOREIGN_HINT = "ns-train did not write it: do not load it, and use a run you trust"
 
 
 class LoadedRun(NamedTuple):
@@ -88,9 +90,10 @@ def setup_run(
     try:  # before the model is built
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a damaged or foreign file
+        reason = checkpoint_failure_reason(error, checkpoint)
+        hint = FOREIGN_HINT if reason == PICKLED_OBJECTS else DAMAGED_HINT
         raise VoteSplatInputError(
-            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: "
-            f"{checkpoint_failure_reason(error, checkpoint)}; {DAMAGED_HINT}"
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {reason}; {hint}"
         ) from None
     if not isinstance(state, dict) or not {"step", "pipeline"} <= set(state):
         raise VoteSplatInputError(
@@ -130,7 +133,7 @@ def latest_checkpoint(path: Path, flag: str = "--pipeline.model.retrofit-from") 
 def checkpoint_failure_reason(error: BaseException, path: Path) -> str:
     """Why ``torch.load(path, weights_only=True)`` failed, in a few words that never advise ``weights_only=False``."""
     if zipfile.is_zipfile(path) and "Weights only load failed" in str(error):
-        return "it holds Python objects besides weights, which could run code when loaded"
+        return PICKLED_OBJECTS
     return load_failure_reason(error, path)
 
 

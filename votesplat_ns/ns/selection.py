@@ -86,7 +86,7 @@ class QueryScene:
         instances: Optional[Path] = None,
         clustering: Optional[ClusteringOptions] = None,
     ) -> "QueryScene":
-        """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``."""
+        """Load a run's checkpoint (``ns/run.load_run``: read safely, errors as one line) and get the instances of ``level``."""
         load_config = Path(load_config)
         pipeline, params, _ = load_run(load_config)
         model = pipeline.model
