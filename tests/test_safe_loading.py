@@ -250,6 +250,18 @@ def test_a_run_whose_checkpoint_is_a_payload_is_refused_before_the_model_is_buil
     assert not marker.exists()
 
 
+def test_a_resumed_run_is_opened_from_its_own_checkpoints_not_those_it_resumed_from(tmp_path):
+    from votesplat_ns.cli.cli_errors import check_run
+
+    config = votesplat_config(tmp_path / "outputs")
+    config.load_dir = tmp_path / "gone" / "nerfstudio_models"  # the first run, since deleted
+    config.save_config()
+    own = config.get_checkpoint_dir() / "step-000000004.ckpt"
+    own.parent.mkdir(parents=True)
+    save_resumable(own, 4)
+    assert check_run(config.get_base_dir() / "config.yml") == own
+
+
 def save_resumable(path: Path, step: int) -> None:
     torch.save({"step": step, "pipeline": {"_model.x": torch.zeros(2)}, "optimizers": {}, "scalers": {}}, path)
 

@@ -219,8 +219,10 @@ def load_failure_reason(error: BaseException, path: Union[str, Path, None] = Non
 
 
 def _latest_checkpoint(config) -> Optional[Path]:
-    """The step-*.ckpt nerfstudio's eval_setup loads for a run config (the newest), or None."""
-    folder = Path(config.load_dir) if getattr(config, "load_dir", None) else Path(config.get_checkpoint_dir())
+    """The step-*.ckpt nerfstudio's eval_setup loads for a run config (the newest), or None.
+
+    Always from the run's own checkpoint folder: a resumed run's ``load_dir`` names the run it started from."""
+    folder = Path(config.get_checkpoint_dir())
     if getattr(config, "load_step", None) is not None:
         return folder / f"step-{config.load_step:09d}.ckpt"
     checkpoints = sorted(folder.glob("step-*.ckpt")) if folder.is_dir() else []
