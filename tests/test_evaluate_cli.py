@@ -218,21 +218,21 @@ def test_views_with_a_failed_reconstruction_are_flagged_and_scored_apart(trained
     Those two views (and only those) are flagged from their RGB PSNR; the valid-view scores are the
     scores recomputed over the other views; metrics.json and the printed summary carry both.
     """
-    from nerfstudio.utils import eval_utils
+    from votesplat_ns.ns import run as run_module
 
     walled, inside = EVAL_VIEWS[0], EVAL_VIEWS[2]
-    real_eval_setup = eval_utils.eval_setup
+    real_setup_run = run_module.setup_run
 
-    def eval_setup_with_failures(*args, **kwargs):
-        config, pipeline, path, step = real_eval_setup(*args, **kwargs)
+    def setup_run_with_failures(*args, **kwargs):
+        pipeline, path, step = real_setup_run(*args, **kwargs)
         dataset = pipeline.datamanager.eval_dataset
         names = [Path(f).name for f in dataset.image_filenames]
         index = names.index(walled)
         _grey_wall_of_floaters(pipeline.model, dataset.cameras[index : index + 1])
         dataset.cameras.camera_to_worlds[names.index(inside), :, 3] *= 0.1  # nine tenths of the way to the scene centre
-        return config, pipeline, path, step
+        return pipeline, path, step
 
-    monkeypatch.setattr(eval_utils, "eval_setup", eval_setup_with_failures)
+    monkeypatch.setattr(run_module, "setup_run", setup_run_with_failures)
     output_dir = tmp_path / "eval"
     results, run = [], evaluate_cli.evaluate_run
 

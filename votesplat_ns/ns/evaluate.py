@@ -1,6 +1,7 @@
-"""``votesplat eval --load-config outputs/.../config.yml`` loads the run (nerfstudio ``eval_setup``),
-reads the run's instances exactly as the instance export does (``ns/run_instances.py``: the same
-record, computed once per checkpoint and settings), renders instance-id maps of the dataset's held-out views and scores them against the
+"""``votesplat eval --load-config outputs/.../config.yml`` loads the run (``ns/run.load_run``: nerfstudio
+``eval_setup``'s steps on a safely read config), reads the run's instances exactly as the instance export does
+(``ns/run_instances.py``: the same record, computed once per checkpoint and settings), renders instance-id maps
+of the dataset's held-out views and scores them against the
 dataset's exact label images:
 
 * 2D (per vote level with a ground truth of the same name, ``instance`` / ``part``):

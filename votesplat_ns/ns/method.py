@@ -23,6 +23,7 @@ from votesplat_ns.ns import patches
 from votesplat_ns.ns.datamanager import VoteDataManagerConfig
 from votesplat_ns.ns.lean_adam import LeanFusedAdam, NeverStepsOptimizer
 from votesplat_ns.ns.model import VoteSplatModelConfig
+from votesplat_ns.ns.trainer import VoteSplatTrainer
 
 
 @dataclass
@@ -87,6 +88,7 @@ def splatfacto_optimizers(max_steps: int = 30000) -> dict:
 
 def votesplat_trainer_config() -> TrainerConfig:
     return TrainerConfig(
+        _target=VoteSplatTrainer,  # resumes read checkpoints safely (ns/trainer.py)
         method_name="votesplat",
         steps_per_eval_image=100,
         steps_per_eval_batch=0,

@@ -30,6 +30,7 @@ from votesplat_ns.core.foreground import DEFAULT_MIN_MASKED_SHARE, foreground_fr
 from votesplat_ns.core.vote_fused import KernelWarmUp, start_warm_up, use_fused, vote_losses_sampled
 from votesplat_ns.core.vote_maps import pixels_and_targets
 from votesplat_ns.core.vote_render import DIVERGED_VOTES, VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.compat import UnavailableMetric
 from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
@@ -183,7 +184,7 @@ class VoteSplatModel(SplatfactoModel):
 
     def get_training_callbacks(self, training_callback_attributes):
         if self.vote_only and not self.retrofitted:
-            raise ValueError(
+            raise VoteSplatInputError(
                 f"--pipeline.model.retrofit-from {self.config.retrofit_from} does not exist: "
                 "give the trained splatfacto run folder or its step-*.ckpt"
             )

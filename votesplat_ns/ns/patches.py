@@ -28,6 +28,16 @@ Scoped, applied where they are needed (listed here so that an upgrade checks the
   checkpoint and splatfacto replaces the parameters (#3554).
 * gsplat's private ``cuda._torch_impl`` helpers (``core/rasterize_torch.py``, ``ns/retrofit.py``): used,
   not patched.
+* ``safe resume`` (``ns/trainer.py`` ``VoteSplatTrainer``, the method's ``TrainerConfig._target``): a subclass
+  whose ``_load_checkpoint`` reads with ``weights_only=True``, skips a half-written newest checkpoint and fails
+  in one line; not a patch of ``Trainer``, so other methods keep nerfstudio's.
+
+Left unpatched on purpose: nerfstudio's own reads of a config.yml with ``yaml.Loader`` (``eval_setup``, used
+by ``ns-viewer``, ``ns-eval``, ``ns-render`` and ``ns-export``'s other exporters; ``ns-train --load-config``).
+Our commands read it with ``ns/run_config.py`` instead. Swapping that loader in for every ``ns-*`` command
+would refuse the config classes of every other installed plugin (the allow-list knows nerfstudio's and
+ours), and swapping it in only for votesplat runs protects nothing: the file names its own method. README's
+"Security" says what stays unsafe.
 """
 
 from __future__ import annotations

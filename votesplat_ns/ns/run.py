@@ -1,7 +1,8 @@
 """A trained run through nerfstudio: the one checkpoint loader and the one camera-to-view conversion.
 
 :func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (:func:`check_run` checks the config.yml,
-read by :func:`read_run_config`, and its checkpoint first) and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`; :func:`latest_checkpoint`
+read without running code by :func:`read_run_config` (``ns/run_config.py``), and its checkpoint first), reading the
+checkpoint with ``weights_only=True``, and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`; :func:`latest_checkpoint`
 and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retrofit's source). :func:`camera_view` and
 :func:`dataset_views` turn nerfstudio ``Cameras`` into :class:`~votesplat_ns.core.cameras.PinholeView`s
 (gsplat's conventions). The checkpoint safe-globals are registered when ``votesplat_ns`` is imported.
@@ -9,10 +10,9 @@ and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retr
 
 from __future__ import annotations
 
-import pickle
 import zipfile
 from pathlib import Path
-from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Union
+from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -21,14 +21,19 @@ from votesplat_ns.core.cameras import PinholeView, viewmat_from_camera_to_world
 from votesplat_ns.core.ply_io import SH_C0
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.errors import VoteSplatInputError, file_format_problem, load_failure_reason
+from votesplat_ns.ns.run_config import load_run_config, not_a_run_config
 
 SPLAT_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 DAMAGED_HINT = "use a run whose training finished, or train again (a kill during a save can leave a partial file)"
+PICKLED_OBJECTS = "it holds Python objects besides weights, which could run code when loaded"
+FOREIGN_HINT = "ns-train did not write it: do not load it, and use a run you trust"
 
 
 def _run_checkpoint(config) -> Optional[Path]:
-    """The step-*.ckpt nerfstudio's eval_setup loads for a run config (the newest), or None."""
-    folder = Path(config.load_dir) if getattr(config, "load_dir", None) else Path(config.get_checkpoint_dir())
+    """The step-*.ckpt nerfstudio's eval_setup loads for a run config (the newest), or None.
+
+    Always from the run's own checkpoint folder: a resumed run's ``load_dir`` names the run it started from."""
+    folder = Path(config.get_checkpoint_dir())
     if getattr(config, "load_step", None) is not None:
         return folder / f"step-{config.load_step:09d}.ckpt"
     checkpoints = sorted(folder.glob("step-*.ckpt")) if folder.is_dir() else []
@@ -44,26 +49,11 @@ def checkpoint_problem(checkpoint: Path) -> Optional[str]:
     return None
 
 
-def _not_a_run_config(load_config: Path, flag: str, error: Exception) -> VoteSplatInputError:
-    return VoteSplatInputError(
-        f"{flag} {load_config}: not a nerfstudio run config ({type(error).__name__}); pass the config.yml that ns-train wrote"
-    )
-
-
 def read_run_config(load_config: Union[str, Path], flag: str = "--load-config"):
-    """A run's config.yml as nerfstudio wrote it (its TrainerConfig); a missing or unreadable file raises
-    :class:`VoteSplatInputError` naming ``flag`` and the file."""
-    import yaml
-
-    load_config = Path(load_config)
-    if not load_config.is_file():
-        raise VoteSplatInputError(
-            f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)"
-        )
-    try:
-        return yaml.load(load_config.read_text(encoding="utf-8"), Loader=yaml.Loader)
-    except Exception as error:  # not YAML, or a YAML of classes that are not importable here
-        raise _not_a_run_config(load_config, flag, error) from None
+    """A run's config.yml as nerfstudio wrote it (its TrainerConfig), read without running code
+    (``ns/run_config.py``); a missing or unreadable file, or one that names anything but config classes,
+    paths, enums and tuples, raises :class:`VoteSplatInputError` naming ``flag`` and the file."""
+    return load_run_config(load_config, flag)
 
 
 def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:
@@ -77,7 +67,7 @@ def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Pat
     try:
         checkpoint = _run_checkpoint(config) if hasattr(config, "get_checkpoint_dir") else None
     except Exception as error:  # a YAML file that is not a nerfstudio run config
-        raise _not_a_run_config(load_config, flag, error) from None
+        raise not_a_run_config(load_config, flag, error) from None
     if checkpoint is None or not checkpoint.is_file():
         folder = checkpoint.parent if checkpoint is not None else "its nerfstudio_models/ folder"
         raise VoteSplatInputError(
@@ -105,54 +95,120 @@ def load_run(
     test_mode: str = "inference",
     update_config_callback: Optional[Callable[[Any], Any]] = None,
 ) -> LoadedRun:
-    """Load a run's newest checkpoint with nerfstudio's ``eval_setup``; bad input raises one-line errors.
+    """Load a run's newest checkpoint as nerfstudio's ``eval_setup`` does, without running code from its files.
 
-    A missing config file, a run without checkpoints or a damaged checkpoint raise
-    :class:`VoteSplatInputError` naming the file, before the model is built where possible;
-    a checkpoint without votes raises ``ValueError`` (not a votesplat run).
+    The config.yml is read by :func:`~votesplat_ns.ns.run_config.load_run_config` (config classes, paths, enums
+    and tuples only; nerfstudio's ``eval_setup`` reads it with ``yaml.Loader``, which builds anything) and the
+    checkpoint with ``weights_only=True``. A missing config file, one that names anything else, a run without
+    checkpoints or a damaged checkpoint raise :class:`VoteSplatInputError` naming the file, before the model is
+    built where possible; a checkpoint without votes raises ``ValueError`` (not a votesplat run).
     """
-    from nerfstudio.utils.eval_utils import eval_setup  # nerfstudio imports its method configs, which import us
-
     load_config = Path(load_config)
-    checkpoint = check_run(load_config, flag)
-    try:
-        _, pipeline, _, step = eval_setup(
-            load_config, test_mode=test_mode, update_config_callback=update_config_callback
-        )
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
-        problem = checkpoint_problem(checkpoint)
-        if problem is None:
-            raise
+    check_run(load_config, flag)  # the config and its checkpoint, before any model is built
+    config = load_run_config(load_config, flag)
+    pipeline, _, step = setup_run(config, load_config, flag, test_mode, update_config_callback)
+    return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), step)
+
+
+def setup_run(
+    config: Any,
+    load_config: Path,
+    flag: str = "--load-config",
+    test_mode: str = "inference",
+    update_config_callback: Optional[Callable[[Any], Any]] = None,
+) -> Tuple[Any, Path, int]:
+    """(pipeline, checkpoint, step): nerfstudio 1.1.5 ``eval_setup``'s steps on a config already loaded, the
+    checkpoint read with ``weights_only=True`` whatever torch's default (``TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD``
+    changes only calls that do not say)."""
+    from nerfstudio.configs.method_configs import all_methods  # imports the method configs, which import us
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    if config.method_name not in all_methods:
         raise VoteSplatInputError(
-            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {problem}; {DAMAGED_HINT}"
-        ) from error
-    return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), int(step))
+            f"{flag} {load_config}: the run was trained with method {config.method_name!r}, which is not installed here"
+        )
+    config.pipeline.datamanager._target = all_methods[config.method_name].pipeline.datamanager._target
+    if update_config_callback is not None:
+        config = update_config_callback(config)
+    config.load_dir = config.get_checkpoint_dir()
+    if config.load_step is not None:
+        checkpoint = Path(config.load_dir) / f"step-{config.load_step:09d}.ckpt"
+    else:
+        found = sorted(Path(config.load_dir).glob("step-*.ckpt")) if Path(config.load_dir).is_dir() else []
+        checkpoint = found[-1] if found else Path(config.load_dir) / "step-*.ckpt"
+    if not checkpoint.is_file():
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: the run has no checkpoint (looked in {config.load_dir}); "
+            "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
+        )
+    try:  # before the model is built
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a damaged or foreign file
+        reason = checkpoint_failure_reason(error, checkpoint)
+        hint = FOREIGN_HINT if reason == PICKLED_OBJECTS else DAMAGED_HINT
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be loaded: {reason}; {hint}"
+        ) from None
+    if not isinstance(state, dict) or not {"step", "pipeline"} <= set(state):
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) is not a nerfstudio checkpoint (no step and pipeline); "
+            f"{DAMAGED_HINT}"
+        )
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    pipeline = config.pipeline.setup(device=device, test_mode=test_mode)
+    pipeline.eval()
+    pipeline.load_pipeline(state["pipeline"], state["step"])
+    CONSOLE.print(f":white_check_mark: Done loading checkpoint from {checkpoint}")
+    return pipeline, checkpoint, int(state["step"])
 
 
-def latest_checkpoint(path: Path) -> Path:
-    """``path`` itself if it is a file, else the newest step-*.ckpt under it (or its nerfstudio_models/)."""
+def latest_checkpoint(path: Path, flag: str = "--pipeline.model.retrofit-from") -> Path:
+    """``path`` itself if it is a .ckpt file, else the newest step-*.ckpt under it (or its nerfstudio_models/).
+
+    Anything else raises one line naming ``flag``."""
     path = Path(path)
     if path.suffix == ".ckpt" and path.is_file():
         return path
     if path.name == "config.yml":
         path = path.parent
+    if path.is_file():
+        raise VoteSplatInputError(
+            f"{flag} {path}: not a checkpoint; give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
+        )
     candidates = sorted(path.glob("step-*.ckpt")) or sorted(path.glob("nerfstudio_models/step-*.ckpt"))
     if not candidates:
         raise VoteSplatInputError(
-            f"no checkpoint found at {path}: give a step-*.ckpt file, a run folder with nerfstudio_models/ or a 3DGS .ply"
+            f"{flag} {path}: no checkpoint found there; give a step-*.ckpt file, a run folder with nerfstudio_models/ "
+            "or a 3DGS .ply"
         )
     return candidates[-1]
 
 
-def load_gaussians(checkpoint: Path, names: Sequence[str] = SPLAT_PARAM_NAMES) -> Dict[str, torch.Tensor]:
+def checkpoint_failure_reason(error: BaseException, path: Path) -> str:
+    """Why ``torch.load(path, weights_only=True)`` failed, in a few words that never advise ``weights_only=False``."""
+    if zipfile.is_zipfile(path) and "Weights only load failed" in str(error):
+        return PICKLED_OBJECTS
+    return load_failure_reason(error, path)
+
+
+def load_gaussians(
+    checkpoint: Path, names: Sequence[str] = SPLAT_PARAM_NAMES, flag: str = "--pipeline.model.retrofit-from"
+) -> Dict[str, torch.Tensor]:
     """splatfacto's Gaussian parameters (or the ``gauss_params`` in ``names``, e.g. with a votesplat run's
-    vote offsets and support) from a nerfstudio checkpoint (splatfacto or votesplat)."""
-    state = torch.load(checkpoint, map_location="cpu")
+    vote offsets and support) from a nerfstudio checkpoint (splatfacto or votesplat), read with
+    ``weights_only=True``: a file that is not one (a pickle of anything else) raises one line naming ``flag``."""
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a file that is not a checkpoint
+        raise VoteSplatInputError(
+            f"{flag} {checkpoint} cannot be loaded: {checkpoint_failure_reason(error, checkpoint)}; "
+            "give a step-*.ckpt written by ns-train splatfacto or votesplat, its run folder, or a 3DGS .ply"
+        ) from None
     pipeline_state = state.get("pipeline", {}) if isinstance(state, dict) else {}
     missing = [name for name in names if f"_model.gauss_params.{name}" not in pipeline_state]
     if missing:
         raise VoteSplatInputError(
-            f"{checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
+            f"{flag} {checkpoint} is not a splatfacto checkpoint (no {', '.join(missing)} Gaussians); "
             "retrofit needs one written by ns-train splatfacto or votesplat"
         )
     return {name: pipeline_state[f"_model.gauss_params.{name}"] for name in names}

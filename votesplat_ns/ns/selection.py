@@ -87,9 +87,9 @@ class QueryScene:
         settings: Optional[InstanceSettings] = None,
         log: Optional[Callable[[str], None]] = None,
     ) -> "QueryScene":
-        """Load a run's checkpoint (nerfstudio eval_setup, errors as one line) and get the instances of ``level``:
-        the run's instances (:func:`~votesplat_ns.ns.run_instances.run_instances`, as the export and the viewer
-        read them) or, with ``instances``, those of an export folder."""
+        """Load a run's checkpoint (``ns/run.load_run``: read safely, errors as one line) and get the instances of
+        ``level``: the run's instances (:func:`~votesplat_ns.ns.run_instances.run_instances`, as the export and the
+        viewer read them) or, with ``instances``, those of an export folder."""
         load_config = Path(load_config)
         pipeline, params, _ = load_run(load_config)
         model = pipeline.model
