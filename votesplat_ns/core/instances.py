@@ -76,6 +76,9 @@ class LevelInstances:
     parents: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] int64 id at the parent level, -1 = none (or no parent level)
     parent_overlap: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] fraction of the instance's Gaussians inside its parent
     clustering: Dict[str, object] = field(default_factory=dict)
+    # [K] float in [0, 1]: how sure the instance is an object (ranks instances for 3D AP;
+    # core/whole_objects.py instance_confidence); None when the clustering gave none
+    confidence: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         k = self.counts.shape[0]
@@ -94,9 +97,17 @@ class LevelInstances:
 
     @classmethod
     def from_ids(
-        cls, name: str, ids, foreground, means, votes, clustering: Optional[Dict[str, object]] = None
+        cls,
+        name: str,
+        ids,
+        foreground,
+        means,
+        votes,
+        clustering: Optional[Dict[str, object]] = None,
+        confidence: Optional[np.ndarray] = None,
     ) -> "LevelInstances":
-        """Build a level from per-Gaussian ids [N] (0..K-1, -1), means [N, 3] and votes [N, 3]."""
+        """Build a level from per-Gaussian ids [N] (0..K-1, -1), means [N, 3] and votes [N, 3]
+        (``confidence``: [K] per instance, or None)."""
         ids = np.asarray(ids, dtype=np.int64)
         foreground = np.asarray(foreground, dtype=bool)
         means = np.asarray(means, dtype=np.float64)
@@ -116,7 +127,21 @@ class LevelInstances:
             vote_centres = np.add.reduceat(votes[order], starts, axis=0) / counts[:, None]
         else:
             bbox_min = bbox_max = vote_centres = np.zeros((0, 3))
-        return cls(name, ids, foreground, counts, bbox_min, bbox_max, vote_centres, clustering=dict(clustering or {}))
+        if confidence is not None:
+            confidence = np.asarray(confidence, dtype=np.float64)
+            if confidence.shape != (k,):
+                raise ValueError(f"level {name!r}: {confidence.shape[0]} confidences for {k} instances")
+        return cls(
+            name,
+            ids,
+            foreground,
+            counts,
+            bbox_min,
+            bbox_max,
+            vote_centres,
+            clustering=dict(clustering or {}),
+            confidence=confidence,
+        )
 
     def members(self) -> Dict[int, np.ndarray]:
         """The dictionary of the paper: instance id -> sorted Gaussian indices."""
@@ -164,6 +189,8 @@ class LevelInstances:
                 "parent_overlap": float(self.parent_overlap[i]),
                 "color": [int(c) for c in colors[i]],
             }
+            if self.confidence is not None:
+                entry["confidence"] = float(self.confidence[i])
             if extra and i in extra:
                 entry.update(jsonable(extra[i]))
             instances.append(entry)
@@ -322,6 +349,7 @@ class InstanceSet:
                     parents=arr("parent", np.int64)[:, 0],
                     parent_overlap=arr("parent_overlap")[:, 0],
                     clustering=entry.get("clustering", {}),
+                    confidence=arr("confidence")[:, 0] if all("confidence" in e for e in inst) and inst else None,
                 )
             )
         return cls(
