@@ -179,3 +179,19 @@ def test_level_confidence_travels_through_the_manifest(tmp_path) -> None:
     (tmp_path / "plain").mkdir()
     InstanceSet(levels=[plain], num_gaussians=4).save(tmp_path / "plain")
     assert InstanceSet.load(tmp_path / "plain").levels[0].confidence is None
+
+
+def test_vote_proximity_is_an_optional_extra_condition() -> None:
+    scene = Scene()
+    body = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, -1])
+    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 1, [1, 1, 2, 2, -1, -1])
+    means, labels, table = scene.build()
+    rng = np.random.default_rng(0)
+    votes = np.empty_like(means)
+    votes[body] = [0.5, 0.5, 0.5] + rng.normal(0, 0.05, (len(body), 3))
+    votes[fragment] = [3.0, 0.5, 0.5]  # voted far from the body's centre
+    far, _, stats = run(means, labels, table, votes=votes, join_vote_factor=2.0)
+    assert far[fragment[0]] != far[body[0]] and stats["join"]["refused_by_votes"] == 1
+    votes[fragment] = [0.55, 0.5, 0.5]
+    near, _, _ = run(means, labels, table, votes=votes, join_vote_factor=2.0)
+    assert near[fragment[0]] == near[body[0]]

@@ -36,7 +36,7 @@ passes the views, the training masks and a rasteriser (gsplat's ``rasterization`
 
 from __future__ import annotations
 
-from typing import Any, Callable, Dict, Sequence, Tuple
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -336,6 +336,7 @@ def regroup_with_masks(
     min_size: int = DEFAULT_MIN_SPLIT_SIZE,
     grow: bool = DEFAULT_GROW,
     objects: bool = True,
+    votes: Optional[np.ndarray] = None,
     **object_options: Any,
 ) -> Tuple[np.ndarray, Dict[str, Any]]:
     """One level's instance labels [N] (-1: noise/background) checked against its training masks
@@ -344,7 +345,8 @@ def regroup_with_masks(
 
     With ``objects``, the whole-object rules of :func:`votesplat_ns.core.whole_objects.whole_objects`
     follow (fragments join, floaters drop, hidden Gaussians join; ``object_options`` are its
-    keywords: ``join``, ``floaters``, ``hidden``, ``join_ratio``, ...); their counts go under
+    keywords: ``join``, ``floaters``, ``hidden``, ``join_ratio``, ...; ``votes`` [N, 3], NaN where a
+    Gaussian has none, for ``join_vote_factor``); their counts go under
     ``stats["objects"]`` and the instances' confidence [K] under ``stats["confidence"]`` (an array,
     which :func:`votesplat_ns.core.clustering.cluster_levels` moves to the level)."""
     labels = np.asarray(labels, dtype=np.int64)
@@ -366,7 +368,15 @@ def regroup_with_masks(
     stats["num_clusters"] = int(out.max()) + 1 if (out >= 0).any() else 0
     if objects:
         out, stats["confidence"], stats["objects"] = whole_objects(
-            out, means, table, spacing, min_views=min_views, min_share=min_share, min_seen=min_seen, **object_options
+            out,
+            means,
+            table,
+            spacing,
+            min_views=min_views,
+            min_share=min_share,
+            min_seen=min_seen,
+            votes=votes,
+            **object_options,
         )
         stats["num_clusters"] = int(out.max()) + 1 if (out >= 0).any() else 0
     return out, stats

@@ -22,7 +22,10 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   ``join_agreement`` of their sightings, over at least ``min_views`` views. Contact alone never
   joins (stacked cubes touch; their masks differ), and a small object in or on a larger one (fruit
   in a bowl, a box on a table) is seen in its own masks, so it stays apart. Among several
-  candidates the one with the highest agreement wins; smaller instances are decided first.
+  candidates the one with the highest agreement wins; smaller instances are decided first. With
+  ``join_vote_factor`` (off by default) the fragment's median vote must also lie within that many
+  of the larger one's vote spreads of its median vote: a fragment exists because its votes missed
+  the object's centre, so vote proximity is weak evidence, kept as a variant to measure.
 * **Floaters** (``floaters``): an instance whose sightings lie in no mask in most views with
   evidence (at least ``min_views``), or that no view sees and that touches no other instance,
   becomes background.
@@ -110,6 +113,19 @@ def _touching(means: np.ndarray, labels: np.ndarray, members: np.ndarray, radius
     return found[(found >= 0) & (found != own)]
 
 
+def _votes_close(votes, members: np.ndarray, host: np.ndarray, factor) -> bool:
+    """Whether the median vote of ``members`` lies within ``factor`` times the host's vote spread
+    (median distance of its votes to their median) of the host's median vote; True when either
+    has no finite vote (no evidence either way)."""
+    own, theirs = votes[members], votes[host]
+    own, theirs = own[np.isfinite(own).all(axis=1)], theirs[np.isfinite(theirs).all(axis=1)]
+    if own.shape[0] == 0 or theirs.shape[0] == 0:
+        return True
+    centre = np.median(theirs, axis=0)
+    spread = float(np.median(np.linalg.norm(theirs - centre, axis=1)))
+    return float(np.linalg.norm(np.median(own, axis=0) - centre)) <= factor * max(spread, 1e-12)
+
+
 def join_fragments(
     labels: np.ndarray,
     means: np.ndarray,
@@ -121,13 +137,17 @@ def join_fragments(
     min_views: int = 2,
     min_share: float = 0.5,
     min_seen: int = 5,
+    votes: Optional[np.ndarray] = None,
+    join_vote_factor: Optional[float] = None,
 ) -> Tuple[np.ndarray, Dict[str, int]]:
-    """Labels after the join rule (module docstring); stats: fragments joined, Gaussians moved, and
-    touching candidates refused by their masks."""
+    """Labels after the join rule (module docstring); stats: fragments joined, Gaussians moved,
+    touching candidates refused by their masks, and (with ``votes`` [N, 3], NaN where a Gaussian
+    has none, and ``join_vote_factor``) candidates refused by their votes."""
     from votesplat_ns.core.mask_consensus import sitting_masks
 
     out = labels.copy()
-    stats = {"joined": 0, "joined_gaussians": 0, "refused_by_masks": 0}
+    stats = {"joined": 0, "joined_gaussians": 0, "refused_by_masks": 0, "refused_by_votes": 0}
+    use_votes = votes is not None and join_vote_factor is not None
     ids, sizes = np.unique(out[out >= 0], return_counts=True)
     if ids.size < 2 or spacing <= 0:
         return out, stats
@@ -146,11 +166,12 @@ def join_fragments(
                 continue
             agree, against, views = _sightings(table, members, homes[other])
             share = agree / (agree + against) if agree + against else 0.0
-            if views >= min_views and share >= join_agreement:
-                if share > best_share:
-                    best, best_share = other, share
-            else:
+            if views < min_views or share < join_agreement:
                 stats["refused_by_masks"] += 1
+            elif use_votes and not _votes_close(votes, members, np.flatnonzero(out == other), join_vote_factor):
+                stats["refused_by_votes"] += 1
+            elif share > best_share:
+                best, best_share = other, share
         if best >= 0:
             out[members] = best
             size[best] += members.size
@@ -279,10 +300,13 @@ def whole_objects(
     min_views: int = 2,
     min_share: float = 0.5,
     min_seen: int = 5,
+    votes: Optional[np.ndarray] = None,
+    join_vote_factor: Optional[float] = None,
 ) -> Tuple[np.ndarray, np.ndarray, Dict[str, Any]]:
     """One level's labels [N] (-1: background) after the rules of the module docstring, renumbered
     by decreasing size; the instances' confidence [K]; and what each rule did. ``spacing``: the
-    foreground's typical spacing; ``table`` [V, N]: the mask check's per-view mask table."""
+    foreground's typical spacing; ``table`` [V, N]: the mask check's per-view mask table;
+    ``votes`` [N, 3] (NaN: none) with ``join_vote_factor`` adds vote proximity to the join rule."""
     from votesplat_ns.core.clustering import relabel_by_size
 
     for name, value in (("join_ratio", join_ratio), ("join_agreement", join_agreement)):
@@ -295,7 +319,18 @@ def whole_objects(
     stats: Dict[str, Any] = {}
     if join:
         out, stats["join"] = join_fragments(
-            out, means, table, spacing, join_ratio, join_agreement, contact_factor, min_views, min_share, min_seen
+            out,
+            means,
+            table,
+            spacing,
+            join_ratio,
+            join_agreement,
+            contact_factor,
+            min_views,
+            min_share,
+            min_seen,
+            None if votes is None else np.asarray(votes, dtype=np.float64),
+            join_vote_factor,
         )
     if floaters:
         out, stats["floaters"] = drop_floaters(out, means, table, spacing, contact_factor, min_views)
