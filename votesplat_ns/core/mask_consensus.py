@@ -28,6 +28,9 @@ of what each Gaussian looks like in the training views:
   at least ``min_views`` such views, merges while that ratio is at least ``min_agreement``; a
   merged cluster's mask is recomputed from all its Gaussians.
 * **Drop.** A cluster that sits in no mask in most of the views where it is decided becomes -1.
+* **Whole objects.** Then (``objects``) fragments join the instance whose masks they lie in,
+  floaters become background and hidden Gaussians join the object they lie inside
+  (:mod:`votesplat_ns.core.whole_objects`, which also gives each instance a confidence).
 
 The thresholds are ratios, counts of views and the scene's own spacing, so they mean the same in
 any scene. A cluster never seen in a training view is left as it is. Pure numpy/torch: the caller

@@ -157,7 +157,8 @@ def join_fragments(
     size = {int(i): int(s) for i, s in zip(ids, sizes)}
     for label in [int(i) for i in ids[np.argsort(sizes, kind="stable")]]:
         members = np.flatnonzero(out == label)
-        if members.size == 0:
+        # only a fragment of some larger instance looks for contact (the query is per member)
+        if members.size == 0 or members.size > join_ratio * max(size.values()):
             continue
         touching = _touching(means, out, members, contact_factor * spacing, tree, labelled)
         best, best_share = -1, -1.0
