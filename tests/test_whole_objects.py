@@ -195,3 +195,13 @@ def test_vote_proximity_is_an_optional_extra_condition() -> None:
     votes[fragment] = [0.55, 0.5, 0.5]
     near, _, _ = run(means, labels, table, votes=votes, join_vote_factor=2.0)
     assert near[fragment[0]] == near[body[0]]
+
+
+def test_vote_centre_leaves_out_members_without_a_vote() -> None:
+    from votesplat_ns.core.instances import LevelInstances
+
+    means = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [5, 5, 5]])
+    votes = np.array([[0.5, 0, 0], [0.7, 0, 0], [np.nan] * 3, [np.nan] * 3])
+    ids = np.array([0, 0, 0, 1])  # Gaussian 2 joined as hidden; instance 1 has no vote at all
+    level = LevelInstances.from_ids("instance", ids, np.array([1, 1, 0, 0], bool), means, votes)
+    assert np.allclose(level.vote_centres, [[0.6, 0, 0], [5, 5, 5]])

@@ -71,7 +71,7 @@ class LevelInstances:
     counts: np.ndarray  # [K] int64 Gaussians per instance
     bbox_min: np.ndarray  # [K, 3] of the member Gaussians' means
     bbox_max: np.ndarray  # [K, 3]
-    vote_centres: np.ndarray  # [K, 3] mean vote of the members
+    vote_centres: np.ndarray  # [K, 3] mean vote of the members that voted
     # None means "no parent": __post_init__ replaces it with the array, so readers always get one
     parents: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] int64 id at the parent level, -1 = none (or no parent level)
     parent_overlap: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] fraction of the instance's Gaussians inside its parent
@@ -124,7 +124,13 @@ class LevelInstances:
         if k:
             bbox_min = np.minimum.reduceat(means[order], starts, axis=0)
             bbox_max = np.maximum.reduceat(means[order], starts, axis=0)
-            vote_centres = np.add.reduceat(votes[order], starts, axis=0) / counts[:, None]
+            # members without a vote (hidden Gaussians that joined an object after the
+            # clustering) do not count; an instance with no vote at all takes its members' mean
+            voted = np.isfinite(votes[order]).all(axis=1)
+            vote_sums = np.add.reduceat(np.where(voted[:, None], votes[order], 0.0), starts, axis=0)
+            num_voted = np.add.reduceat(voted.astype(np.int64), starts)
+            mean_points = np.add.reduceat(means[order], starts, axis=0) / counts[:, None]
+            vote_centres = np.where(num_voted[:, None] > 0, vote_sums / np.maximum(num_voted, 1)[:, None], mean_points)
         else:
             bbox_min = bbox_max = vote_centres = np.zeros((0, 3))
         if confidence is not None:
