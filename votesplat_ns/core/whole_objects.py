@@ -228,7 +228,14 @@ def _inside_hull(points: np.ndarray, hull_points: np.ndarray, margin) -> np.ndar
         return np.zeros(points.shape[0], dtype=bool)
     # equations: unit outward normals and offsets, inside where normal . x + offset <= 0
     margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), (points.shape[0],))
-    return np.asarray((points @ hull.equations[:, :3].T + hull.equations[:, 3] <= -margin[:, None]).all(axis=1))
+    # the hull's bounding box first: the facet test is points x facets
+    inside = ((points >= hull_points.min(axis=0)) & (points <= hull_points.max(axis=0))).all(axis=1)
+    index = np.flatnonzero(inside)
+    for start in range(0, index.size, 65536):
+        part = index[start : start + 65536]
+        distance = points[part] @ hull.equations[:, :3].T + hull.equations[:, 3]
+        inside[part] = (distance <= -margin[part, None]).all(axis=1)
+    return inside
 
 
 def take_hidden(
@@ -262,9 +269,11 @@ def take_hidden(
     k = min(hidden_neighbours, settled.size)
     _, near = cKDTree(means[settled]).query(means[candidates], k=k)
     near_labels = out[settled[np.asarray(near).reshape(candidates.size, k)]]
-    winner = np.full(candidates.size, -1, dtype=np.int64)
-    for label in np.unique(near_labels[near_labels >= 0]):
-        winner[(near_labels == label).sum(axis=1) > 0.5 * k] = label
+    # the label held by more than half of the k neighbours (k compares of k columns, no per-label pass)
+    counts = np.stack([(near_labels == near_labels[:, [j]]).sum(axis=1) for j in range(k)], axis=1)
+    top = counts.argmax(axis=1)
+    rows = np.arange(candidates.size)
+    winner = np.where(counts[rows, top] > 0.5 * k, near_labels[rows, top], -1)
     for label in np.unique(winner[winner >= 0]):
         chosen = candidates[winner == label]
         members = np.flatnonzero(out == label)
