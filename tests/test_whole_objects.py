@@ -205,3 +205,24 @@ def test_vote_centre_leaves_out_members_without_a_vote() -> None:
     ids = np.array([0, 0, 0, 1])  # Gaussian 2 joined as hidden; instance 1 has no vote at all
     level = LevelInstances.from_ids("instance", ids, np.array([1, 1, 0, 0], bool), means, votes)
     assert np.allclose(level.vote_centres, [[0.6, 0, 0], [5, 5, 5]])
+
+
+def test_a_background_gaussian_that_joins_an_instance_becomes_foreground() -> None:
+    from votesplat_ns.core.clustering import cluster_levels
+
+    rng = np.random.default_rng(0)
+    means = np.concatenate([rng.normal(0, 0.1, (60, 3)), rng.normal(3, 0.1, (60, 3)), [[0.0, 0.0, 0.0]]])
+    offsets = np.zeros((len(means), 1, 3))
+    support = np.ones((len(means), 1))
+    support[-1] = 0  # never voted
+
+    def refine(index, name, ids):
+        ids = ids.copy()
+        ids[-1] = ids[0]  # joins the first blob, as a hidden Gaussian would
+        return ids, {"confidence": np.ones(int(ids.max()) + 1)}
+
+    instances = cluster_levels(means, offsets, support, ("instance",), refine=refine)
+    instances.validate()
+    level = instances.level("instance")
+    assert level.ids[-1] == level.ids[0] and level.foreground[-1]
+    assert level.clustering["num_joined_background"] == 1 and level.confidence is not None

@@ -418,7 +418,7 @@ def cluster_levels(
     clusters of spread votes (:func:`merge_spread_clusters`). ``refine(index, name, ids)`` (ids [N],
     -1 outside every instance) returns new ids and a dict of counts stored with the level's
     clustering parameters (an array under ``"confidence"`` becomes the level's per-instance
-    confidence); the exporter passes the training-mask check
+    confidence; a background Gaussian it puts in an instance becomes foreground); the exporter passes the training-mask check
     (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`) here. ``cluster_kwargs`` are the
     HDBSCAN settings of :func:`cluster_votes_detailed` (``min_cluster_size``, ``min_samples``,
     ``max_points``, ``seed``, ``noise``, ...), the same for every level.
@@ -481,6 +481,10 @@ def cluster_levels(
                 refine_stats = dict(refine_stats)
                 confidence = refine_stats.pop("confidence", None)
                 params.update(mask_check=refine_stats, num_clusters=int(ids.max()) + 1 if (ids >= 0).any() else 0)
+                # a Gaussian that never voted but joined an object (hidden behind its surface) is
+                # the object's: foreground at this level from now on
+                params["num_joined_background"] = int(((ids >= 0) & ~foreground).sum())
+                foreground = foreground | (ids >= 0)
         else:
             params = {"algorithm": "hdbscan", "num_votes": 0, "num_clusters": 0, "num_noise": 0}
         vote_points = np.full((n, 3), np.nan)

@@ -3,6 +3,8 @@
 Per vote level, every Gaussian has one instance id: 0..K-1 for the K instances, -1 for "in no
 instance". A Gaussian is -1 either because it is background at that level (it received no vote
 supervision) or because the clustering's noise rule left it out; ``foreground`` tells them apart.
+A Gaussian that never voted but lies inside an object (hidden behind its surface in every view)
+can join that object after the clustering (``core/whole_objects.py``); it then counts as foreground.
 Invariants (``InstanceSet.validate``): background Gaussians are -1; each foreground Gaussian is in
 exactly one instance or -1 (noise); ids are 0..K-1 with no gaps, and every instance is non-empty.
 
@@ -67,7 +69,7 @@ class LevelInstances:
 
     name: str
     ids: np.ndarray  # [N] int64 instance id per Gaussian, -1 = none
-    foreground: np.ndarray  # [N] bool, received vote supervision at this level
+    foreground: np.ndarray  # [N] bool, received vote supervision at this level or joined an instance as hidden
     counts: np.ndarray  # [K] int64 Gaussians per instance
     bbox_min: np.ndarray  # [K, 3] of the member Gaussians' means
     bbox_max: np.ndarray  # [K, 3]
