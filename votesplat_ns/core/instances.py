@@ -128,7 +128,7 @@ class LevelInstances:
             bbox_max = np.maximum.reduceat(means[order], starts, axis=0)
             # members without a vote (hidden Gaussians that joined an object after the
             # clustering) do not count; an instance with no vote at all takes its members' mean
-            voted = np.isfinite(votes[order]).all(axis=1)
+            voted = np.asarray(np.isfinite(votes[order]).all(axis=1))
             vote_sums = np.add.reduceat(np.where(voted[:, None], votes[order], 0.0), starts, axis=0)
             num_voted = np.add.reduceat(voted.astype(np.int64), starts)
             mean_points = np.add.reduceat(means[order], starts, axis=0) / counts[:, None]
