@@ -133,3 +133,19 @@ def test_mask_check_names_an_unknown_evidence():
     pipeline, _ = pipeline_with_true_masks(scene, truth, cameras)
     with pytest.raises(ValueError, match="evidence must be"):
         mask_check(pipeline, scene, rasterize_torch, max_views=2, evidence="depth")
+
+
+def test_mask_check_gives_an_objects_hidden_core_to_it():
+    scene, truth, cameras = two_objects()
+    pipeline, _ = pipeline_with_true_masks(scene, truth, cameras)
+    core = np.linalg.norm(scene.means - np.array([-0.1, 0, 0]), axis=1) < 0.08
+    assert core.sum() > 20
+    ids = truth - 1
+    ids[core] = -1  # never voted: hidden behind the blob's surface in every view
+    out, stats = mask_check(pipeline, scene, rasterize_torch, max_views=VIEWS)(0, "instance", ids)
+    large = np.bincount(out[truth == 1][~core[truth == 1]]).argmax()
+    assert (out[core] == large).mean() > 0.9
+    assert stats["objects"]["hidden"]["hidden_taken"] >= 0.9 * core.sum()
+    assert stats["confidence"].shape == (stats["num_clusters"],)
+    kept, _ = mask_check(pipeline, scene, rasterize_torch, max_views=VIEWS, hidden=False)(0, "instance", ids)
+    assert (kept[core] == -1).mean() > 0.9

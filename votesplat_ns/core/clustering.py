@@ -394,7 +394,7 @@ def cluster_levels(
     fill: bool = True,
     min_instance_fraction: float = DEFAULT_MIN_INSTANCE_FRACTION,
     merge_separation: Optional[float] = None,
-    refine: Optional[Callable[[int, str, np.ndarray], Tuple[np.ndarray, Dict[str, int]]]] = None,
+    refine: Optional[Callable[[int, str, np.ndarray], Tuple[np.ndarray, Dict[str, Any]]]] = None,
     **cluster_kwargs: Any,
 ) -> InstanceSet:
     """Instances of every vote level, linked parent -> child between consecutive levels.
@@ -410,7 +410,8 @@ def cluster_levels(
     neighbours (:func:`fill_from_neighbours`). ``merge_separation`` (None: off) first merges
     clusters of spread votes (:func:`merge_spread_clusters`). ``refine(index, name, ids)`` (ids [N],
     -1 outside every instance) returns new ids and a dict of counts stored with the level's
-    clustering parameters; the exporter passes the training-mask check
+    clustering parameters (an array under ``"confidence"`` becomes the level's per-instance
+    confidence; a background Gaussian it puts in an instance becomes foreground); the exporter passes the training-mask check
     (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`) here. ``cluster_kwargs`` are the
     HDBSCAN settings of :func:`cluster_votes_detailed` (``min_cluster_size``, ``min_samples``,
     ``max_points``, ``seed``, ``noise``, ...), the same for every level.
@@ -443,6 +444,7 @@ def cluster_levels(
         fg_index = np.flatnonzero(foreground)
         votes = means[fg_index].astype(np.float64) + offsets[fg_index, index].astype(np.float64)
         ids = np.full(n, -1, dtype=np.int64)
+        confidence: Optional[np.ndarray] = None
         if fg_index.size:
             result = cluster_votes_detailed(votes, **cluster_kwargs)
             labels = result.labels
@@ -469,12 +471,18 @@ def cluster_levels(
             if refine is not None:
                 ids, refine_stats = refine(index, name, ids)
                 ids = np.asarray(ids, dtype=np.int64)
-                params.update(mask_check=dict(refine_stats), num_clusters=int(ids.max()) + 1 if (ids >= 0).any() else 0)
+                refine_stats = dict(refine_stats)
+                confidence = refine_stats.pop("confidence", None)
+                params.update(mask_check=refine_stats, num_clusters=int(ids.max()) + 1 if (ids >= 0).any() else 0)
+                # a Gaussian that never voted but joined an object (hidden behind its surface) is
+                # the object's: foreground at this level from now on
+                params["num_joined_background"] = int(((ids >= 0) & ~foreground).sum())
+                foreground = foreground | (ids >= 0)
         else:
             params = {"algorithm": "hdbscan", "num_votes": 0, "num_clusters": 0, "num_noise": 0}
         vote_points = np.full((n, 3), np.nan)
         vote_points[fg_index] = votes
-        levels.append(LevelInstances.from_ids(name, ids, foreground, means, vote_points, params))
+        levels.append(LevelInstances.from_ids(name, ids, foreground, means, vote_points, params, confidence))
 
     parent_levels = []
     for child in range(num_levels):

@@ -3,6 +3,8 @@
 Per vote level, every Gaussian has one instance id: 0..K-1 for the K instances, -1 for "in no
 instance". A Gaussian is -1 either because it is background at that level (it received no vote
 supervision) or because the clustering's noise rule left it out; ``foreground`` tells them apart.
+A Gaussian that never voted but lies inside an object (hidden behind its surface in every view)
+can join that object after the clustering (``core/whole_objects.py``); it then counts as foreground.
 Invariants (``InstanceSet.validate``): background Gaussians are -1; each foreground Gaussian is in
 exactly one instance or -1 (noise); ids are 0..K-1 with no gaps, and every instance is non-empty.
 
@@ -67,15 +69,18 @@ class LevelInstances:
 
     name: str
     ids: np.ndarray  # [N] int64 instance id per Gaussian, -1 = none
-    foreground: np.ndarray  # [N] bool, received vote supervision at this level
+    foreground: np.ndarray  # [N] bool, received vote supervision at this level or joined an instance as hidden
     counts: np.ndarray  # [K] int64 Gaussians per instance
     bbox_min: np.ndarray  # [K, 3] of the member Gaussians' means
     bbox_max: np.ndarray  # [K, 3]
-    vote_centres: np.ndarray  # [K, 3] mean vote of the members
+    vote_centres: np.ndarray  # [K, 3] mean vote of the members that voted
     # None means "no parent": __post_init__ replaces it with the array, so readers always get one
     parents: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] int64 id at the parent level, -1 = none (or no parent level)
     parent_overlap: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] fraction of the instance's Gaussians inside its parent
     clustering: Dict[str, object] = field(default_factory=dict)
+    # [K] float in [0, 1]: how sure the instance is an object (ranks instances for 3D AP;
+    # core/whole_objects.py instance_confidence); None when the clustering gave none
+    confidence: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         k = self.counts.shape[0]
@@ -94,9 +99,17 @@ class LevelInstances:
 
     @classmethod
     def from_ids(
-        cls, name: str, ids, foreground, means, votes, clustering: Optional[Dict[str, object]] = None
+        cls,
+        name: str,
+        ids,
+        foreground,
+        means,
+        votes,
+        clustering: Optional[Dict[str, object]] = None,
+        confidence: Optional[np.ndarray] = None,
     ) -> "LevelInstances":
-        """Build a level from per-Gaussian ids [N] (0..K-1, -1), means [N, 3] and votes [N, 3]."""
+        """Build a level from per-Gaussian ids [N] (0..K-1, -1), means [N, 3] and votes [N, 3]
+        (``confidence``: [K] per instance, or None)."""
         ids = np.asarray(ids, dtype=np.int64)
         foreground = np.asarray(foreground, dtype=bool)
         means = np.asarray(means, dtype=np.float64)
@@ -113,10 +126,30 @@ class LevelInstances:
         if k:
             bbox_min = np.minimum.reduceat(means[order], starts, axis=0)
             bbox_max = np.maximum.reduceat(means[order], starts, axis=0)
-            vote_centres = np.add.reduceat(votes[order], starts, axis=0) / counts[:, None]
+            # members without a vote (hidden Gaussians that joined an object after the
+            # clustering) do not count; an instance with no vote at all takes its members' mean
+            voted = np.asarray(np.isfinite(votes[order]).all(axis=1))
+            vote_sums = np.add.reduceat(np.where(voted[:, None], votes[order], 0.0), starts, axis=0)
+            num_voted = np.add.reduceat(voted.astype(np.int64), starts)
+            mean_points = np.add.reduceat(means[order], starts, axis=0) / counts[:, None]
+            vote_centres = np.where(num_voted[:, None] > 0, vote_sums / np.maximum(num_voted, 1)[:, None], mean_points)
         else:
             bbox_min = bbox_max = vote_centres = np.zeros((0, 3))
-        return cls(name, ids, foreground, counts, bbox_min, bbox_max, vote_centres, clustering=dict(clustering or {}))
+        if confidence is not None:
+            confidence = np.asarray(confidence, dtype=np.float64)
+            if confidence.shape != (k,):
+                raise ValueError(f"level {name!r}: {confidence.shape[0]} confidences for {k} instances")
+        return cls(
+            name,
+            ids,
+            foreground,
+            counts,
+            bbox_min,
+            bbox_max,
+            vote_centres,
+            clustering=dict(clustering or {}),
+            confidence=confidence,
+        )
 
     def members(self) -> Dict[int, np.ndarray]:
         """The dictionary of the paper: instance id -> sorted Gaussian indices."""
@@ -164,6 +197,8 @@ class LevelInstances:
                 "parent_overlap": float(self.parent_overlap[i]),
                 "color": [int(c) for c in colors[i]],
             }
+            if self.confidence is not None:
+                entry["confidence"] = float(self.confidence[i])
             if extra and i in extra:
                 entry.update(jsonable(extra[i]))
             instances.append(entry)
@@ -322,6 +357,7 @@ class InstanceSet:
                     parents=arr("parent", np.int64)[:, 0],
                     parent_overlap=arr("parent_overlap")[:, 0],
                     clustering=entry.get("clustering", {}),
+                    confidence=arr("confidence")[:, 0] if all("confidence" in e for e in inst) and inst else None,
                 )
             )
         return cls(

@@ -28,6 +28,9 @@ of what each Gaussian looks like in the training views:
   at least ``min_views`` such views, merges while that ratio is at least ``min_agreement``; a
   merged cluster's mask is recomputed from all its Gaussians.
 * **Drop.** A cluster that sits in no mask in most of the views where it is decided becomes -1.
+* **Whole objects.** Then (``objects``) fragments join the instance whose masks they lie in,
+  floaters become background and hidden Gaussians join the object they lie inside
+  (:mod:`votesplat_ns.core.whole_objects`, which also gives each instance a confidence).
 
 The thresholds are ratios, counts of views and the scene's own spacing, so they mean the same in
 any scene. A cluster never seen in a training view is left as it is. Pure numpy/torch: the caller
@@ -36,7 +39,7 @@ passes the views, the training masks and a rasteriser (gsplat's ``rasterization`
 
 from __future__ import annotations
 
-from typing import Callable, Dict, Sequence, Tuple
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -47,6 +50,7 @@ from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_FILL_RADIUS_FACTOR, relabel_by_size, typical_spacing
 from votesplat_ns.core.vote_render import project_to_pixels
+from votesplat_ns.core.whole_objects import whole_objects
 
 # Chosen on the tuning scenes (BENCHMARKS.md, "Training-mask check"): 2 views of evidence gave the
 # best instance mIoU with GT and noisy masks; 0.7 agreement instead of 0.5 changed nothing there.
@@ -334,16 +338,27 @@ def regroup_with_masks(
     min_seen: int = DEFAULT_MIN_SEEN,
     min_size: int = DEFAULT_MIN_SPLIT_SIZE,
     grow: bool = DEFAULT_GROW,
-) -> Tuple[np.ndarray, Dict[str, int]]:
+    objects: bool = True,
+    votes: Optional[np.ndarray] = None,
+    **object_options: Any,
+) -> Tuple[np.ndarray, Dict[str, Any]]:
     """One level's instance labels [N] (-1: noise/background) checked against its training masks
     (``table`` [V, N] from :func:`seen_mask_table`): split deviants, merge agreeing clusters, drop
-    clusters that sit in no mask; renumbered by decreasing size. See the module docstring."""
+    clusters that sit in no mask; renumbered by decreasing size. See the module docstring.
+
+    With ``objects``, the whole-object rules of :func:`votesplat_ns.core.whole_objects.whole_objects`
+    follow (fragments join, floaters drop, hidden Gaussians join; ``object_options`` are its
+    keywords: ``join``, ``floaters``, ``hidden``, ``join_ratio``, ...; ``votes`` [N, 3], NaN where a
+    Gaussian has none, for ``join_vote_factor``); their counts go under
+    ``stats["objects"]`` and the instances' confidence [K] under ``stats["confidence"]`` (an array,
+    which :func:`votesplat_ns.core.clustering.cluster_levels` moves to the level)."""
     labels = np.asarray(labels, dtype=np.int64)
-    stats = {"num_clusters_before": int(labels.max()) + 1 if (labels >= 0).any() else 0}
+    stats: Dict[str, Any] = {"num_clusters_before": int(labels.max()) + 1 if (labels >= 0).any() else 0}
     if table.shape[0] == 0 or not (labels >= 0).any():
         return labels.copy(), stats
     foreground = np.flatnonzero(labels >= 0)
-    radius = DEFAULT_FILL_RADIUS_FACTOR * typical_spacing(means[foreground])
+    spacing = typical_spacing(means[foreground])
+    radius = DEFAULT_FILL_RADIUS_FACTOR * spacing
     out = labels
     if split:
         out = split_deviants(out, means, table, radius, min_size, min_share, min_seen, min_views, grow)
@@ -354,4 +369,17 @@ def regroup_with_masks(
         out = drop_unmasked(out, table, min_share, min_seen)
     out = relabel_by_size(out)
     stats["num_clusters"] = int(out.max()) + 1 if (out >= 0).any() else 0
+    if objects:
+        out, stats["confidence"], stats["objects"] = whole_objects(
+            out,
+            means,
+            table,
+            spacing,
+            min_views=min_views,
+            min_share=min_share,
+            min_seen=min_seen,
+            votes=votes,
+            **object_options,
+        )
+        stats["num_clusters"] = int(out.max()) + 1 if (out >= 0).any() else 0
     return out, stats

@@ -98,6 +98,9 @@ def mask_check(
         tables = {name: seen_mask_table(pixels, masks[name]) for name in scene.level_names}
 
     def refine(index: int, name: str, ids: np.ndarray):
-        return regroup_with_masks(ids, scene.means, tables[name], **options)
+        votes = np.where(
+            (scene.vote_support[:, index] > 0)[:, None], scene.means + scene.vote_offsets[:, index], np.nan
+        )
+        return regroup_with_masks(ids, scene.means, tables[name], votes=votes, **options)
 
     return refine

@@ -1,0 +1,228 @@
+"""Whole objects after the mask check (core/whole_objects.py), on constructed point sets and mask tables.
+
+A mask table [V, N] says per view where each Gaussian's centre is seen: -1 not seen, 0 in no mask,
+k >= 1 in mask k. The scenes are grids of points at spacing 0.1 standing in for Gaussians.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from votesplat_ns.core.clustering import typical_spacing
+from votesplat_ns.core.mask_consensus import regroup_with_masks
+from votesplat_ns.core.whole_objects import whole_objects
+
+STEP = 0.1
+
+
+def box_surface(low, high, step: float = STEP, bottom: bool = True) -> np.ndarray:
+    """Grid points on the faces of the box [low, high] (without the bottom face when ``bottom`` is False)."""
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    axes = [np.arange(lo, hi + step / 2, step) for lo, hi in zip(low, high)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    on_face = (np.isclose(grid, low) | np.isclose(grid, high)).any(axis=1)
+    if not bottom:
+        on_face &= ~(
+            np.isclose(grid[:, 2], low[2])
+            & ~(np.isclose(grid[:, :2], low[:2]) | np.isclose(grid[:, :2], high[:2])).any(axis=1)
+        )
+    return grid[on_face]
+
+
+def box_interior(low, high, step: float = STEP) -> np.ndarray:
+    """Grid points strictly inside the box, offset half a step from the surface grid."""
+    axes = [np.arange(lo + 1.5 * step, hi - step, step) for lo, hi in zip(low, high)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+class Scene:
+    """Points with labels and a mask table built object by object."""
+
+    def __init__(self, views: int = 6) -> None:
+        self.points: list = []
+        self.labels: list = []
+        self.rows: list = []
+        self.views = views
+
+    def add(self, points: np.ndarray, label: int, masks) -> np.ndarray:
+        """Add ``points`` with ``label``; ``masks``: one mask id per view (-1 unseen, 0 no mask) for all of them."""
+        start = sum(len(p) for p in self.points)
+        self.points.append(np.asarray(points, float))
+        self.labels.append(np.full(len(points), label, dtype=np.int64))
+        self.rows.append(np.repeat(np.asarray(masks, dtype=np.int32)[:, None], len(points), axis=1))
+        return np.arange(start, start + len(points))
+
+    def build(self):
+        means = np.concatenate(self.points)
+        labels = np.concatenate(self.labels)
+        table = np.concatenate(self.rows, axis=1)
+        return means, labels, table
+
+
+def run(means, labels, table, **options):
+    spacing = typical_spacing(means[labels >= 0])
+    out, confidence, stats = whole_objects(labels, means, table, spacing, **options)
+    return out, confidence, stats
+
+
+def test_fragment_touching_its_object_with_agreeing_masks_joins() -> None:
+    scene = Scene()
+    body = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, -1])
+    # a fragment on the object's side (within a spacing of it), seen in the object's masks
+    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 1, [1, 1, 2, 2, -1, -1])
+    out, confidence, stats = run(*scene.build())
+    assert out[fragment[0]] == out[body[0]] and (out[fragment] == out[fragment[0]]).all()
+    assert stats["join"]["joined"] == 1 and stats["num_instances"] == 1
+    assert confidence.shape == (1,) and confidence[0] > 0.5
+
+
+def test_contact_alone_never_joins() -> None:
+    scene = Scene()
+    scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, -1])
+    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 1, [-1] * 6)  # never seen
+    out, _, stats = run(*scene.build())
+    assert stats["join"]["joined"] == 0
+    assert (out[fragment] >= 0).all() and len(set(out[out >= 0])) == 2  # touches the body: no floater
+
+
+def test_small_object_with_its_own_masks_stays_apart() -> None:
+    scene = Scene()
+    bowl = scene.add(box_surface([0, 0, 0], [1.5, 1.5, 0.6]), 0, [1, 1, 2, 2, 3, 3])
+    # a fruit of a few dozen Gaussians resting on it, in masks of its own where views see it
+    fruit = scene.add(box_surface([0.5, 0.5, 0.7], [0.8, 0.8, 0.9]), 1, [4, 4, 5, 5, -1, 0])
+    out, _, stats = run(*scene.build())
+    assert out[fruit[0]] != out[bowl[0]] and (out[fruit] == out[fruit[0]]).all()
+    assert stats["join"]["joined"] == 0 and stats["join"]["refused_by_masks"] == 1
+
+
+def test_stacked_cubes_stay_apart() -> None:
+    scene = Scene()
+    lower = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    upper = scene.add(box_surface([0, 0, 1.1], [1, 1, 2.1]), 1, [4, 4, 5, 5, 6, 6])
+    # a small cube between two larger ones, seen in two views only, in its own masks
+    middle = scene.add(box_surface([1.1, 0.3, 0.3], [1.4, 0.6, 0.6]), 2, [7, -1, 8, -1, -1, -1])
+    out, _, stats = run(*scene.build())
+    assert len({int(out[lower[0]]), int(out[upper[0]]), int(out[middle[0]])}) == 3
+    assert stats["join"]["joined"] == 0
+
+
+def test_hidden_gaussian_inside_an_object_joins_it_and_the_table_under_it_does_not() -> None:
+    scene = Scene()
+    cube = scene.add(box_surface([0, 0, 0], [1, 1, 1], bottom=False), 0, [1, 1, 2, 2, 3, 3])
+    inside = scene.add(box_interior([0, 0, 0], [1, 1, 1]), -1, [-1] * 6)
+    # the table: seen in no mask around the cube, never seen under it; at the height of the cube's
+    # lowest visible Gaussians, so only the hull's margin keeps it out
+    xy = np.stack(np.meshgrid(np.arange(-1, 2.01, STEP), np.arange(-1, 2.01, STEP), indexing="ij"), -1).reshape(-1, 2)
+    table_points = np.column_stack([xy, np.zeros(len(xy))])
+    under = ((xy >= -1e-9) & (xy <= 1 + 1e-9)).all(axis=1)
+    table_seen = scene.add(table_points[~under], -1, [0, 0, 0, 0, 0, 0])
+    table_under = scene.add(table_points[under], -1, [-1] * 6)
+    means, labels, table = scene.build()
+    out, _, stats = run(means, labels, table)
+    assert (out[inside] == out[cube[0]]).all()
+    assert (out[table_under] == -1).all() and (out[table_seen] == -1).all()
+    assert stats["hidden"]["hidden_taken"] >= len(inside)
+    # switched off, the interior stays background
+    off, _, _ = run(means, labels, table, hidden=False)
+    assert (off[inside] == -1).all()
+
+
+def test_background_seen_outside_every_mask_stays_background() -> None:
+    scene = Scene()
+    cube = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    # inside the cube's hull, but views see it in no mask (a background Gaussian the centre test saw)
+    seen = scene.add(box_interior([0, 0, 0], [1, 1, 1])[:5], -1, [0, 0, 0, -1, -1, -1])
+    out, _, stats = run(*scene.build())
+    assert (out[seen] == -1).all() and (out[cube] == 0).all()
+    assert stats["hidden"]["seen_background"] == 5
+
+
+def test_floater_becomes_background() -> None:
+    scene = Scene()
+    cube = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    seen_outside = scene.add(box_surface([3, 3, 3], [3.2, 3.2, 3.2]), 1, [0, 0, 0, -1, -1, -1])
+    never_seen = scene.add(box_surface([-3, 3, 3], [-2.8, 3.2, 3.2]), 2, [-1] * 6)
+    out, _, stats = run(*scene.build())
+    assert (out[seen_outside] == -1).all() and (out[never_seen] == -1).all() and (out[cube] == 0).all()
+    assert stats["floaters"]["floaters"] == 2
+    kept, _, _ = run(*scene.build(), floaters=False)
+    assert len(set(kept[kept >= 0])) == 3
+
+
+def test_regroup_with_masks_runs_the_rules_and_reports_confidence() -> None:
+    scene = Scene()
+    body = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, -1])
+    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 1, [1, 1, 2, 2, -1, -1])
+    means, labels, table = scene.build()
+    # the fragment has too few Gaussians seen per view for the check's own merge (min_seen)
+    before, stats_before = regroup_with_masks(labels, means, table, min_seen=20, objects=False)
+    assert len(set(before[before >= 0])) == 2 and "confidence" not in stats_before
+    out, stats = regroup_with_masks(labels, means, table, min_seen=20)
+    assert out[fragment[0]] == out[body[0]]
+    assert stats["objects"]["join"]["joined"] == 1 and stats["confidence"].shape == (1,)
+    off, _ = regroup_with_masks(labels, means, table, min_seen=20, join=False)
+    assert len(set(off[off >= 0])) == 2
+
+
+def test_level_confidence_travels_through_the_manifest(tmp_path) -> None:
+    from votesplat_ns.core.instances import InstanceSet, LevelInstances
+
+    means = np.arange(12, dtype=float).reshape(4, 3)
+    ids = np.array([0, 0, 1, -1])
+    level = LevelInstances.from_ids("instance", ids, ids >= 0, means, means, confidence=np.array([0.9, 0.25]))
+    entries = level.to_manifest()["instances"]
+    assert isinstance(entries, list) and entries[1]["confidence"] == 0.25
+    InstanceSet(levels=[level], num_gaussians=4).save(tmp_path)
+    loaded = InstanceSet.load(tmp_path).levels[0]
+    assert loaded.confidence is not None and np.allclose(loaded.confidence, [0.9, 0.25])
+    plain = LevelInstances.from_ids("instance", ids, ids >= 0, means, means)
+    (tmp_path / "plain").mkdir()
+    InstanceSet(levels=[plain], num_gaussians=4).save(tmp_path / "plain")
+    assert InstanceSet.load(tmp_path / "plain").levels[0].confidence is None
+
+
+def test_vote_proximity_is_an_optional_extra_condition() -> None:
+    scene = Scene()
+    body = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, -1])
+    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 1, [1, 1, 2, 2, -1, -1])
+    means, labels, table = scene.build()
+    rng = np.random.default_rng(0)
+    votes = np.empty_like(means)
+    votes[body] = [0.5, 0.5, 0.5] + rng.normal(0, 0.05, (len(body), 3))
+    votes[fragment] = [3.0, 0.5, 0.5]  # voted far from the body's centre
+    far, _, stats = run(means, labels, table, votes=votes, join_vote_factor=2.0)
+    assert far[fragment[0]] != far[body[0]] and stats["join"]["refused_by_votes"] == 1
+    votes[fragment] = [0.55, 0.5, 0.5]
+    near, _, _ = run(means, labels, table, votes=votes, join_vote_factor=2.0)
+    assert near[fragment[0]] == near[body[0]]
+
+
+def test_vote_centre_leaves_out_members_without_a_vote() -> None:
+    from votesplat_ns.core.instances import LevelInstances
+
+    means = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [5, 5, 5]])
+    votes = np.array([[0.5, 0, 0], [0.7, 0, 0], [np.nan] * 3, [np.nan] * 3])
+    ids = np.array([0, 0, 0, 1])  # Gaussian 2 joined as hidden; instance 1 has no vote at all
+    level = LevelInstances.from_ids("instance", ids, np.array([1, 1, 0, 0], bool), means, votes)
+    assert np.allclose(level.vote_centres, [[0.6, 0, 0], [5, 5, 5]])
+
+
+def test_a_background_gaussian_that_joins_an_instance_becomes_foreground() -> None:
+    from votesplat_ns.core.clustering import cluster_levels
+
+    rng = np.random.default_rng(0)
+    means = np.concatenate([rng.normal(0, 0.1, (60, 3)), rng.normal(3, 0.1, (60, 3)), [[0.0, 0.0, 0.0]]])
+    offsets = np.zeros((len(means), 1, 3))
+    support = np.ones((len(means), 1))
+    support[-1] = 0  # never voted
+
+    def refine(index, name, ids):
+        ids = ids.copy()
+        ids[-1] = ids[0]  # joins the first blob, as a hidden Gaussian would
+        return ids, {"confidence": np.ones(int(ids.max()) + 1)}
+
+    instances = cluster_levels(means, offsets, support, ("instance",), refine=refine)
+    instances.validate()
+    level = instances.level("instance")
+    assert level.ids[-1] == level.ids[0] and level.foreground[-1]
+    assert level.clustering["num_joined_background"] == 1 and level.confidence is not None

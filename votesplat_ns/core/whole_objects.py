@@ -1,0 +1,354 @@
+"""Whole objects: fragments, floaters and hidden Gaussians, after the training-mask check (paper §3.4).
+
+The vote clustering and the mask check (:mod:`votesplat_ns.core.mask_consensus`) leave three kinds
+of error that a user sees in the instance list and in an object's removal:
+
+* **fragments**: small clusters of an object's Gaussians whose votes did not reach the object's
+  centre. The check's merge decides per cluster and view (at least ``min_seen`` members seen), so a
+  fragment that few views see well never merges;
+* **floaters**: clusters of background Gaussians that the vote support let through;
+* **hidden Gaussians**: Gaussians behind an object's front surface in every training view never
+  vote (vote support 0), so they stay background, and a removed object leaves them behind.
+
+Four rules, each switchable (keywords of :func:`whole_objects`, passed on by
+:func:`~votesplat_ns.core.mask_consensus.regroup_with_masks`, so ``mc.<key>`` in
+``benchmarks/sweep.py`` reaches them). The evidence is the check's per-view mask table [V, N]
+(-1: not seen, 0: seen in no mask, k >= 1: seen in mask k), read per member Gaussian instead of per
+cluster, so a fragment seen by one or two of its Gaussians per view still has a say:
+
+* **Join** (``join``): an instance of at most ``join_ratio`` times another's size joins it when it
+  touches it (some member within ``contact_factor`` typical spacings of the other's Gaussians) and
+  its members, in the views where the larger one sits in a mask, lie in that same mask in at least
+  ``join_agreement`` of their sightings, over at least ``min_views`` views. Contact alone never
+  joins (stacked cubes touch; their masks differ), and a small object in or on a larger one (fruit
+  in a bowl, a box on a table) is seen in its own masks, so it stays apart. Among several
+  candidates the one with the highest agreement wins; smaller instances are decided first. With
+  ``join_vote_factor`` (off by default) the fragment's median vote must also lie within that many
+  of the larger one's vote spreads of its median vote: a fragment exists because its votes missed
+  the object's centre, so vote proximity is weak evidence, kept as a variant to measure.
+* **Floaters** (``floaters``): an instance whose sightings lie in no mask in most views with
+  evidence (at least ``min_views``), or that no view sees and that touches no other instance,
+  becomes background.
+* **Hidden** (``hidden``): a Gaussian left as background that no view sees in no mask (never seen,
+  or seen in a mask) takes instance j when most of its ``hidden_neighbours`` nearest *settled*
+  Gaussians (in an instance, or background that a view saw outside every mask) are of j, it lies
+  inside j's convex hull at least ``hidden_margin`` typical spacings in from the hull's faces (only
+  inside it, when a view sees it in j's mask), and in the views that see it in a mask it lies in
+  j's mask at least half the time. The hull keeps the
+  table under an object out (it lies on or below the hull's bottom face); the settled background
+  neighbours keep a Gaussian of the floor between two objects out.
+* **Confidence** (always computed): per instance, the share of its sightings (views where it sits in
+  a mask) that lie in its mask, times n / (n + ``min_views``) for its n views of evidence. A
+  fragment or a cluster cut across masks sits in its mask in few views or with a low share, so it
+  ranks below whole objects (3D AP, issue 34); the view term discounts an agreement measured in one
+  or two views, where a single view makes it 0 or 1. HDBSCAN's cluster stability is not used: the
+  mask check splits and merges clusters, after which it no longer describes the instance.
+
+Distances are typical spacings of the foreground (:func:`~votesplat_ns.core.clustering.typical_spacing`),
+sizes are ratios, evidence is shares of sightings and counts of views: the same in any scene.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Tuple
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError, cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stubs)
+
+# A fragment is at most a quarter of the instance it joins: the fragments left on the family scenes
+# are 5-510 Gaussians beside objects of thousands, while two touching objects of similar size
+# (stacked cubes) are never candidates whatever their masks say. Small objects are kept apart by
+# their masks, not by this ratio (fruit of 19-84 Gaussians is far below it).
+DEFAULT_JOIN_RATIO = 0.25
+# Share of a fragment's sightings in the larger instance's mask. Above the merge's 0.5 because one
+# Gaussian's sighting is noisier than a cluster's majority (the centre test's depth tolerance lets a
+# Gaussian just behind an edge count as seen in the mask in front).
+DEFAULT_JOIN_AGREEMENT = 0.6
+# Contact: within the noise fill's radius (3 typical spacings), the scale at which the vote
+# clustering already treats Gaussians as neighbours.
+DEFAULT_CONTACT_FACTOR = 3.0
+DEFAULT_HIDDEN_NEIGHBOURS = 8
+# Inside the hull by half a typical spacing: the table's Gaussians under an object lie on the plane
+# of the hull's bottom face (the lowest visible Gaussians of the object touch the table).
+DEFAULT_HIDDEN_MARGIN = 0.5
+
+
+def _sightings(table: np.ndarray, members: np.ndarray, home: np.ndarray) -> Tuple[int, int, int]:
+    """(agree, against, views): members' sightings in views where ``home`` (per view, the mask an
+    instance sits in) is a mask: seen in that mask, seen elsewhere (another mask or none), and the
+    number of views with at least one such sighting."""
+    rows = np.flatnonzero(home >= 1)
+    if rows.size == 0 or members.size == 0:
+        return 0, 0, 0
+    sub = table[np.ix_(rows, members)]
+    seen = sub >= 0
+    agree = sub == home[rows, None]
+    return int(agree.sum()), int((seen & ~agree).sum()), int(seen.any(axis=1).sum())
+
+
+def instance_confidence(
+    labels: np.ndarray, table: np.ndarray, min_views: int, min_share: float, min_seen: int
+) -> np.ndarray:
+    """[K] confidence of instances 0..K-1 of ``labels`` (module docstring, "Confidence")."""
+    from votesplat_ns.core.mask_consensus import sitting_masks
+
+    k = int(labels.max()) + 1 if (labels >= 0).any() else 0
+    out = np.zeros(k, dtype=np.float64)
+    for label in range(k):
+        members = np.flatnonzero(labels == label)
+        home = sitting_masks(table, members, min_share, min_seen)
+        agree, against, _ = _sightings(table, members, home)
+        views = int((home >= 1).sum())
+        if agree + against:
+            out[label] = agree / (agree + against) * views / (views + max(min_views, 1))
+    return out
+
+
+def _touching(means: np.ndarray, labels: np.ndarray, members: np.ndarray, radius: float, tree, index) -> np.ndarray:
+    """Labels of other instances with a Gaussian within ``radius`` of one of ``members``."""
+    hits = tree.query_ball_point(means[members], radius)
+    near = np.unique(np.concatenate([index[np.asarray(h, dtype=np.int64)] for h in hits])) if len(hits) else []
+    found = np.unique(labels[np.asarray(near, dtype=np.int64)])
+    own = labels[members[0]]
+    return found[(found >= 0) & (found != own)]
+
+
+def _votes_close(votes, members: np.ndarray, host: np.ndarray, factor) -> bool:
+    """Whether the median vote of ``members`` lies within ``factor`` times the host's vote spread
+    (median distance of its votes to their median) of the host's median vote; True when either
+    has no finite vote (no evidence either way)."""
+    own, theirs = votes[members], votes[host]
+    own, theirs = own[np.isfinite(own).all(axis=1)], theirs[np.isfinite(theirs).all(axis=1)]
+    if own.shape[0] == 0 or theirs.shape[0] == 0:
+        return True
+    centre = np.median(theirs, axis=0)
+    spread = float(np.median(np.linalg.norm(theirs - centre, axis=1)))
+    return float(np.linalg.norm(np.median(own, axis=0) - centre)) <= factor * max(spread, 1e-12)
+
+
+def join_fragments(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    spacing: float,
+    join_ratio: float = DEFAULT_JOIN_RATIO,
+    join_agreement: float = DEFAULT_JOIN_AGREEMENT,
+    contact_factor: float = DEFAULT_CONTACT_FACTOR,
+    min_views: int = 2,
+    min_share: float = 0.5,
+    min_seen: int = 5,
+    votes: Optional[np.ndarray] = None,
+    join_vote_factor: Optional[float] = None,
+) -> Tuple[np.ndarray, Dict[str, int]]:
+    """Labels after the join rule (module docstring); stats: fragments joined, Gaussians moved,
+    touching candidates refused by their masks, and (with ``votes`` [N, 3], NaN where a Gaussian
+    has none, and ``join_vote_factor``) candidates refused by their votes."""
+    from votesplat_ns.core.mask_consensus import sitting_masks
+
+    out = labels.copy()
+    stats = {"joined": 0, "joined_gaussians": 0, "refused_by_masks": 0, "refused_by_votes": 0}
+    use_votes = votes is not None and join_vote_factor is not None
+    ids, sizes = np.unique(out[out >= 0], return_counts=True)
+    if ids.size < 2 or spacing <= 0:
+        return out, stats
+    labelled = np.flatnonzero(out >= 0)
+    tree = cKDTree(means[labelled])
+    homes = {int(i): sitting_masks(table, np.flatnonzero(out == i), min_share, min_seen) for i in ids}
+    size = {int(i): int(s) for i, s in zip(ids, sizes)}
+    for label in [int(i) for i in ids[np.argsort(sizes, kind="stable")]]:
+        members = np.flatnonzero(out == label)
+        # only a fragment of some larger instance looks for contact (the query is per member)
+        if members.size == 0 or members.size > join_ratio * max(size.values()):
+            continue
+        touching = _touching(means, out, members, contact_factor * spacing, tree, labelled)
+        best, best_share = -1, -1.0
+        for other in (int(t) for t in touching):
+            if members.size > join_ratio * size[other]:
+                continue
+            agree, against, views = _sightings(table, members, homes[other])
+            share = agree / (agree + against) if agree + against else 0.0
+            if views < min_views or share < join_agreement:
+                stats["refused_by_masks"] += 1
+            elif use_votes and not _votes_close(votes, members, np.flatnonzero(out == other), join_vote_factor):
+                stats["refused_by_votes"] += 1
+            elif share > best_share:
+                best, best_share = other, share
+        if best >= 0:
+            out[members] = best
+            size[best] += members.size
+            size[label] = 0
+            stats["joined"] += 1
+            stats["joined_gaussians"] += int(members.size)
+    return out, stats
+
+
+def drop_floaters(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    spacing: float,
+    contact_factor: float = DEFAULT_CONTACT_FACTOR,
+    min_views: int = 2,
+) -> Tuple[np.ndarray, Dict[str, int]]:
+    """Labels after the floater rule (module docstring); stats: instances and Gaussians dropped."""
+    out = labels.copy()
+    stats = {"floaters": 0, "floater_gaussians": 0}
+    labelled = np.flatnonzero(out >= 0)
+    if labelled.size == 0:
+        return out, stats
+    tree = cKDTree(means[labelled])
+    for label in np.unique(out[labelled]):
+        members = np.flatnonzero(out == label)
+        sub = table[:, members]
+        seen_views = (sub >= 0).any(axis=1)
+        outside = (sub == 0).sum(axis=1)
+        inside = (sub >= 1).sum(axis=1)
+        unmasked_views = int((seen_views & (outside > inside)).sum())
+        if seen_views.sum() >= min_views:
+            floater = unmasked_views > 0.5 * seen_views.sum()
+        elif not seen_views.any():
+            floater = _touching(means, out, members, contact_factor * spacing, tree, labelled).size == 0
+        else:
+            floater = False
+        if floater:
+            out[members] = -1
+            stats["floaters"] += 1
+            stats["floater_gaussians"] += int(members.size)
+    return out, stats
+
+
+def _inside_hull(points: np.ndarray, hull_points: np.ndarray, margin) -> np.ndarray:
+    """[P] bool: ``points`` inside the convex hull of ``hull_points`` by at least ``margin`` (a
+    number or one per point)."""
+    if hull_points.shape[0] < 4:
+        return np.zeros(points.shape[0], dtype=bool)
+    try:
+        hull = ConvexHull(hull_points)
+    except QhullError:  # flat or degenerate: nothing is inside
+        return np.zeros(points.shape[0], dtype=bool)
+    # equations: unit outward normals and offsets, inside where normal . x + offset <= 0
+    margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), (points.shape[0],))
+    # the hull's bounding box first: the facet test is points x facets
+    inside = ((points >= hull_points.min(axis=0)) & (points <= hull_points.max(axis=0))).all(axis=1)
+    index = np.flatnonzero(inside)
+    for start in range(0, index.size, 65536):
+        part = index[start : start + 65536]
+        distance = points[part] @ hull.equations[:, :3].T + hull.equations[:, 3]
+        inside[part] = (distance <= -margin[part, None]).all(axis=1)
+    return inside
+
+
+def take_hidden(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    spacing: float,
+    hidden_neighbours: int = DEFAULT_HIDDEN_NEIGHBOURS,
+    hidden_margin: float = DEFAULT_HIDDEN_MARGIN,
+    min_share: float = 0.5,
+    min_seen: int = 5,
+    eligible: Optional[np.ndarray] = None,
+) -> Tuple[np.ndarray, Dict[str, int]]:
+    """Labels after the hidden-Gaussian rule (module docstring); ``eligible`` [N] bool limits the
+    Gaussians that may join (default: all finite ones). Stats: Gaussians taken, and background kept
+    because a view saw it outside every mask."""
+    from votesplat_ns.core.mask_consensus import sitting_masks
+
+    out = labels.copy()
+    stats = {"hidden_taken": 0, "seen_background": 0}
+    finite = np.isfinite(means).all(axis=1)
+    open_ = (out < 0) & finite & (eligible if eligible is not None else True)
+    outside = (table == 0).sum(axis=0)
+    inside = (table >= 1).sum(axis=0)
+    confirmed = (out < 0) & finite & (outside > 0) & (outside >= inside)
+    stats["seen_background"] = int((confirmed & open_).sum())
+    candidates = np.flatnonzero(open_ & ~confirmed)
+    settled = np.flatnonzero((out >= 0) | confirmed)
+    if candidates.size == 0 or not (out >= 0).any() or settled.size == 0:
+        return out, stats
+    k = min(hidden_neighbours, settled.size)
+    _, near = cKDTree(means[settled]).query(means[candidates], k=k)
+    near_labels = out[settled[np.asarray(near).reshape(candidates.size, k)]]
+    # the label held by more than half of the k neighbours (k compares of k columns, no per-label pass)
+    counts = np.stack([(near_labels == near_labels[:, [j]]).sum(axis=1) for j in range(k)], axis=1)
+    top = counts.argmax(axis=1)
+    rows = np.arange(candidates.size)
+    winner = np.where(counts[rows, top] > 0.5 * k, near_labels[rows, top], -1)
+    for label in np.unique(winner[winner >= 0]):
+        chosen = candidates[winner == label]
+        members = np.flatnonzero(out == label)
+        # in the views that see a candidate in a mask, it must lie in this instance's mask; one
+        # that does (seen, never voted) needs only to be inside the hull, one that no view saw
+        # needs the margin
+        home = sitting_masks(table, members, min_share, min_seen)
+        rows = np.flatnonzero(home >= 1)
+        masked = agree = np.zeros(chosen.size, dtype=np.int64)
+        if rows.size:
+            sub = table[np.ix_(rows, chosen)]
+            masked, agree = (sub >= 1).sum(axis=0), (sub == home[rows, None]).sum(axis=0)
+        confirmed_in_mask = (masked > 0) & (agree >= 0.5 * masked)
+        margin = np.where(confirmed_in_mask, 0.0, hidden_margin * spacing)
+        keep = _inside_hull(means[chosen], means[members], margin) & (agree >= 0.5 * masked)
+        out[chosen[keep]] = label
+        stats["hidden_taken"] += int(keep.sum())
+    return out, stats
+
+
+def whole_objects(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    spacing: float,
+    join: bool = True,
+    floaters: bool = True,
+    hidden: bool = True,
+    join_ratio: float = DEFAULT_JOIN_RATIO,
+    join_agreement: float = DEFAULT_JOIN_AGREEMENT,
+    contact_factor: float = DEFAULT_CONTACT_FACTOR,
+    hidden_neighbours: int = DEFAULT_HIDDEN_NEIGHBOURS,
+    hidden_margin: float = DEFAULT_HIDDEN_MARGIN,
+    min_views: int = 2,
+    min_share: float = 0.5,
+    min_seen: int = 5,
+    votes: Optional[np.ndarray] = None,
+    join_vote_factor: Optional[float] = None,
+) -> Tuple[np.ndarray, np.ndarray, Dict[str, Any]]:
+    """One level's labels [N] (-1: background) after the rules of the module docstring, renumbered
+    by decreasing size; the instances' confidence [K]; and what each rule did. ``spacing``: the
+    foreground's typical spacing; ``table`` [V, N]: the mask check's per-view mask table;
+    ``votes`` [N, 3] (NaN: none) with ``join_vote_factor`` adds vote proximity to the join rule."""
+    from votesplat_ns.core.clustering import relabel_by_size
+
+    for name, value in (("join_ratio", join_ratio), ("join_agreement", join_agreement)):
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"{name} must be in [0, 1], got {value}")
+    if contact_factor < 0 or hidden_margin < 0 or hidden_neighbours < 1:
+        raise ValueError("contact_factor and hidden_margin must be >= 0 and hidden_neighbours >= 1")
+    out = np.asarray(labels, dtype=np.int64)
+    means = np.asarray(means, dtype=np.float64)
+    stats: Dict[str, Any] = {}
+    if join:
+        out, stats["join"] = join_fragments(
+            out,
+            means,
+            table,
+            spacing,
+            join_ratio,
+            join_agreement,
+            contact_factor,
+            min_views,
+            min_share,
+            min_seen,
+            None if votes is None else np.asarray(votes, dtype=np.float64),
+            join_vote_factor,
+        )
+    if floaters:
+        out, stats["floaters"] = drop_floaters(out, means, table, spacing, contact_factor, min_views)
+    if hidden:
+        out, stats["hidden"] = take_hidden(
+            out, means, table, spacing, hidden_neighbours, hidden_margin, min_share, min_seen
+        )
+    out = relabel_by_size(out)
+    confidence = instance_confidence(out, table, min_views, min_share, min_seen)
+    stats["num_instances"] = int(confidence.size)
+    return out, confidence, stats
