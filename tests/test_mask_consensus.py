@@ -14,9 +14,9 @@ from votesplat_ns.core.mask_consensus import (
     regroup_with_masks,
     seen_mask_table,
     seen_pixels,
-    sitting_masks,
     split_deviants,
 )
+from votesplat_ns.core.mask_sightings import sitting_masks
 from votesplat_ns.core.rasterize_torch import rasterize_torch
 
 VIEWS = 6

@@ -49,6 +49,7 @@ from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import DEFAULT_FILL_RADIUS_FACTOR, relabel_by_size, typical_spacing
+from votesplat_ns.core.mask_sightings import DEFAULT_MIN_SEEN, DEFAULT_MIN_SHARE, sitting_masks
 from votesplat_ns.core.vote_render import project_to_pixels
 from votesplat_ns.core.whole_objects import whole_objects
 
@@ -60,8 +61,6 @@ from votesplat_ns.core.whole_objects import whole_objects
 # and made no scene worse by more than 0.004 (BENCHMARKS.md, "Training-mask check").
 DEFAULT_MIN_AGREEMENT = 0.5
 DEFAULT_MIN_VIEWS = 2
-DEFAULT_MIN_SHARE = 0.5
-DEFAULT_MIN_SEEN = 5
 DEFAULT_MIN_SPLIT_SIZE = 5
 # A split cluster hands its undecided members to the nearest decided ones: on the tuning scenes
 # instance mIoU 0.885 -> 0.887 (GT) / 0.904 -> 0.905 (noisy), part 0.816 -> 0.822 / 0.759 -> 0.766,
@@ -188,26 +187,6 @@ def seen_mask_table(pixels_per_view: Sequence[np.ndarray], masks_per_view: Seque
         seen = pixels >= 0
         table[v, seen] = np.asarray(masks).reshape(-1)[pixels[seen]]
     return table
-
-
-def sitting_masks(
-    table: np.ndarray, members: np.ndarray, min_share: float = DEFAULT_MIN_SHARE, min_seen: int = DEFAULT_MIN_SEEN
-) -> np.ndarray:
-    """Per view [V]: the mask (>= 1) holding at least ``min_share`` of the seen ``members``; 0 when
-    that share of them is in no mask; -1 when too few are seen or no mask has the majority."""
-    out = np.full(table.shape[0], -1, dtype=np.int64)
-    sub = table[:, members]
-    for v in range(table.shape[0]):
-        values = sub[v][sub[v] >= 0]
-        if values.size < min_seen:
-            continue
-        counts = np.bincount(values)
-        best = int(counts[1:].argmax()) + 1 if counts.size > 1 else 0
-        if best and counts[best] >= min_share * values.size:
-            out[v] = best
-        elif counts[0] >= min_share * values.size:
-            out[v] = 0
-    return out
 
 
 def _components(points: np.ndarray, radius: float) -> np.ndarray:

@@ -55,6 +55,8 @@ from typing import Any, Dict, Optional, Tuple
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stubs)
 
+from votesplat_ns.core.mask_sightings import sitting_masks
+
 # A fragment is at most a quarter of the instance it joins: the fragments left on the family scenes
 # are 5-510 Gaussians beside objects of thousands, while two touching objects of similar size
 # (stacked cubes) are never candidates whatever their masks say. Small objects are kept apart by
@@ -90,7 +92,6 @@ def instance_confidence(
     labels: np.ndarray, table: np.ndarray, min_views: int, min_share: float, min_seen: int
 ) -> np.ndarray:
     """[K] confidence of instances 0..K-1 of ``labels`` (module docstring, "Confidence")."""
-    from votesplat_ns.core.mask_consensus import sitting_masks
 
     k = int(labels.max()) + 1 if (labels >= 0).any() else 0
     out = np.zeros(k, dtype=np.float64)
@@ -143,7 +144,6 @@ def join_fragments(
     """Labels after the join rule (module docstring); stats: fragments joined, Gaussians moved,
     touching candidates refused by their masks, and (with ``votes`` [N, 3], NaN where a Gaussian
     has none, and ``join_vote_factor``) candidates refused by their votes."""
-    from votesplat_ns.core.mask_consensus import sitting_masks
 
     out = labels.copy()
     stats = {"joined": 0, "joined_gaussians": 0, "refused_by_masks": 0, "refused_by_votes": 0}
@@ -252,7 +252,6 @@ def take_hidden(
     """Labels after the hidden-Gaussian rule (module docstring); ``eligible`` [N] bool limits the
     Gaussians that may join (default: all finite ones). Stats: Gaussians taken, and background kept
     because a view saw it outside every mask."""
-    from votesplat_ns.core.mask_consensus import sitting_masks
 
     out = labels.copy()
     stats = {"hidden_taken": 0, "seen_background": 0}

@@ -54,6 +54,8 @@ RECORD_VERSION = 1
 INSTANCE_CODE_MODULES = (
     "votesplat_ns.core.clustering",
     "votesplat_ns.core.mask_consensus",
+    "votesplat_ns.core.mask_sightings",
+    "votesplat_ns.core.whole_objects",
     "votesplat_ns.core.instances",
     "votesplat_ns.ns.mask_views",
     "votesplat_ns.ns.run_instances",
