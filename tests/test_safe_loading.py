@@ -80,20 +80,6 @@ def test_the_votesplat_config_resumes_through_the_safe_trainer(tmp_path):
     assert config._target is VoteSplatTrainer
 
 
-def test_old_module_paths_of_votesplat_classes_still_load():
-    from votesplat_ns.ns.datamanager import VoteDataManager
-    from votesplat_ns.ns.model import VoteSplatModel, VoteSplatModelConfig
-
-    text = """
-model_target: !!python/name:votesplat_ns.model.VoteSplatModel ''
-dm_target: !!python/name:votesplat_ns.datamanager.VoteDataManager ''
-model: !!python/object:votesplat_ns.model.VoteSplatModelConfig {sh_degree: 2}
-"""
-    loaded = parse_run_config(text)
-    assert loaded["model_target"] is VoteSplatModel and loaded["dm_target"] is VoteDataManager
-    assert type(loaded["model"]) is VoteSplatModelConfig and loaded["model"].sh_degree == 2
-
-
 REAL_LINE = "method_name: votesplat\n"
 APPLY_OS_SYSTEM = "!!python/object/apply:os.system ['touch {marker}']"
 # (what is planted, the tag refused: for a call nested in a path or an enum, the path's or the enum's)
