@@ -8,7 +8,8 @@ removal) and
 a per-point bias (the boundary moves by a pixel or so between prompts, so NMS sees near-duplicates).
 Its predicted IoU is a hash of the segment and the point, quantised to 1/64 so that ties occur.
 Many masks survive the filters, as with real weights. It replaces the decoder's outputs only in
-tests and benchmarks: ``scene(...)`` builds an image and its three label maps.
+tests and benchmarks: ``scene(...)`` builds an image and its three label maps. Given a real
+``model_predictor``, its encoder and decoder also run (outputs dropped), so that a timing pays their cost.
 """
 
 from __future__ import annotations
@@ -25,7 +26,11 @@ def scene(height: int, width: int, seed: int = 0, fine_cells: int = 40) -> Tuple
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:height, 0:width]
     seeds = rng.uniform((0, 0), (height, width), size=(fine_cells, 2))
-    fine = np.argmin((yy[..., None] - seeds[:, 0]) ** 2 + (xx[..., None] - seeds[:, 1]) ** 2, axis=-1)
+    fine = np.empty((height, width), dtype=np.int64)
+    for top in range(0, height, 32):  # in bands of rows: [rows, width, cells] stays small at 4K
+        rows = slice(top, top + 32)
+        distance = (yy[rows, :, None] - seeds[:, 0]) ** 2 + (xx[rows, :, None] - seeds[:, 1]) ** 2
+        fine[rows] = np.argmin(distance, axis=-1)
     maps = [fine]
     for groups in (max(2, fine_cells // 4), max(2, fine_cells // 12)):
         centres = rng.uniform((0, 0), (height, width), size=(groups, 2))
@@ -48,11 +53,13 @@ class StandInPredictor:
         device: str = "cpu",
         seed: int = 0,
         noise: float = 6.0,
+        model_predictor=None,
     ):
         from segment_anything.utils.amg import generate_crop_boxes
         from segment_anything.utils.transforms import ResizeLongestSide
 
         assert len(label_maps) == 3
+        self.model_predictor = model_predictor  # a real SamPredictor run alongside, for timing: its outputs are dropped
         self.image = image
         self.device = torch.device(device)
         self.transform = ResizeLongestSide(1024)
@@ -79,6 +86,8 @@ class StandInPredictor:
             and np.array_equal(self.image[box[1] : box[3], box[0] : box[2]], image)
         ]
         assert len(matches) == 1, f"{len(matches)} crops of the stand-in's image match the image given"
+        if self.model_predictor is not None:
+            self.model_predictor.set_image(image, image_format)
         self.features = matches[0]
         self.original_size = (h, w)
         self.input_size = self.transform.get_preprocess_shape(h, w, self.transform.target_length)
@@ -97,6 +106,10 @@ class StandInPredictor:
         self, point_coords, point_labels, boxes=None, mask_input=None, multimask_output=True, return_logits=False
     ):
         assert self.is_image_set and multimask_output
+        if self.model_predictor is not None:
+            self.model_predictor.predict_torch(
+                point_coords, point_labels, multimask_output=True, return_logits=return_logits
+            )
         x0, y0, x1, y1 = self.features
         h, w = self.original_size
         new_h, new_w = self.input_size
