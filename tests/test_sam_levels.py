@@ -146,3 +146,32 @@ def test_random_vit_b_decoder_equals_segment_anything(one_torch_thread):
     labels = SamLevelsMaskGenerator(vit_b_predictor(sam), LEVELS, **options).label_images(image)
     assert_same_labels(expected, labels)
     assert all(level.max() > 0 for level in labels)  # random weights: few masks, but some at every level
+
+
+def random_blob_mask(rng, shape):
+    """A mask of a few random blobs, specks and holes, sometimes touching the image's borders."""
+    import cv2
+
+    height, width = shape
+    mask = np.zeros(shape, dtype=np.uint8)
+    for _ in range(rng.integers(1, 4)):
+        centre = (int(rng.integers(-5, width + 5)), int(rng.integers(-5, height + 5)))
+        axes = (int(rng.integers(1, width // 2)), int(rng.integers(1, height // 2)))
+        cv2.ellipse(mask, centre, axes, float(rng.uniform(0, 180)), 0, 360, 1, -1)
+    speckle = rng.random(shape) < rng.choice([0.0, 0.01, 0.03])
+    return (mask.astype(bool) ^ speckle) & (rng.random() > 0.02)
+
+
+def test_windowed_small_region_removal_equals_segment_anything_on_the_whole_image():
+    from votesplat_ns.core.sam_masks import _small_regions_removed, _small_regions_removed_whole_image, _Window
+
+    rng = np.random.default_rng(0)
+    for trial in range(300):
+        shape = (int(rng.integers(8, 60)), int(rng.integers(8, 60)))
+        mask = random_blob_mask(rng, shape)
+        min_area = int(rng.choice([3, 10, 30, 100]))
+        window = _Window.of(mask)
+        expected, expected_unchanged = _small_regions_removed_whole_image(window, shape, min_area)
+        result, unchanged = _small_regions_removed(window, shape, min_area)
+        assert np.array_equal(result.full(shape), expected.full(shape)), trial
+        assert unchanged == expected_unchanged, trial

@@ -402,6 +402,12 @@ class _Window:
         return out
 
     @staticmethod
+    def of_window(x0: int, y0: int, mask: np.ndarray) -> "_Window":
+        """The window of a mask given on a window at (x0, y0), trimmed to its bounding box."""
+        trimmed = _Window.of(mask)
+        return _Window(x0 + trimmed.x0, y0 + trimmed.y0, trimmed.mask)
+
+    @staticmethod
     def of(mask: np.ndarray) -> "_Window":
         rows = np.flatnonzero(mask.any(axis=1))
         cols = np.flatnonzero(mask.any(axis=0))
@@ -445,16 +451,82 @@ class _MaskWindows:
         """segment_anything's hole then island removal of one mask, and whether it left the mask unchanged."""
         saved = self._cleaned.get(mask_id)
         if saved is None:
-            from segment_anything.utils.amg import remove_small_regions
-
-            mask = self._windows[mask_id].full(self.shape)
-            mask, changed = remove_small_regions(mask, min_area, mode="holes")
-            unchanged = not changed
-            mask, changed = remove_small_regions(mask, min_area, mode="islands")
-            unchanged = unchanged and not changed
-            saved = (_Window.of(mask), unchanged)
+            saved = _small_regions_removed(self._windows[mask_id], self.shape, min_area)
             self._cleaned[mask_id] = saved
         return saved
+
+
+def _small_regions_removed_whole_image(window: _Window, shape: Tuple[int, int], min_area: int) -> Tuple[_Window, bool]:
+    """SamAutomaticMaskGenerator.postprocess_small_regions on one mask: segment_anything's routine on the whole image."""
+    from segment_anything.utils.amg import remove_small_regions
+
+    mask = window.full(shape)
+    mask, changed = remove_small_regions(mask, min_area, mode="holes")
+    unchanged = not changed
+    mask, changed = remove_small_regions(mask, min_area, mode="islands")
+    unchanged = unchanged and not changed
+    return _Window.of(mask), unchanged
+
+
+def _outside_pieces(box: Tuple[int, int, int, int], shape: Tuple[int, int]) -> List[int]:
+    """Pixel counts of the connected pieces of the image outside a box (x0, y0, x1, y1 exclusive)."""
+    x0, y0, x1, y1 = box
+    height, width = shape
+    top, bottom = y0 * width, (height - y1) * width
+    left, right = (y1 - y0) * x0, (y1 - y0) * (width - x1)
+    if (top or bottom) and (left or right):
+        return [top + bottom + left + right]  # a side strip joins the top and bottom strips
+    return [size for size in (top, bottom, left, right) if size]
+
+
+def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: int) -> Tuple[_Window, bool]:
+    """The result of segment_anything's ``remove_small_regions`` (holes, then islands) on the whole image, computed
+    in the mask's box grown by one pixel, so that its cost follows the mask's size, not the image's.
+
+    Why it is the same: every pixel outside the box is background, so each connected piece of the image outside the
+    box lies in one background component, reached through the one-pixel ring; a ring-touching component is at least
+    as large as that piece, and when every piece has ``min_area`` pixels or more none of them is a small hole, as on
+    the whole image. The other background components and all mask components lie inside the box, with the same
+    pixels as on the whole image. segment_anything keeps the first largest island when all are small; labels are
+    numbered in scan order, which a window could change, so a tie for the largest goes to the whole-image routine,
+    as does a piece outside the box smaller than ``min_area``.
+    """
+    import cv2
+
+    height, width = shape
+    h, w = window.mask.shape
+    x0, y0 = window.x0, window.y0
+    if h == 0 or w == 0 or min(_outside_pieces((x0, y0, x0 + w, y0 + h), shape), default=min_area) < min_area:
+        return _small_regions_removed_whole_image(window, shape, min_area)
+    px0, py0 = max(0, x0 - 1), max(0, y0 - 1)
+    px1, py1 = min(width, x0 + w + 1), min(height, y0 + h + 1)
+    padded = np.zeros((py1 - py0, px1 - px0), dtype=bool)
+    inner = (slice(y0 - py0, y0 - py0 + h), slice(x0 - px0, x0 - px0 + w))
+    padded[inner] = window.mask
+
+    # holes: background components inside the box smaller than min_area are filled
+    _, regions, stats, _ = cv2.connectedComponentsWithStats((~padded).astype(np.uint8), 8)
+    ring = np.ones(padded.shape, dtype=bool)
+    ring[inner] = False
+    touching = np.zeros(len(stats), dtype=bool)
+    touching[np.unique(regions[ring])] = True
+    small = np.flatnonzero((stats[:, -1] < min_area) & ~touching)
+    small = small[small > 0]  # label 0: the mask's own pixels
+    mask = window.mask
+    holes_changed = small.size > 0
+    if holes_changed:
+        mask = mask | np.isin(regions[inner], small)
+
+    # islands: mask components smaller than min_area are dropped, the largest one kept if all are
+    _, regions, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), 8)
+    sizes = stats[1:, -1]
+    small_islands = sizes < min_area
+    if not small_islands.any():
+        return _Window.of_window(x0, y0, mask), not holes_changed
+    if small_islands.all() and np.count_nonzero(sizes == sizes.max()) > 1:
+        return _small_regions_removed_whole_image(_Window(x0, y0, mask), shape, min_area)[0], False
+    keep = np.flatnonzero(~small_islands) + 1 if not small_islands.all() else [int(np.argmax(sizes)) + 1]
+    return _Window.of_window(x0, y0, np.isin(regions, keep)), False
 
 
 def _paint_windows(masks: List[_Window], shape: Tuple[int, int]) -> np.ndarray:
