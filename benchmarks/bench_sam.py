@@ -27,6 +27,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any, Dict
 
 import numpy as np
 
@@ -34,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))  # the oracle and the stand-in decoder are test code
 
-LANGSPLAT = dict(
+LANGSPLAT: Dict[str, Any] = dict(
     points_per_side=32,
     points_per_batch=64,
     pred_iou_thresh=0.7,
@@ -87,8 +88,8 @@ def timed(run):
 
 def bench_workload(sam, workload: str, images, levels, repeats: int, run_old: bool) -> dict:
     """``images``: (image, label maps or None) pairs; label maps select the stand-in decoder."""
-    from sam_reference import ReferenceGenerator
-    from sam_stand_in import StandInPredictor
+    from sam_reference import ReferenceGenerator  # pyright: ignore[reportMissingImports]
+    from sam_stand_in import StandInPredictor  # pyright: ignore[reportMissingImports]
     from segment_anything import SamPredictor
 
     from votesplat_ns.core.sam_masks import SamLevelsMaskGenerator
@@ -151,7 +152,7 @@ def encoder_seconds(sam, image: np.ndarray) -> float:
 
 def bench(model_type: str, image: np.ndarray, args) -> list:
     import torch
-    from sam_stand_in import scene
+    from sam_stand_in import scene  # pyright: ignore[reportMissingImports]
     from segment_anything import sam_model_registry
 
     torch.manual_seed(0)
@@ -173,7 +174,7 @@ def bench(model_type: str, image: np.ndarray, args) -> list:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("--image", type=Path, default=None, help="a photo to segment (default: a smooth random image)")
     parser.add_argument("--model-types", nargs="+", default=["vit_h"], choices=["vit_b", "vit_l", "vit_h"])
     parser.add_argument("--workloads", nargs="+", default=["stand-in", "random"], choices=["stand-in", "random"])

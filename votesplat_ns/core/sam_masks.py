@@ -85,7 +85,7 @@ class SamMaskSource(MaskSource):
         self.model_type = model_type
         self.device = device
         self.max_long_side = max_long_side
-        self.generator_kwargs = dict(
+        self.generator_kwargs: Dict[str, Any] = dict(
             points_per_side=int(points_per_side),
             points_per_batch=int(points_per_batch),
             pred_iou_thresh=float(pred_iou_thresh),
@@ -239,7 +239,7 @@ class SamLevelsMaskGenerator:
         from segment_anything.utils.amg import MaskData, generate_crop_boxes
         from torchvision.ops.boxes import batched_nms, box_area
 
-        orig_size = image.shape[:2]
+        orig_size = (int(image.shape[0]), int(image.shape[1]))
         crop_boxes, layer_idxs = generate_crop_boxes(orig_size, self.crop_n_layers, self.crop_overlap_ratio)
         windows = _MaskWindows(orig_size)
         per_level = {level: MaskData() for level in self.levels}
@@ -505,7 +505,7 @@ def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: in
     padded[inner] = window.mask
 
     # holes: background components inside the box smaller than min_area are filled
-    _, regions, stats, _ = cv2.connectedComponentsWithStats((~padded).astype(np.uint8), 8)
+    _, regions, stats, _ = cv2.connectedComponentsWithStats((~padded).astype(np.uint8), connectivity=8)
     ring = np.ones(padded.shape, dtype=bool)
     ring[inner] = False
     touching = np.zeros(len(stats), dtype=bool)
@@ -518,7 +518,7 @@ def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: in
         mask = mask | np.isin(regions[inner], small)
 
     # islands: mask components smaller than min_area are dropped, the largest one kept if all are
-    _, regions, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), 8)
+    _, regions, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     sizes = stats[1:, -1]
     small_islands = sizes < min_area
     if not small_islands.any():
