@@ -1,4 +1,4 @@
-"""Seconds per image of SAM mask generation (the vote maps' preprocessing): the old path and the one-pass path.
+"""Seconds per image of SAM mask generation (the vote maps' preprocessing): per level and in one pass.
 
     python benchmarks/bench_sam.py --image path/to/frame.png --model-types vit_h --width 1920 --height 1080
 
@@ -11,10 +11,10 @@ crop layer: 5 crops, pred_iou 0.7, stability 0.85, min region 100) and levels s/
   - ``stand-in``: the model's encoder and decoder still run (their outputs dropped), and the
     decoder's outputs come from label maps at three granularities (tests/sam_stand_in.py), with
     which hundreds of masks survive per image, as with real weights; ``--images`` scenes.
-Paths: ``old`` is segment_anything's unmodified SamAutomaticMaskGenerator run once per level, the
-encoder shared between the runs (tests/sam_reference.py); ``new`` is SamLevelsMaskGenerator, what
+Paths: ``per level`` is segment_anything's unmodified SamAutomaticMaskGenerator run once per level, the
+encoder shared between the runs (tests/sam_reference.py); ``one pass`` is SamLevelsMaskGenerator, what
 ``votesplat masks`` and the training cache use. Both paths' label images are compared (pixels that
-differ). ``new`` is also run once with its per-stage split (synchronised at each stage, so the
+differ). ``one pass`` is also run once with its per-stage split (synchronised at each stage, so the
 split's total is a little above the plain time; its ``decoder`` stage includes the stand-in's own
 work). Peak GPU memory includes the stand-in's per-segment maps (up to a few GB at 1080p) in the
 stand-in workload. Prints markdown tables; ``--json`` writes the numbers.
@@ -86,7 +86,7 @@ def timed(run):
     return result, time.perf_counter() - start
 
 
-def bench_workload(sam, workload: str, images, levels, repeats: int, run_old: bool) -> dict:
+def bench_workload(sam, workload: str, images, levels, repeats: int, run_per_level: bool) -> dict:
     """``images``: (image, label maps or None) pairs; label maps select the stand-in decoder."""
     from sam_reference import ReferenceGenerator  # pyright: ignore[reportMissingImports]
     from sam_stand_in import StandInPredictor  # pyright: ignore[reportMissingImports]
@@ -102,42 +102,44 @@ def bench_workload(sam, workload: str, images, levels, repeats: int, run_old: bo
             image, maps, LANGSPLAT["crop_n_layers"], device=str(model.device), seed=seed, model_predictor=model
         )
 
-    old_s, new_s, old_peak, new_peak, differing, pixels, stages, counts = [], [], [], [], [], 0, {}, []
+    per_level_times, one_pass_times, per_level_peaks, one_pass_peaks = [], [], [], []
+    differing, counts, pixels = [], [], 0
+    stages: dict = {}
     for seed, (image, maps) in enumerate(images):
-        new = SamLevelsMaskGenerator(predictor(image, maps, seed), levels, **LANGSPLAT)
-        new.label_images(image)  # warm-up (cuDNN autotune, allocator, the stand-in's per-segment cache)
+        one_pass = SamLevelsMaskGenerator(predictor(image, maps, seed), levels, **LANGSPLAT)
+        one_pass.label_images(image)  # warm-up (cuDNN autotune, allocator, the stand-in's per-segment cache)
         for _ in range(repeats):
             reset_peak()
-            labels, seconds = timed(lambda: new.label_images(image))
-            new_s.append(seconds)
-            new_peak.append(peak_mib())
-        new.stage_seconds = {}
-        new.label_images(image)
-        for name, seconds in new.stage_seconds.items():
+            labels, seconds = timed(lambda: one_pass.label_images(image))
+            one_pass_times.append(seconds)
+            one_pass_peaks.append(peak_mib())
+        one_pass.stage_seconds = {}
+        one_pass.label_images(image)
+        for name, seconds in one_pass.stage_seconds.items():
             stages.setdefault(name, []).append(seconds)
         counts.append([int(np.unique(level).size - 1) for level in labels])
-        if run_old:
-            old = ReferenceGenerator(sam, predictor(image, maps, seed), levels, **LANGSPLAT)
+        if run_per_level:
+            per_level = ReferenceGenerator(sam, predictor(image, maps, seed), levels, **LANGSPLAT)
             for _ in range(min(repeats, 1 if maps is not None else repeats)):
                 reset_peak()
-                expected, seconds = timed(lambda: old.label_images(image))
-                old_s.append(seconds)
-                old_peak.append(peak_mib())
+                expected, seconds = timed(lambda: per_level.label_images(image))
+                per_level_times.append(seconds)
+                per_level_peaks.append(peak_mib())
             differing.append(int(sum((a != b).sum() for a, b in zip(expected, labels))))
             pixels += sum(a.size for a in expected)
     return {
         "workload": workload,
         "images": len(images),
-        "old_s": float(np.median(old_s)) if old_s else None,
-        "new_s": float(np.median(new_s)),
-        "new_stages_s": {name: float(np.median(values)) for name, values in stages.items()},
+        "per_level_s": float(np.median(per_level_times)) if per_level_times else None,
+        "one_pass_s": float(np.median(one_pass_times)),
+        "one_pass_stages_s": {name: float(np.median(values)) for name, values in stages.items()},
         "masks_per_level": counts[-1],
         "masks_per_level_mean": [float(np.mean(column)) for column in zip(*counts)],
-        "differing_pixels": int(sum(differing)) if run_old else None,
-        "differing_images": int(sum(d > 0 for d in differing)) if run_old else None,
+        "differing_pixels": int(sum(differing)) if run_per_level else None,
+        "differing_images": int(sum(d > 0 for d in differing)) if run_per_level else None,
         "compared_pixels": pixels,
-        "old_peak_mib": round(max(old_peak), 1) if old_peak else None,
-        "new_peak_mib": round(max(new_peak), 1),
+        "per_level_peak_mib": round(max(per_level_peaks), 1) if per_level_peaks else None,
+        "one_pass_peak_mib": round(max(one_pass_peaks), 1),
     }
 
 
@@ -164,7 +166,7 @@ def bench(model_type: str, image: np.ndarray, args) -> list:
             images = [(image, None)]
         else:
             images = [scene(args.height, args.width, seed=seed, fine_cells=args.cells) for seed in range(args.images)]
-        row = bench_workload(sam, workload, images, levels, args.repeats, not args.new_only)
+        row = bench_workload(sam, workload, images, levels, args.repeats, not args.one_pass_only)
         row.update(model_type=model_type, encoder_one_pass_s=encoder_seconds(sam, images[0][0]))
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -181,10 +183,10 @@ def main(argv=None) -> int:
     parser.add_argument("--levels", nargs="+", default=["s", "m", "l"], choices=["default", "s", "m", "l"])
     parser.add_argument("--width", type=int, default=1920)
     parser.add_argument("--height", type=int, default=1080)
-    parser.add_argument("--images", type=int, default=3, help="stand-in scenes (each compared with the old path)")
+    parser.add_argument("--images", type=int, default=3, help="stand-in scenes (each compared with the per_level path)")
     parser.add_argument("--cells", type=int, default=300, help="finest segments per stand-in scene")
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--new-only", action="store_true", help="skip the old path (no comparison)")
+    parser.add_argument("--one-pass-only", action="store_true", help="skip the per-level path (no comparison)")
     parser.add_argument("--device", default=None, help="default: cuda if present, else cpu")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -198,25 +200,25 @@ def main(argv=None) -> int:
     rows = [row for model_type in args.model_types for row in bench(model_type, image, args)]
     print(
         f"\nSAM masks, random weights, {args.width}x{args.height}, levels {'/'.join(args.levels)}, LangSplat's settings, "
-        f"{gpu}; new: median of {args.repeats} after a warm-up; old: one run per stand-in image"
+        f"{gpu}; one pass: median of {args.repeats} after a warm-up; per level: one run per stand-in image"
     )
     print(
-        "| model | workload | images | old (s/image) | new (s/image) | masks per level | differing pixels | peak MiB old / new |"
+        "| model | workload | images | per level (s/image) | one pass (s/image) | masks per level | differing pixels | peak MiB per level / one pass |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:
-        old = f"{row['old_s']:.2f}" if row["old_s"] is not None else "-"
+        per_level = f"{row['per_level_s']:.2f}" if row["per_level_s"] is not None else "-"
         differ = "-" if row["differing_pixels"] is None else f"{row['differing_pixels']} of {row['compared_pixels']}"
         print(
-            f"| {row['model_type']} | {row['workload']} | {row['images']} | {old} | {row['new_s']:.3f} | "
-            f"{row['masks_per_level']} | {differ} | {row['old_peak_mib']} / {row['new_peak_mib']} |"
+            f"| {row['model_type']} | {row['workload']} | {row['images']} | {per_level} | {row['one_pass_s']:.3f} | "
+            f"{row['masks_per_level']} | {differ} | {row['per_level_peak_mib']} / {row['one_pass_peak_mib']} |"
         )
-    print("\nnew path per stage (s/image; encoder one pass alone for reference)")
-    names = sorted({name for row in rows for name in row["new_stages_s"]})
+    print("\none pass per stage (s/image; encoder one pass alone for reference)")
+    names = sorted({name for row in rows for name in row["one_pass_stages_s"]})
     print("| model | workload | encoder, one pass | " + " | ".join(names) + " |")
     print("|---|---|---|" + "---|" * len(names))
     for row in rows:
-        split = " | ".join(f"{row['new_stages_s'].get(name, 0.0):.3f}" for name in names)
+        split = " | ".join(f"{row['one_pass_stages_s'].get(name, 0.0):.3f}" for name in names)
         print(f"| {row['model_type']} | {row['workload']} | {row['encoder_one_pass_s']:.3f} | {split} |")
     if args.json is not None:
         from votesplat_ns.core.ply_io import atomic_write

@@ -3,7 +3,7 @@
 Each level ``"s"``, ``"m"``, ``"l"`` is one generator run that keeps one multimask output of the
 predictor (``OneGranularityPredictor``), ``"default"`` a run over all three; the kept masks are
 painted with the smaller mask winning, then the earlier one. ``SamLevelsMaskGenerator`` must give
-the same label images. Test code, also used by ``benchmarks/bench_sam.py`` as the old path.
+the same label images. Test code, also timed by ``benchmarks/bench_sam.py`` as the per-level path.
 """
 
 from __future__ import annotations

@@ -166,7 +166,9 @@ class SamLevelsMaskGenerator:
     images are the same. What is not repeated: the encoder and decoder per level, the per-mask
     quantities (computed once per mask and shared by the levels that hold it), the RLE round trip
     (a binary mask is kept as its bounding-box window instead: ``rle_to_mask(mask_to_rle(m)) == m``),
-    and the small-region clean-up of a mask that several levels keep.
+    and the small-region clean-up of a mask that several levels keep; that clean-up also works in the
+    mask's box rather than the whole image (:func:`_small_regions_removed`, same result). A crop's
+    masks that pass the filters stay on the device until its NMS; the kept ones move to the host.
 
     ``predictor`` is a ``SamPredictor`` (or anything with its ``set_image`` / ``predict_torch`` /
     ``reset_image`` / ``transform`` / ``device`` / ``model.mask_threshold``).
