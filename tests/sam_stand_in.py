@@ -119,9 +119,8 @@ class StandInPredictor:
         labels = self.labels[:, y0:y1, x0:x1]  # [3, h, w]
         ids = labels[:, py, px].T  # [B, 3]
         blurred = torch.stack(
-            [torch.stack([self._blurred(k, int(i)) for k, i in enumerate(row)]) for row in ids.tolist()]
-        )
-        blurred = blurred[:, :, y0:y1, x0:x1]  # [B, 3, h, w]
+            [torch.stack([self._blurred(k, int(i))[y0:y1, x0:x1] for k, i in enumerate(row)]) for row in ids.tolist()]
+        )  # [B, 3, h, w]
         # per-point bias from the point's pixel: a deterministic hash in [-1.5, 1.5]
         code = (px + 1) * 7919 + (py + x0 + 3) * 104729 + y0 * 31
         bias = ((code % 997).double() / 996.0 * 3.0 - 1.5).float()
