@@ -213,9 +213,9 @@ def main(argv=None) -> int:
             f"| {row['model_type']} | {row['workload']} | {row['images']} | {per_level} | {row['one_pass_s']:.3f} | "
             f"{row['masks_per_level']} | {differ} | {row['per_level_peak_mib']} / {row['one_pass_peak_mib']} |"
         )
-    print("\none pass per stage (s/image; encoder one pass alone for reference)")
+    print("\none pass per stage (s/image; the stages' encoder is every crop's pass)")
     names = sorted({name for row in rows for name in row["one_pass_stages_s"]})
-    print("| model | workload | encoder, one pass | " + " | ".join(names) + " |")
+    print("| model | workload | one encoder pass, whole image | " + " | ".join(names) + " |")
     print("|---|---|---|" + "---|" * len(names))
     for row in rows:
         split = " | ".join(f"{row['one_pass_stages_s'].get(name, 0.0):.3f}" for name in names)
