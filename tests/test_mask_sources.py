@@ -267,3 +267,31 @@ def test_broken_sam_checkpoint_fails_with_one_line(tmp_path):
     ) as error:
         source.masks_for_image(blocks_image(), "blocks.png", 0)
     assert "weights_only" not in str(error.value)
+
+
+def test_sam_checkpoint_of_another_model_or_truncated_fails_with_one_line(tmp_path):
+    checkpoint = tmp_path / "sam_vit_b_01ec64.pth"
+    torch.save(tiny_sam().state_dict(), checkpoint)  # weights, but not vit_b's
+    with pytest.raises(ValueError) as error:
+        SamMaskSource(checkpoint=checkpoint, model_type="vit_b", device="cpu").masks_for_image(
+            blocks_image(), "a.png", 0
+        )
+    message = str(error.value)
+    assert f"could not load SAM checkpoint {checkpoint} as model type 'vit_b'" in message
+    assert "weights of another model" in message and "\n" not in message
+
+    checkpoint.write_bytes(checkpoint.read_bytes()[: checkpoint.stat().st_size // 2])
+    with pytest.raises(ValueError, match=r"sam_vit_b_01ec64\.pth as model type 'vit_b' \(the file is truncated"):
+        SamMaskSource(checkpoint=checkpoint, model_type="vit_b", device="cpu").masks_for_image(
+            blocks_image(), "a.png", 0
+        )
+
+
+def test_images_for_sam_grey_and_rgba_are_converted_16_bit_grey_is_refused(tmp_path):
+    grey = rgb_image()[..., 0]
+    assert np.array_equal(read_image_rgb(write_png(tmp_path / "grey.png", grey)), np.repeat(grey[..., None], 3, -1))
+    rgba = np.concatenate([rgb_image(), np.full((24, 32, 1), 7, np.uint8)], axis=-1)
+    assert np.array_equal(read_image_rgb(write_png(tmp_path / "rgba.png", rgba)), rgba[..., :3])
+    deep = write_png(tmp_path / "deep.png", (np.arange(24 * 32).reshape(24, 32) * 80).astype(np.uint16))
+    with pytest.raises(ValueError, match=r"^image .*deep\.png is a 16/32-bit single-channel image .*8-bit RGB"):
+        read_image_rgb(deep)

@@ -18,9 +18,12 @@
 #                     calls and merge them with `compare` (here, no GPU). STEPS=100 smoke: ~90 s.
 #   train-synthetic [DATA]  the same comparison on a synthetic scene (default .gpu/synthetic,
 #                     masks from its transforms.json); time depends on the scene
-#   bench-sam         ~60-120 s  benchmarks/bench_sam.py: SAM vit_b and vit_h mask generation at
-#                     1920x1080 on a fox frame (random weights: no checkpoint here), + the fox
-#                     vote cache's size per view when a train-fox run left one
+#   bench-sam         ~300-600 s  benchmarks/bench_sam.py: SAM vit_h masks at 1920x1080, three levels,
+#                     LangSplat's settings, random weights (no checkpoint here): the old path
+#                     (segment_anything's generator once per level) and the one-pass path on the
+#                     same workloads, labels compared, the new path's per-stage split; workloads
+#                     "stand-in" ($SAM_IMAGES label-map scenes, default 2, hundreds of masks) and
+#                     "random" (the model's own outputs); + the fox vote cache's size per view
 #   quality           ~300-450 s  benchmarks/quality.py on the scenes in $QUALITY_SCENES (GT and
 #                     noisy masks) and the ablation on $ABLATION_SCENE (each seed of $ABLATION_SEEDS,
 #                     then mean ± std), every run its own process,
@@ -339,8 +342,9 @@ stage_bench_sam() {
   local image rc
   image=$(find "$FOX" -path '*/images*' -type f \( -name '*.jpg' -o -name '*.png' \) 2>/dev/null | sort | head -1)
   log "bench_sam on ${image:-a random image}" | tee -a "$OUT/bench_sam.log"
-  timeout "$(limit_s)" "$PY" benchmarks/bench_sam.py ${image:+--image "$image"} --model-types vit_b vit_h \
-    --width 1920 --height 1080 --repeats 2 --json "$OUT/bench_sam.json" 2>&1 | tee -a "$OUT/bench_sam.log"
+  timeout "$(limit_s)" "$PY" benchmarks/bench_sam.py ${image:+--image "$image"} --model-types vit_h \
+    --workloads stand-in random --images "${SAM_IMAGES:-2}" --width 1920 --height 1080 --repeats 2 \
+    --json "$OUT/bench_sam.json" 2>&1 | tee -a "$OUT/bench_sam.log"
   rc=${PIPESTATUS[0]}
   if [ -d "$RUNS/votesplat_cache_fox" ]; then
     "$PY" - "$RUNS/votesplat_cache_fox" <<'PY' 2>&1 | tee -a "$OUT/bench_sam.log"

@@ -63,8 +63,18 @@ def image_file_size(path: PathLike, what: str = "image") -> Tuple[int, int]:
 
 
 def read_image_rgb(path: PathLike, what: str = "image") -> np.ndarray:
-    """An image file's pixels as uint8 [H, W, 3] (alpha dropped, grey expanded); errors name the file."""
-    return np.asarray(load_image_file(path, what).convert("RGB"))
+    """An image file's pixels as uint8 [H, W, 3] (alpha dropped, grey expanded); errors name the file.
+
+    A 16-bit or float single-channel image is refused: PIL's conversion to RGB clips it at 255 rather
+    than scaling it, which would hand SAM a mostly white picture. (16-bit RGB PNGs decode to 8 bits.)
+    """
+    image = load_image_file(path, what)
+    if image.mode in ("I", "F") or image.mode.startswith("I;16"):
+        raise VoteSplatInputError(
+            f"{what} {path} is a {'float' if image.mode == 'F' else '16/32-bit'} single-channel image (PIL mode "
+            f"{image.mode}), which would be clipped to 8 bits; save it as an 8-bit RGB or greyscale image"
+        )
+    return np.asarray(image.convert("RGB"))
 
 
 def read_label_png(path: PathLike) -> np.ndarray:

@@ -327,8 +327,36 @@ def _check_label_ids(labels: np.ndarray, centroids: Sequence[np.ndarray]) -> Non
 
 
 def _progress(items: Sequence[int], description: str, enabled: bool):
+    """The items, shown as a progress bar with images per second, elapsed and remaining time (``close()`` ends it)."""
     if not enabled:
         return items
-    from rich.progress import track
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        ProgressColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+    from rich.text import Text
 
-    return track(items, description=description, total=len(items), transient=False)
+    class ImagesPerSecond(ProgressColumn):
+        def render(self, task) -> Text:
+            return Text("" if task.speed is None else f"{task.speed:.2f} images/s")
+
+    progress = Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        ImagesPerSecond(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        transient=False,
+    )
+
+    def steps():
+        with progress:
+            yield from progress.track(items, total=len(items), description=description)
+
+    return steps()
