@@ -61,6 +61,18 @@ def instance_colors(instance_ids) -> np.ndarray:
     return table[inverse.reshape(ids.shape)]
 
 
+def size_confidence(counts, num_foreground: int) -> np.ndarray:
+    """Fallback confidence per instance: its Gaussian count as a fraction of the level's foreground.
+
+    HDBSCAN groups Gaussians whose votes agree on one centre; the more Gaussians agree, the more
+    training views' masks stand behind the instance, while fragments and floaters are the small
+    clusters that few Gaussians (few views) support. Only the order matters to a ranking metric
+    (AP); dividing by the foreground count puts the value in [0, 1] for every scene.
+    """
+    counts = np.asarray(counts, dtype=np.float64)
+    return counts / max(int(num_foreground), 1)
+
+
 @dataclass
 class LevelInstances:
     """The instances of one vote level."""
@@ -76,6 +88,9 @@ class LevelInstances:
     parents: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] int64 id at the parent level, -1 = none (or no parent level)
     parent_overlap: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] fraction of the instance's Gaussians inside its parent
     clustering: Dict[str, object] = field(default_factory=dict)
+    # [K] float, how sure the method is of each instance (higher = surer), None = not given;
+    # scorers rank instances by :meth:`ranking_confidence`, which falls back to the size when None
+    confidence: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         k = self.counts.shape[0]
@@ -91,6 +106,12 @@ class LevelInstances:
     @property
     def num_noise(self) -> int:
         return int((self.foreground & (self.ids < 0)).sum())
+
+    def ranking_confidence(self) -> np.ndarray:
+        """[K] ``confidence`` when given, else :func:`size_confidence` of the level."""
+        if self.confidence is not None:
+            return np.asarray(self.confidence, dtype=np.float64)
+        return size_confidence(self.counts, int(self.foreground.sum()))
 
     @classmethod
     def from_ids(
@@ -164,6 +185,8 @@ class LevelInstances:
                 "parent_overlap": float(self.parent_overlap[i]),
                 "color": [int(c) for c in colors[i]],
             }
+            if self.confidence is not None:
+                entry["confidence"] = float(self.confidence[i])
             if extra and i in extra:
                 entry.update(jsonable(extra[i]))
             instances.append(entry)
@@ -235,6 +258,10 @@ class InstanceSet:
                 raise ValueError(
                     f"level {level.name!r}: instance counts do not match the ids (or an instance is empty)"
                 )
+            if level.confidence is not None:
+                confidence = np.asarray(level.confidence)
+                if confidence.shape != (k,) or not np.isfinite(confidence).all():
+                    raise ValueError(f"level {level.name!r}: confidence must be [{k}] finite numbers or None")
             parent_name = self.parent_levels[index]
             if parent_name is not None:
                 parent_k = self.level(parent_name).num_instances
@@ -322,6 +349,8 @@ class InstanceSet:
                     parents=arr("parent", np.int64)[:, 0],
                     parent_overlap=arr("parent_overlap")[:, 0],
                     clustering=entry.get("clustering", {}),
+                    # written only when the clustering gave one for every instance
+                    confidence=arr("confidence")[:, 0] if inst and all("confidence" in e for e in inst) else None,
                 )
             )
         return cls(
