@@ -438,7 +438,8 @@ def test_ghost_fraction_ignores_the_opaque_background_behind_a_removed_object():
         SIZE,
     )
     assert (alpha[0, ..., 0].numpy()[gt_map == 1] > 0.5).all()
-    # an instance that missed the object's left half leaves it behind as a ghost
+    # an instance that missed the object's left half leaves it behind as a ghost; the right half,
+    # where the opaque wall now shows, is not one (an opacity test would give 100%)
     right = np.flatnonzero(obj[:, 0] > 0)
     half = ghost_fractions(rasterize_torch, *gaussians, labels, {1: right}, [view], [gt_map])[1]
     assert 0.4 < half["ghost_fraction"] < 0.7  # 72 of 144 pixels, plus the blur across the cut
