@@ -2,6 +2,7 @@
 
     python benchmarks/bench_clustering.py                       # 100k, 1M, 3M Gaussians + 1M export
     python benchmarks/bench_clustering.py --sizes 100000 --export-size 0 --json out.json
+    python benchmarks/bench_clustering.py --sizes --export-size 0 --instances-size 5000000   # a run's instances
 
 The scene: ``--instances`` objects of random size; 80% of the Gaussians belong to an object and
 vote for its centre (a converged core plus a looser shell and 2% stray votes), 20% are background
@@ -137,18 +138,82 @@ def bench_export(size: int, num_instances: int, max_points: int) -> dict:
     }
 
 
+def synthetic_mask_table(truth: np.ndarray, num_gaussians: int, num_views: int, seed: int = 2) -> np.ndarray:
+    """[V, N] int32 mask table as the training-mask check builds it (mask id under each Gaussian, 0 in no mask,
+    -1 unseen): each view sees a random 40% of the Gaussians, an object's Gaussians in its own mask (id = object
+    + 1) but 5% of them on a mask edge (0), background Gaussians in no mask."""
+    rng = np.random.default_rng(seed)
+    table = np.full((num_views, num_gaussians), -1, dtype=np.int32)
+    labels = np.zeros(num_gaussians, dtype=np.int32)
+    labels[: truth.size] = truth + 1
+    for view in range(num_views):
+        seen = rng.random(num_gaussians) < 0.4
+        row = np.where(rng.random(num_gaussians) < 0.05, 0, labels)
+        table[view, seen] = row[seen]
+    return table
+
+
+def bench_instances(size: int, num_instances: int, max_points: int, num_views: int) -> dict:
+    """The instance computation of a run (ns/run_instances.py compute_instances) without its renders: the vote
+    clustering, then the training-mask check and the whole-object rules on a mask table of ``num_views`` views."""
+    import resource
+
+    from votesplat_ns.core.clustering import cluster_levels
+    from votesplat_ns.core.mask_consensus import regroup_with_masks
+
+    means, votes, truth = synthetic_scene(size, num_instances)
+    n, num_fg = means.shape[0], votes.shape[0]
+    offsets = np.zeros((n, 1, 3), np.float32)
+    offsets[:num_fg, 0] = votes - means[:num_fg]
+    support = np.zeros((n, 1), np.float32)
+    support[:num_fg] = 1
+    table = synthetic_mask_table(truth, n, num_views)
+    level_votes = np.full((n, 3), np.nan)
+    level_votes[:num_fg] = votes
+    wall, cpu = time.perf_counter(), time.process_time()
+    instances = cluster_levels(
+        means,
+        offsets,
+        support,
+        ("instance",),
+        max_points=max_points,
+        refine=lambda index, name, ids: regroup_with_masks(ids, means, table, votes=level_votes),
+    )
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    level = instances.level("instance")
+    return {
+        "gaussians": size,
+        "views": num_views,
+        "mask_table_mb": round(table.nbytes / 2**20, 1),
+        "wall_s": round(wall, 2),
+        "cpu_s": round(cpu, 2),
+        "peak_rss_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
+        "instances_true": num_instances,
+        "instances_found": level.num_instances,
+        "matched_fraction": round(matched_fraction(truth, level.ids[:num_fg]), 4),
+        "objects": level.clustering.get("mask_check", {}).get("objects"),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000, 3_000_000])
     parser.add_argument("--export-size", type=int, default=1_000_000, help="0 to skip the export benchmark")
     parser.add_argument("--instances", type=int, default=60)
     parser.add_argument("--max-points", type=int, default=50_000)
+    parser.add_argument(
+        "--instances-size",
+        type=int,
+        default=0,
+        help="also time the instance computation (clustering, mask check, whole-object rules) at this many Gaussians",
+    )
+    parser.add_argument("--views", type=int, default=64, help="views of the mask table for --instances-size")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = parser.parse_args()
 
     import hdbscan  # noqa: F401  (import cost is not clustering time)
 
-    results = {"cpu_count": os.cpu_count(), "clustering": [], "export": None}
+    results = {"cpu_count": os.cpu_count(), "clustering": [], "export": None, "instances": None}
     for size in args.sizes:
         row = bench_clustering(size, args.instances, args.max_points)
         results["clustering"].append(row)
@@ -156,6 +221,9 @@ def main() -> None:
     if args.export_size:
         results["export"] = bench_export(args.export_size, args.instances, args.max_points)
         print(json.dumps(results["export"]), flush=True)
+    if args.instances_size:
+        results["instances"] = bench_instances(args.instances_size, args.instances, args.max_points, args.views)
+        print(json.dumps(results["instances"]), flush=True)
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
 

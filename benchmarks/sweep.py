@@ -23,7 +23,11 @@ small scene leaves most of a GPU idle); every clustering variant then scores tha
 ``votesplat eval``'s scorer at the instance and the part level. Rows go to
 ``<work-dir>/sweep.json`` and a table of means over scenes (plus the worst scene) to
 ``sweep.md``. Scores are mIoU over the views whose reconstruction did not fail, when the scorer
-reports them (``miou_valid_views``), else over all held-out views.
+reports them (``miou_valid_views``), else over all held-out views. Each row also carries what a
+user sees (over Gaussians, see ``votesplat_ns/eval/ground_truth.py`` ``score_level``): the mean
+per-object 3D completeness and purity, list precision, 3D AP@50, the numbers of objects and
+instances, and the object-removal ghost percentage; the table means skip a value the scorer
+left empty (None: e.g. no object matched).
 """
 
 from __future__ import annotations
@@ -80,7 +84,19 @@ def score(metrics: dict, level: str) -> dict:
         "recall": float(entry.get("recall_valid_views", entry["recall"])),
         "completeness": float(entry.get("completeness", float("nan"))),
         "num_pred": int(entry["num_predicted_instances"]),
+        "num_gt": entry.get("num_gt_objects"),
+        "completeness_object": entry.get("mean_completeness_3d"),
+        "purity_object": entry.get("mean_purity_3d"),
+        "list_precision": entry.get("list_precision"),
+        "ap50_3d": entry.get("ap50_3d"),
+        "ghost_percent": entry.get("ghost_percent"),
     }
+
+
+def _mean(group: Sequence[dict], key: str, digits: int = 3) -> str:
+    """Mean of a column over a group, skipping rows without the value; "-" when none has it."""
+    values = [float(r[key]) for r in group if r.get(key) is not None]
+    return f"{statistics.mean(values):.{digits}f}" if values else "-"
 
 
 def run_job(job: dict) -> List[dict]:
@@ -156,6 +172,12 @@ def table(rows: Sequence[dict]) -> str:
         "recall",
         "completeness",
         "#pred",
+        "completeness/object",
+        "purity/object",
+        "list precision",
+        "AP@50 3D",
+        "ghost %",
+        "#objects",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for key in sorted(groups):
@@ -168,6 +190,12 @@ def table(rows: Sequence[dict]) -> str:
             f"{statistics.mean(r['recall'] for r in group):.3f}",
             f"{statistics.mean(r['completeness'] for r in group):.3f}",
             f"{statistics.mean(r['num_pred'] for r in group):.1f}",
+            _mean(group, "completeness_object"),
+            _mean(group, "purity_object"),
+            _mean(group, "list_precision"),
+            _mean(group, "ap50_3d"),
+            _mean(group, "ghost_percent", 1),
+            _mean(group, "num_gt", 1),
         ]
         lines.append("| " + " | ".join([*map(str, key), str(len(group)), *cells]) + " |")
     failed = [r for r in rows if "error" in r]

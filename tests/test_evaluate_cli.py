@@ -183,6 +183,26 @@ def test_eval_command_writes_consistent_metrics(demo_eval):
     # the demo run is short, but its instances are real objects, not noise
     assert metrics["levels"]["instance"]["miou"] > 0.2
     assert metrics["levels"]["instance"]["purity"] > 0.5
+    # what a user sees: per-object scores are the means of the per-instance entries, list precision the share matched
+    assert metrics["version"] == 3
+    for name, level in metrics["levels"].items():
+        entries = [e for e in level["per_instance"] if e["gaussians"] > 0]
+        assert level["num_gt_objects"] == len(entries)
+        assert level["mean_completeness_3d"] == pytest.approx(np.mean([e["completeness_3d"] for e in entries]))
+        purities = [e["purity_3d"] for e in entries if e["purity_3d"] is not None]
+        assert level["mean_purity_3d"] == pytest.approx(np.mean(purities))
+        matched = [e["matched_at_threshold_3d"] for e in entries if e["matched_at_threshold_3d"] is not None]
+        assert len(set(matched)) == len(matched)
+        assert level["num_predicted"] == level["num_predicted_instances"]
+        assert level["list_precision"] == pytest.approx(len(matched) / level["num_predicted"])
+        assert level["confidence_source"] in ("size", "instances") and 0.0 <= level["ap50_3d"] <= 1.0
+        ghosts = [e["ghost_percent"] for e in entries if e["visible"]]
+        assert level["ghost_objects"] == len(ghosts) > 0
+        assert level["ghost_percent"] == pytest.approx(np.mean(ghosts))
+        assert all(0.0 <= g <= 100.0 for g in ghosts)
+        assert all(0.0 <= e["shown_before_percent"] <= 100.0 for e in entries if e["visible"])
+        for key in ("list_precision", "ap50_3d", "ghost_percent", "mean_purity_3d"):
+            assert metrics["summary"][name][key] == level[key]
 
 
 def _grey_wall_of_floaters(model, camera, count: int = 24) -> None:
@@ -294,6 +314,12 @@ def test_rendering_gt_gaussian_ids_through_the_eval_path_scores_high(trained_dem
     assert instance["miou"] > 0.5, instance["per_instance"]
     assert instance["recall"] >= 0.8
     assert instance["purity"] == 1.0 and instance["completeness"] == 1.0
+    # the GT as instances: every instance is one whole object, and removing it leaves no labelled Gaussian
+    for level in result.metrics["levels"].values():
+        assert level["list_precision"] == 1.0 and level["ap50_3d"] == 1.0
+        assert level["mean_completeness_3d"] == 1.0 and level["mean_purity_3d"] == 1.0
+        assert level["ghost_percent"] == 0.0 and level["ghost_objects"] > 0
+    assert "| instance | 1.000 | 1.000 | 1.000 |" in result.table and "ghost %" in result.table
     # parts are small at 128 px and the fixture's 240-step geometry is blurry: GT-rendered parts
     # reach ~0.4 mIoU; a misalignment drops it near 0
     assert result.metrics["levels"]["part"]["miou"] > 0.3

@@ -1,17 +1,24 @@
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
+from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.core.rasterize_torch import rasterize_torch
 from votesplat_ns.eval.evaluation import (
+    average_precision_3d,
     check_reconstruction,
     contingency,
     flat_image_psnr,
     gaussian_purity,
     instance_palette,
     match_instances,
+    object_scores,
     psnr,
     save_comparison_png,
 )
+from votesplat_ns.eval.ground_truth import score_level
+from votesplat_ns.eval.removal import ghost_fractions, mean_ghost_percent
 
 
 def _two_views():
@@ -291,3 +298,172 @@ def test_reconstruction_check_is_scale_free():
         # every PSNR moves by the same -20 log10(factor) dB (errors shrink with the contrast)
         np.testing.assert_allclose(scaled.psnr - base.psnr, -20 * np.log10(factor), atol=1e-9)
         np.testing.assert_allclose(scaled.flat_psnr - base.flat_psnr, -20 * np.log10(factor), atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- what a user sees
+
+
+def _objects_with_a_fragment():
+    """20 Gaussians: object 1 (10), object 2 (4), background (6); instance 7 is a fragment of object 1."""
+    gt = np.array([1] * 10 + [2] * 4 + [0] * 6)
+    pred = np.array([5] * 8 + [7] * 2 + [9] * 4 + [5] * 2 + [9] * 4)
+    return pred, gt
+
+
+def test_per_object_completeness_and_purity():
+    pred, gt = _objects_with_a_fragment()
+    scores = gaussian_purity(pred, gt)
+    assert scores.per_gt_completeness == {1: pytest.approx(0.8), 2: 1.0}
+    assert scores.per_gt_match == {1: 5, 2: 9}
+    # instance 5: 8 of object 1 + 2 background; instance 9: the 4 of object 2 + 4 background
+    assert scores.per_gt_purity == {1: pytest.approx(0.8), 2: pytest.approx(0.5)}
+    assert scores.per_gt_iou == {1: pytest.approx(8 / 12), 2: pytest.approx(0.5)}
+    assert scores.mean_completeness == pytest.approx(0.9)
+    assert scores.completeness == pytest.approx(12 / 14)  # the pooled one weights by size
+    assert scores.mean_purity == pytest.approx(0.65)
+    nothing = gaussian_purity(np.full(20, -1), gt)
+    assert nothing.per_gt_purity == {1: None, 2: None} and nothing.mean_purity is None
+    assert nothing.per_gt_match == {1: None, 2: None}
+
+
+def test_a_fragment_lowers_list_precision():
+    pred, gt = _objects_with_a_fragment()
+    confidence = {5: 0.9, 7: 0.5, 9: 0.8}
+    with_fragment = object_scores(pred, gt, confidence)
+    assert with_fragment.num_predicted == 3 and with_fragment.num_gt == 2 and with_fragment.num_matched == 2
+    assert with_fragment.matches == {1: 5, 2: 9}  # IoU 8/12 and exactly 0.5 (>=)
+    assert with_fragment.list_precision == pytest.approx(2 / 3)
+    whole = object_scores(np.where(pred == 7, -1, pred), gt, confidence)
+    assert whole.list_precision == 1.0 and whole.num_predicted == 2
+    # an object split 6/4: the larger piece is matched (IoU 0.6), the 4-piece (IoU 0.4) is not
+    split = object_scores(np.array([3] * 6 + [4] * 4), np.ones(10, dtype=np.int64), {3: 1.0, 4: 1.0})
+    assert split.matches == {1: 3} and split.list_precision == 0.5
+    # half an object is no match at a threshold above 0.5
+    assert object_scores(np.array([3] * 5 + [4] * 5), np.ones(10, dtype=np.int64), {3: 1, 4: 1}, 0.6).num_matched == 0
+    empty = object_scores(np.full(10, -1), np.ones(10, dtype=np.int64), {})
+    assert empty.list_precision == 0.0 and empty.num_predicted == 0 and empty.ap == 0.0
+
+
+def _ap_case():
+    """Three objects of 10 Gaussians; instances: 1 = object 1, 2 = 3 of object 2, 3 = its other 7, 4 = 4 of object 3."""
+    gt = np.repeat([1, 2, 3], 10)
+    pred = np.array([1] * 10 + [2] * 3 + [3] * 7 + [4] * 4 + [-1] * 6)
+    return pred, gt
+
+
+def test_ap_by_hand():
+    pred, gt = _ap_case()
+    # ranked 1, 2, 3, 4: TP, FP (IoU 0.3), TP (0.7), FP (0.4); precision 1, 1/2, 2/3, 1/2 at recall 1/3, 1/3, 2/3, 2/3
+    result = average_precision_3d(pred, gt, {1: 0.9, 2: 0.8, 3: 0.7, 4: 0.6})
+    assert result["order"] == [1, 2, 3, 4]
+    assert result["precision"] == pytest.approx([1, 1 / 2, 2 / 3, 1 / 2])
+    assert result["recall"] == pytest.approx([1 / 3, 1 / 3, 2 / 3, 2 / 3])
+    # monotone envelope 1, 2/3, 2/3, 1/2; area = 1/3 * 1 + 1/3 * 2/3
+    assert result["ap"] == pytest.approx(1 / 3 + 2 / 9)
+    # the fragment ranked last: TP, TP, FP, FP -> 1/3 + 1/3
+    assert average_precision_3d(pred, gt, {1: 0.9, 2: 0.1, 3: 0.7, 4: 0.6})["ap"] == pytest.approx(2 / 3)
+    # a duplicate of an object already taken is a false positive even at IoU 1
+    dup_pred = np.concatenate([pred, [5] * 10])
+    dup_gt = np.concatenate([gt, [1] * 10])  # instance 5 = 10 more Gaussians of object 1
+    ranked = average_precision_3d(dup_pred, dup_gt, {1: 0.1, 2: 0.8, 3: 0.7, 4: 0.6, 5: 0.9})
+    assert ranked["order"] == [5, 2, 3, 4, 1]
+    assert ranked["precision"] == pytest.approx([1, 1 / 2, 2 / 3, 1 / 2, 2 / 5])  # 1 (IoU 0.5) comes too late
+    with pytest.raises(ValueError, match="no confidence"):
+        average_precision_3d(pred, gt, {1: 0.9})
+
+
+def test_score_level_reports_the_object_scores_and_ranks_by_size_without_a_confidence():
+    pred, gt = _ap_case()
+    view = np.zeros((2, 3), dtype=np.int64)
+    view[0] = [1, 2, 3]
+    pred_view = np.array([[0, 2, 3], [-1, -1, -1]])  # clustering ids: 0..3, -1 = none
+    result = score_level([view], [pred_view], gt, pred - (pred > 0), iou_threshold=0.5)
+    assert result["num_predicted"] == 4 and result["num_gt_objects"] == 3
+    assert result["list_precision"] == pytest.approx(2 / 4)
+    # sizes 10, 3, 7, 4: ranked 1, 3, 4, 2 -> TP, TP, FP, FP
+    assert result["confidence_source"] == "size" and result["ap50_3d"] == pytest.approx(2 / 3)
+    by_instance = {entry["id"]: entry for entry in result["per_instance"]}
+    assert by_instance[2]["matched_instance_3d"] == 2 and by_instance[2]["matched_at_threshold_3d"] == 2
+    assert by_instance[3]["completeness_3d"] == pytest.approx(0.4) and by_instance[3]["purity_3d"] == 1.0
+    assert result["mean_completeness_3d"] == pytest.approx((1 + 0.7 + 0.4) / 3)
+    given = score_level([view], [pred_view], gt, pred - (pred > 0), confidence=[0.9, 0.8, 0.7, 0.6])
+    assert given["confidence_source"] == "instances" and given["ap50_3d"] == pytest.approx(1 / 3 + 2 / 9)
+
+
+# the removal scene: a camera at the origin looking down +z at a square object (z = 2) before a wall (z = 4)
+SIZE, FOCAL = 24, 24.0
+
+
+def _grid(half: float, z: float, step: float):
+    ticks = np.arange(-half + step / 2, half, step)
+    x, y = np.meshgrid(ticks, ticks, indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], axis=1)
+
+
+def _removal_scene():
+    obj = _grid(0.5, 2.0, 0.1)  # projects to pixels 6..18
+    wall = _grid(1.0, 4.0, 0.1)  # covers the whole view
+    means = torch.tensor(np.concatenate([obj, wall]), dtype=torch.float32)
+    n = means.shape[0]
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    scales = torch.cat([torch.full((len(obj), 3), 0.06), torch.full((len(wall), 3), 0.12)])
+    opacities = torch.full((n,), 0.99)
+    labels = np.concatenate([np.ones(len(obj), np.int64), np.zeros(len(wall), np.int64)])
+    K = torch.tensor([[FOCAL, 0, SIZE / 2], [0, FOCAL, SIZE / 2], [0, 0, 1.0]])
+    view = PinholeView(torch.eye(4), K, SIZE, SIZE)
+    gt_map = np.zeros((SIZE, SIZE), dtype=np.int64)
+    gt_map[6:18, 6:18] = 1
+    return (means, quats, scales, opacities), labels, view, gt_map, len(obj), obj
+
+
+def test_ghost_fraction_ignores_the_opaque_background_behind_a_removed_object():
+    gaussians, labels, view, gt_map, num_obj, obj = _removal_scene()
+    everything = np.arange(num_obj)
+    result = ghost_fractions(rasterize_torch, *gaussians, labels, {1: everything}, [view], [gt_map])[1]
+    assert result["pixels"] == 144 and result["shown_before"] > 0.95
+    assert result["ghost_fraction"] == 0.0
+    # an opacity test would count every pixel: the wall behind is opaque where the object was
+    keep = torch.ones(len(labels), dtype=torch.bool)
+    keep[:num_obj] = False
+    means, quats, scales, opacities = gaussians
+    _, alpha, _ = rasterize_torch(
+        means[keep],
+        quats[keep],
+        scales[keep],
+        opacities[keep],
+        torch.ones(int(keep.sum()), 1),
+        torch.eye(4)[None],
+        view.K[None],
+        SIZE,
+        SIZE,
+    )
+    assert (alpha[0, ..., 0].numpy()[gt_map == 1] > 0.5).all()
+    # an instance that missed the object's left half leaves it behind as a ghost; the right half,
+    # where the opaque wall now shows, is not one (an opacity test would give 100%)
+    right = np.flatnonzero(obj[:, 0] > 0)
+    half = ghost_fractions(rasterize_torch, *gaussians, labels, {1: right}, [view], [gt_map])[1]
+    assert 0.4 < half["ghost_fraction"] < 0.7  # 72 of 144 pixels, plus the blur across the cut
+    # no instance to remove: the ghost is everything the labelled Gaussians show
+    none = ghost_fractions(rasterize_torch, *gaussians, labels, {1: None}, [view], [gt_map])[1]
+    assert none["ghost_fraction"] == none["shown_before"]
+    assert mean_ghost_percent({1: result, 2: half, 3: {"ghost_fraction": None}}) == pytest.approx(
+        50 * half["ghost_fraction"]
+    )
+
+
+def test_ghost_leftovers_hidden_behind_another_surface_do_not_count():
+    gaussians, labels, view, gt_map, num_obj, obj = _removal_scene()
+    means, quats, scales, opacities = gaussians
+    # the object's leftovers (its left half) sit behind a screen of background Gaussians at z = 1
+    screen = torch.tensor(_grid(0.3, 1.0, 0.05), dtype=torch.float32)
+    means = torch.cat([means, screen])
+    quats = torch.cat([quats, torch.tensor([[1.0, 0, 0, 0]]).repeat(len(screen), 1)])
+    scales = torch.cat([scales, torch.full((len(screen), 3), 0.04)])
+    opacities = torch.cat([opacities, torch.full((len(screen),), 0.99)])
+    labels = np.concatenate([labels, np.zeros(len(screen), np.int64)])
+    right = np.flatnonzero(obj[:, 0] > 0)
+    open_half = ghost_fractions(
+        rasterize_torch, *_removal_scene()[0], _removal_scene()[1], {1: right}, [view], [gt_map]
+    )
+    hidden = ghost_fractions(rasterize_torch, means, quats, scales, opacities, labels, {1: right}, [view], [gt_map])
+    assert hidden[1]["ghost_fraction"] < open_half[1]["ghost_fraction"] - 0.1

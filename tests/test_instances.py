@@ -294,6 +294,27 @@ def test_save_and_load_round_trip(tmp_path):
         InstanceSet.load(tmp_path / "missing")
 
 
+def test_confidence_is_saved_loaded_and_falls_back_to_the_size(tmp_path):
+    level, _, _ = make_level("instance", seed=1)
+    part, _, _ = make_level("part", seed=2)
+    level.confidence = np.linspace(0.9, 0.1, level.num_instances)
+    instances = InstanceSet([level, part], 60)
+    instances.validate()
+    instances.save(tmp_path)
+    on_disk = json.loads((tmp_path / MANIFEST_NAME).read_text())
+    assert [i["confidence"] for i in on_disk["levels"][0]["instances"]] == pytest.approx(level.confidence.tolist())
+    assert all("confidence" not in i for i in on_disk["levels"][1]["instances"])  # absent, not made up
+    loaded = InstanceSet.load(tmp_path)
+    np.testing.assert_allclose(loaded.level("instance").confidence, level.confidence)
+    np.testing.assert_allclose(loaded.level("instance").ranking_confidence(), level.confidence)
+    assert loaded.level("part").confidence is None
+    # without a confidence, instances rank by their share of the level's foreground Gaussians
+    np.testing.assert_allclose(loaded.level("part").ranking_confidence(), part.counts / part.foreground.sum())
+    level.confidence = np.ones(level.num_instances + 1)
+    with pytest.raises(ValueError, match="confidence"):
+        InstanceSet([level], 60).validate()
+
+
 def test_colours_are_stable_and_distinct():
     ids = np.arange(-1, 40)
     colors = instance_colors(ids)

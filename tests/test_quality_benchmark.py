@@ -183,3 +183,35 @@ def test_sweep_family_option_reads_the_set_folder(sweep, tmp_path):
     (tmp_path / SET_MANIFEST).write_text(json.dumps({"set": "test", "seeds": list(TUNING_SEEDS)}))
     with pytest.raises(SystemExit):
         sweep.parse_args(["--family", "test", "--family-dir", str(tmp_path)])  # seeds that are not this code's test set
+
+
+def test_sweep_rows_carry_the_object_scores_and_the_table_averages_them(sweep):
+    def level(list_precision, ghost, purity):
+        return {
+            "miou": 0.9,
+            "miou_valid_views": 0.9,
+            "precision": 0.8,
+            "recall": 0.7,
+            "completeness": 0.95,
+            "num_predicted_instances": 4,
+            "num_gt_objects": 3,
+            "mean_completeness_3d": 0.9,
+            "mean_purity_3d": purity,
+            "list_precision": list_precision,
+            "ap50_3d": 0.5,
+            "ghost_percent": ghost,
+        }
+
+    rows = []
+    for scene, (precision, ghost, purity) in (("a", (0.75, 2.0, 0.8)), ("b", (0.25, 4.0, None))):
+        metrics = {"levels": {"instance": level(precision, ghost, purity)}}
+        rows.append({"scene": scene, "masks": "gt", "train": "default", "cluster": "c", "seed": 0, "level": "instance"})
+        rows[-1].update(sweep.score(metrics, "instance"))
+    assert rows[0]["list_precision"] == 0.75 and rows[0]["ghost_percent"] == 2.0 and rows[1]["purity_object"] is None
+    header, _, means = sweep.table(rows).splitlines()[:3]
+    cells = dict(
+        zip([c.strip() for c in header.strip("|").split("|")], [c.strip() for c in means.strip("|").split("|")])
+    )
+    assert cells["list precision"] == "0.500" and cells["ghost %"] == "3.0" and cells["AP@50 3D"] == "0.500"
+    assert cells["purity/object"] == "0.800"  # the scene without a matched object is left out, not counted as 0
+    assert cells["#objects"] == "3.0" and cells["completeness/object"] == "0.900"

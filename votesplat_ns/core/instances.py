@@ -63,6 +63,18 @@ def instance_colors(instance_ids) -> np.ndarray:
     return table[inverse.reshape(ids.shape)]
 
 
+def size_confidence(counts, num_foreground: int) -> np.ndarray:
+    """Fallback confidence per instance: its Gaussian count as a fraction of the level's foreground.
+
+    HDBSCAN groups Gaussians whose votes agree on one centre; the more Gaussians agree, the more
+    training views' masks stand behind the instance, while fragments and floaters are the small
+    clusters that few Gaussians (few views) support. Only the order matters to a ranking metric
+    (AP); dividing by the foreground count puts the value in [0, 1] for every scene.
+    """
+    counts = np.asarray(counts, dtype=np.float64)
+    return counts / max(int(num_foreground), 1)
+
+
 @dataclass
 class LevelInstances:
     """The instances of one vote level."""
@@ -78,8 +90,8 @@ class LevelInstances:
     parents: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] int64 id at the parent level, -1 = none (or no parent level)
     parent_overlap: np.ndarray = None  # pyright: ignore[reportAssignmentType]  # [K] fraction of the instance's Gaussians inside its parent
     clustering: Dict[str, object] = field(default_factory=dict)
-    # [K] float in [0, 1]: how sure the instance is an object (ranks instances for 3D AP;
-    # core/whole_objects.py instance_confidence); None when the clustering gave none
+    # [K] float in [0, 1]: how sure the instance is an object (core/whole_objects.py instance_confidence), None
+    # when the clustering gave none; scorers rank instances by :meth:`ranking_confidence`, which falls back to the size
     confidence: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
@@ -96,6 +108,12 @@ class LevelInstances:
     @property
     def num_noise(self) -> int:
         return int((self.foreground & (self.ids < 0)).sum())
+
+    def ranking_confidence(self) -> np.ndarray:
+        """[K] ``confidence`` when given, else :func:`size_confidence` of the level."""
+        if self.confidence is not None:
+            return np.asarray(self.confidence, dtype=np.float64)
+        return size_confidence(self.counts, int(self.foreground.sum()))
 
     @classmethod
     def from_ids(
@@ -270,6 +288,10 @@ class InstanceSet:
                 raise ValueError(
                     f"level {level.name!r}: instance counts do not match the ids (or an instance is empty)"
                 )
+            if level.confidence is not None:
+                confidence = np.asarray(level.confidence)
+                if confidence.shape != (k,) or not np.isfinite(confidence).all():
+                    raise ValueError(f"level {level.name!r}: confidence must be [{k}] finite numbers or None")
             parent_name = self.parent_levels[index]
             if parent_name is not None:
                 parent_k = self.level(parent_name).num_instances
@@ -357,7 +379,8 @@ class InstanceSet:
                     parents=arr("parent", np.int64)[:, 0],
                     parent_overlap=arr("parent_overlap")[:, 0],
                     clustering=entry.get("clustering", {}),
-                    confidence=arr("confidence")[:, 0] if all("confidence" in e for e in inst) and inst else None,
+                    # written only when the clustering gave one for every instance
+                    confidence=arr("confidence")[:, 0] if inst and all("confidence" in e for e in inst) else None,
                 )
             )
         return cls(

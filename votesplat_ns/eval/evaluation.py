@@ -19,6 +19,12 @@ counts as unmatched, and:
 3D score (:func:`gaussian_purity`): from per-Gaussian predicted ids and the GT instance each Gaussian
 lies on (0 = none/background, supplied by the caller).
 
+What a user sees (:func:`object_scores`, over Gaussians, the same inputs): an exported instance is
+one entry in the instance list, one click target, one PLY. A GT object is *matched* when the
+one-to-one (Hungarian) assignment on Gaussian-set IoU pairs it with an instance at IoU >= 0.5, so
+a fragment of an object is never matched. List precision = matched instances / all predicted
+instances; 3D AP@50 ranks the instances by a confidence (ScanNet-style, see :func:`average_precision_3d`).
+
 Reconstruction check (:func:`check_reconstruction`): an instance score is only meaningful where the
 render shows the scene. A view whose RGB render failed (e.g. a wall of floaters in front of the
 camera) is flagged from its PSNR, with two scale-free rules (both in dB, i.e. ratios of squared
@@ -226,6 +232,16 @@ class GaussianScores:
       cluster holding most of their instance (unassigned Gaussians count as misses).
     * ``miou_3d``: mean over GT instances of the Gaussian-set IoU with its Hungarian match (0 if none).
     * ``assigned_fraction``: fraction of GT-instance Gaussians that got a predicted id > 0.
+
+    Per GT object (the labels > 0 that some Gaussian carries):
+
+    * ``per_gt_completeness``: the fraction of its Gaussians in the cluster holding most of them;
+      ``mean_completeness`` is its plain mean over objects (``completeness`` weights by size).
+    * ``per_gt_match``: the cluster the Hungarian assignment on Gaussian-set IoU gives it (any IoU
+      > 0; None if none), with that IoU in ``per_gt_iou``.
+    * ``per_gt_purity``: of the Gaussians of that matched cluster, the fraction whose GT label is
+      this object, i.e. how much of what a user selects is the object; None for an object without
+      a match, and ``mean_purity`` is the mean over the matched objects (None if there are none).
     """
 
     purity: float
@@ -235,6 +251,19 @@ class GaussianScores:
     per_cluster_purity: Dict[int, float] = field(default_factory=dict)
     cluster_majority: Dict[int, int] = field(default_factory=dict)
     per_gt_completeness: Dict[int, float] = field(default_factory=dict)
+    per_gt_match: Dict[int, Optional[int]] = field(default_factory=dict)
+    per_gt_iou: Dict[int, float] = field(default_factory=dict)
+    per_gt_purity: Dict[int, Optional[float]] = field(default_factory=dict)
+
+    @property
+    def mean_completeness(self) -> float:
+        values = list(self.per_gt_completeness.values())
+        return float(np.mean(values)) if values else 0.0
+
+    @property
+    def mean_purity(self) -> Optional[float]:
+        values = [v for v in self.per_gt_purity.values() if v is not None]
+        return float(np.mean(values)) if values else None
 
     def to_dict(self) -> dict:
         return {
@@ -242,9 +271,14 @@ class GaussianScores:
             "completeness": self.completeness,
             "miou_3d": self.miou_3d,
             "assigned_fraction": self.assigned_fraction,
+            "mean_completeness": self.mean_completeness,
+            "mean_purity": self.mean_purity,
             "per_cluster_purity": {str(k): v for k, v in self.per_cluster_purity.items()},
             "cluster_majority": {str(k): v for k, v in self.cluster_majority.items()},
             "per_gt_completeness": {str(k): v for k, v in self.per_gt_completeness.items()},
+            "per_gt_match": {str(k): v for k, v in self.per_gt_match.items()},
+            "per_gt_iou": {str(k): v for k, v in self.per_gt_iou.items()},
+            "per_gt_purity": {str(k): v for k, v in self.per_gt_purity.items()},
         }
 
 
@@ -289,14 +323,148 @@ def gaussian_purity(pred_ids, gt_ids) -> GaussianScores:
     per_gt = {g: float(best[k] / sizes[k]) for k, g in enumerate(gt_instances)}
     completeness = float(best.sum() / sizes.sum()) if len(gt_instances) else 0.0
     miou_3d = 0.0
+    match: Dict[int, Optional[int]] = {g: None for g in gt_instances}
+    match_iou = {g: 0.0 for g in gt_instances}
+    match_purity: Dict[int, Optional[float]] = {g: None for g in gt_instances}
     if len(gt_instances) and len(cluster_ids):
-        union = sizes[:, None] + assigned_rows.sum(axis=1)[None, :] - inter
+        cluster_sizes = assigned_rows.sum(axis=1)
+        union = sizes[:, None] + cluster_sizes[None, :] - inter
         iou = inter / np.maximum(union, 1)
         rows, cols = linear_sum_assignment(iou, maximize=True)
         miou_3d = float(iou[rows, cols].sum() / len(gt_instances))
+        for r, c in zip(rows.tolist(), cols.tolist()):
+            if inter[r, c] > 0:
+                g = gt_instances[r]
+                match[g], match_iou[g] = int(cluster_ids[c]), float(iou[r, c])
+                match_purity[g] = float(inter[r, c] / cluster_sizes[c])
     on_object = int(sizes.sum())
     assigned_fraction = float(inter.sum() / on_object) if on_object else 0.0
-    return GaussianScores(purity, completeness, miou_3d, assigned_fraction, per_cluster, majority, per_gt)
+    return GaussianScores(
+        purity, completeness, miou_3d, assigned_fraction, per_cluster, majority, per_gt, match, match_iou, match_purity
+    )
+
+
+def _gaussian_iou_table(pred_ids, gt_ids) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(predicted ids [P] > 0, GT ids [G] > 0, IoU [G,P] of their Gaussian sets) from per-Gaussian ids."""
+    pred = np.asarray(pred_ids)
+    gt = np.asarray(gt_ids)
+    if pred.ndim != 1 or gt.ndim != 1 or pred.shape != gt.shape:
+        raise ValueError(f"pred_ids and gt_ids must be 1D arrays of equal length (got {pred.shape} and {gt.shape})")
+    for name, arr in (("pred_ids", pred), ("gt_ids", gt)):
+        if not np.issubdtype(arr.dtype, np.integer):
+            raise ValueError(f"{name} has dtype {arr.dtype}; per-Gaussian ids must be integers")
+    if gt.size and gt.min() < 0:
+        raise ValueError("gt_ids has negative values; use 0 for Gaussians on no instance")
+    pred = np.where(pred > 0, pred, 0).astype(np.int64)
+    gt = gt.astype(np.int64)
+    clusters = np.unique(pred[pred > 0])
+    objects = np.unique(gt[gt > 0])
+    row = np.searchsorted(objects, gt)
+    col = np.searchsorted(clusters, pred)
+    both = (gt > 0) & (pred > 0)
+    inter = np.zeros((len(objects), len(clusters)), dtype=np.int64)
+    np.add.at(inter, (row[both], col[both]), 1)
+    gt_size = np.array([(gt == g).sum() for g in objects.tolist()], dtype=np.int64)
+    pred_size = np.array([(pred == c).sum() for c in clusters.tolist()], dtype=np.int64)
+    union = gt_size[:, None] + pred_size[None, :] - inter
+    return clusters, objects, inter / np.maximum(union, 1)
+
+
+def average_precision_3d(pred_ids, gt_ids, confidence: Dict[int, float], iou_threshold: float = 0.5) -> dict:
+    """ScanNet-style AP over Gaussians: rank, match greedily, integrate the precision/recall curve.
+
+    ``confidence`` maps every predicted id > 0 to its score. Instances are taken in order of
+    decreasing confidence (ties: smaller id first); each is a true positive if the GT object it
+    overlaps most (Gaussian-set IoU) among the objects not yet taken reaches ``iou_threshold``,
+    which it then takes; otherwise a false positive. With recall r_k = TP_k / #objects and
+    precision p_k = TP_k / k after the k-th instance, the curve is made monotone (p at r is the
+    best precision at any recall >= r) and AP is the area under it, sum_k (r_k - r_{k-1}) p_k.
+    Returns ``ap`` (0 when nothing is predicted; None when there is no GT object), ``precision``
+    and ``recall`` (the curve in ranking order) and ``order`` (the ranked ids).
+    """
+    if not 0.0 < iou_threshold <= 1.0:
+        raise ValueError(f"iou_threshold must be in (0, 1] (got {iou_threshold})")
+    clusters, objects, iou = _gaussian_iou_table(pred_ids, gt_ids)
+    missing = [c for c in clusters.tolist() if c not in confidence]
+    if missing:
+        raise ValueError(f"no confidence for predicted instances {missing[:5]}; give one per predicted id")
+    order = sorted(range(len(clusters)), key=lambda c: (-float(confidence[int(clusters[c])]), int(clusters[c])))
+    taken = np.zeros(len(objects), dtype=bool)
+    hits = []
+    for c in order:
+        candidates = np.where(taken, -1.0, iou[:, c]) if len(objects) else np.zeros(0)
+        best = int(np.argmax(candidates)) if len(objects) else -1
+        hit = best >= 0 and candidates[best] >= iou_threshold
+        if hit:
+            taken[best] = True
+        hits.append(hit)
+    tp = np.cumsum(hits, dtype=np.float64)
+    precision = tp / np.arange(1, len(hits) + 1) if hits else np.zeros(0)
+    recall = tp / len(objects) if len(objects) else np.zeros(len(hits))
+    ap: Optional[float] = None
+    if len(objects):
+        envelope = np.maximum.accumulate(precision[::-1])[::-1] if hits else np.zeros(0)
+        steps = np.diff(np.concatenate([[0.0], recall]))
+        ap = float((steps * envelope).sum())
+    return {
+        "ap": ap,
+        "precision": precision.tolist(),
+        "recall": recall.tolist(),
+        "order": [int(clusters[c]) for c in order],
+    }
+
+
+@dataclass(frozen=True)
+class ObjectScores:
+    """The instance list as a user sees it (module doc): matches at Gaussian-set IoU >= the threshold."""
+
+    num_predicted: int
+    num_gt: int
+    num_matched: int
+    list_precision: float  # matched / predicted instances (0 when nothing is predicted)
+    ap: Optional[float]  # 3D AP at the threshold; None without GT objects
+    matches: Dict[int, Optional[int]]  # GT id -> predicted id matched at >= threshold, None if none
+    iou_threshold: float
+
+    def to_dict(self) -> dict:
+        return {
+            "num_predicted": self.num_predicted,
+            "num_gt": self.num_gt,
+            "num_matched": self.num_matched,
+            "list_precision": self.list_precision,
+            "ap": self.ap,
+            "iou_threshold": self.iou_threshold,
+            "matches": {str(k): v for k, v in self.matches.items()},
+        }
+
+
+def object_scores(pred_ids, gt_ids, confidence: Dict[int, float], iou_threshold: float = 0.5) -> ObjectScores:
+    """List precision and 3D AP of per-Gaussian predicted ids (> 0 = an instance) against GT labels (> 0 = an object).
+
+    A GT object and an instance are matched when the Hungarian assignment maximising total
+    Gaussian-set IoU pairs them at IoU >= ``iou_threshold``; every other instance (a fragment, a
+    floater, a merge that lost its pair) lowers the list precision. ``confidence`` (predicted id
+    -> score) ranks the instances for :func:`average_precision_3d`.
+    """
+    if not 0.0 < iou_threshold <= 1.0:
+        raise ValueError(f"iou_threshold must be in (0, 1] (got {iou_threshold})")
+    clusters, objects, iou = _gaussian_iou_table(pred_ids, gt_ids)
+    matches: Dict[int, Optional[int]] = {int(g): None for g in objects.tolist()}
+    if len(objects) and len(clusters):
+        for r, c in zip(*linear_sum_assignment(iou, maximize=True)):
+            if iou[r, c] >= iou_threshold:
+                matches[int(objects[r])] = int(clusters[c])
+    matched = sum(v is not None for v in matches.values())
+    ap = average_precision_3d(pred_ids, gt_ids, confidence, iou_threshold)["ap"]
+    return ObjectScores(
+        num_predicted=len(clusters),
+        num_gt=len(objects),
+        num_matched=matched,
+        list_precision=matched / len(clusters) if len(clusters) else 0.0,
+        ap=ap,
+        matches=matches,
+        iou_threshold=float(iou_threshold),
+    )
 
 
 # --------------------------------------------------------------------------------------------

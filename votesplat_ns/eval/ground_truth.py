@@ -17,8 +17,9 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from votesplat_ns.core.image_files import read_label_png
+from votesplat_ns.core.instances import size_confidence
 from votesplat_ns.core.ply_io import atomic_write
-from votesplat_ns.eval.evaluation import gaussian_purity, match_instances
+from votesplat_ns.eval.evaluation import gaussian_purity, match_instances, object_scores
 
 DATAPARSER_TRANSFORMS_NAME = "dataparser_transforms.json"
 DEPTH_UNIT_METRES = 1e-3
@@ -275,6 +276,7 @@ def score_level(
     names: Optional[Dict[int, str]] = None,
     iou_threshold: float = 0.5,
     view_ok: Optional[Sequence[bool]] = None,
+    confidence: Union[Sequence[float], np.ndarray, None] = None,
 ) -> dict:
     """2D and 3D scores of one level. Predicted ids are 0..K-1 with -1 = none (clustering's ids).
 
@@ -283,12 +285,37 @@ def score_level(
     over the views where ``view_ok`` is true (default: all) as ``miou_valid_views``,
     ``precision_valid_views``, ``recall_valid_views``, ``f1_valid_views`` (None when those views
     show no GT instance) and ``num_valid_views``.
+
+    What a user sees, over Gaussians (:func:`~votesplat_ns.eval.evaluation.object_scores`):
+    ``mean_completeness_3d`` and ``mean_purity_3d`` (means over GT objects of the per-object
+    values in ``per_instance``), ``list_precision`` (instances matched at Gaussian IoU >=
+    ``iou_threshold`` / all instances), ``num_predicted`` and ``num_gt_objects``, and ``ap50_3d``
+    (3D AP at ``iou_threshold``, instances ranked by ``confidence`` [K], per clustering id; None:
+    :func:`~votesplat_ns.core.instances.size_confidence` of the ids, ``confidence_source`` says
+    which).
     """
     shifted_maps = [np.asarray(m).astype(np.int64) + 1 for m in pred_maps]
     gt_maps = [np.asarray(m).astype(np.int64) for m in gt_maps]
     scores2d = match_instances(gt_maps, shifted_maps, iou_threshold=iou_threshold)
     scores3d = gaussian_purity(
         np.asarray(pred_gaussians).astype(np.int64) + 1, np.asarray(gt_gaussians).astype(np.int64)
+    )
+    pred_ids = np.asarray(pred_gaussians).astype(np.int64)
+    pred_count = int(pred_ids.max()) + 1 if pred_ids.size else 0
+    if confidence is None:
+        counts = np.bincount(pred_ids[pred_ids >= 0], minlength=max(pred_count, 0))
+        confidence_values, confidence_source = size_confidence(counts, int((pred_ids >= 0).sum())), "size"
+    else:
+        confidence_values, confidence_source = np.asarray(confidence, dtype=np.float64).reshape(-1), "instances"
+        if confidence_values.shape[0] < pred_count:
+            raise ValueError(
+                f"confidence has {confidence_values.shape[0]} entries for {pred_count} predicted instances"
+            )
+    objects = object_scores(
+        pred_ids + 1,
+        np.asarray(gt_gaussians).astype(np.int64),
+        {k + 1: float(confidence_values[k]) for k in range(max(pred_count, 0))},
+        iou_threshold,
     )
     names = dict(names or {})
     gt_area = {int(g): 0 for g in scores2d.gt_ids}
@@ -311,14 +338,20 @@ def score_level(
                 "matched_prediction": None if matched is None else int(matched) - 1,
                 "gaussians": int(on_gt[gid]) if gid < len(on_gt) else 0,
                 "completeness_3d": scores3d.per_gt_completeness.get(gid),
+                "purity_3d": scores3d.per_gt_purity.get(gid),
+                "iou_3d": scores3d.per_gt_iou.get(gid),
+                "matched_instance_3d": _unshift(scores3d.per_gt_match.get(gid)),
+                "matched_at_threshold_3d": _unshift(objects.matches.get(gid)),
             }
         )
-    pred_count = int(np.asarray(pred_gaussians).max()) + 1 if np.size(pred_gaussians) else 0
     two_d = scores2d.to_dict()
     two_d["matches"] = {k: (None if v is None else int(v) - 1) for k, v in scores2d.matches.items()}
     three_d = scores3d.to_dict()
     three_d["per_cluster_purity"] = {str(int(k) - 1): v for k, v in scores3d.per_cluster_purity.items()}
     three_d["cluster_majority"] = {str(int(k) - 1): v for k, v in scores3d.cluster_majority.items()}
+    three_d["per_gt_match"] = {str(k): _unshift(v) for k, v in scores3d.per_gt_match.items()}
+    objects_out = objects.to_dict()
+    objects_out["matches"] = {str(k): _unshift(v) for k, v in objects.matches.items()}
     if view_ok is not None and len(view_ok) != len(gt_maps):
         raise ValueError(f"view_ok has {len(view_ok)} entries for {len(gt_maps)} views")
     valid = [i for i in range(len(gt_maps)) if view_ok is None or view_ok[i]]
@@ -334,6 +367,13 @@ def score_level(
         "completeness": scores3d.completeness,
         "miou_3d": scores3d.miou_3d,
         "num_predicted_instances": max(pred_count, 0),
+        "mean_completeness_3d": scores3d.mean_completeness,
+        "mean_purity_3d": scores3d.mean_purity,
+        "list_precision": objects.list_precision,
+        "num_predicted": objects.num_predicted,
+        "num_gt_objects": objects.num_gt,
+        "ap50_3d": objects.ap,
+        "confidence_source": confidence_source,
         "miou_valid_views": None if valid_scores is None else valid_scores.miou,
         "precision_valid_views": None if valid_scores is None else valid_scores.precision,
         "recall_valid_views": None if valid_scores is None else valid_scores.recall,
@@ -341,8 +381,14 @@ def score_level(
         "num_valid_views": len(valid),
         "scores_2d": two_d,
         "scores_3d": three_d,
+        "objects_3d": objects_out,
         "per_instance": per_instance,
     }
+
+
+def _unshift(value: Optional[int]) -> Optional[int]:
+    """A scorer id (clustering id + 1) back to the clustering's id; None stays None."""
+    return None if value is None else int(value) - 1
 
 
 def write_json_atomic(path: Union[str, Path], data: dict) -> Path:

@@ -24,6 +24,14 @@ dataset's exact label images:
   projected mean in the training views where the mean is not hidden behind the GT depth
   (:func:`projected_majority_labels`).
 
+* What a user sees (:func:`~votesplat_ns.eval.ground_truth.score_level`): per GT object the 3D
+  completeness and purity over Gaussians and their means, list precision (instances matched at
+  Gaussian IoU >= 0.5 over all instances), 3D AP@50 (instances ranked by their ``confidence``,
+  else by size), and the object-removal check (:mod:`votesplat_ns.eval.removal`): each object's
+  3D-matched instance is deleted and the held-out views rendered again; ``ghost_percent`` is the
+  share of the object's GT pixels that its leftover Gaussians still cover (per object and the
+  mean). It costs (objects + 1) renders per held-out view and level; ``ghost_check=False`` skips it.
+
 Output folder: ``metrics.json`` (atomic; per level the scores, ``per_view`` the PSNR and verdict of
 each view) and ``comparison_<level>.png`` (GT | prediction per view, a matched prediction shown in
 its GT instance's colour), plus a short table and the flagged views on stdout.
@@ -61,12 +69,13 @@ from votesplat_ns.eval.ground_truth import (
     score_level,
     write_json_atomic,
 )
+from votesplat_ns.eval.removal import ghost_fractions, mean_ghost_percent
 from votesplat_ns.ns.run import dataset_views, load_run, read_run_config
 from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
 METRICS_NAME = "metrics.json"
 METRICS_FORMAT = "votesplat-eval"
-METRICS_VERSION = 2  # 2: per_view PSNR, reconstruction check, *_valid_views scores
+METRICS_VERSION = 3  # 2: per_view PSNR, reconstruction check, *_valid_views scores; 3: object scores, ghosts
 DEFAULT_OUTPUT_FOLDER = "votesplat_eval"
 ViewSplit = Literal["eval", "train", "all"]
 
@@ -221,6 +230,7 @@ def evaluate_run(
     mask_check_options: Optional[Dict[str, object]] = None,
     cluster_options: Optional[Dict[str, object]] = None,
     log: Optional[Callable[[str], None]] = print,
+    ghost_check: bool = True,
 ) -> EvaluationResult:
     """Score a votesplat run (see the module doc); writes metrics.json and comparison PNGs.
 
@@ -230,7 +240,7 @@ def evaluate_run(
     (``mask_check_options``: keyword arguments of ``regroup_with_masks``); ``cluster_options`` are further keyword
     arguments of ``cluster_levels`` (benchmark variants). The instances are the run's record
     (:func:`~votesplat_ns.ns.run_instances.run_instances`), computed and kept if it is missing or stale;
-    ``log`` gets its one-line messages.
+    ``log`` gets its one-line messages. ``ghost_check`` runs the object-removal check (module doc).
     """
     from votesplat_ns.ns.rasterizer import rasterize
 
@@ -298,8 +308,11 @@ def evaluate_run(
         surface_tolerance_px=surface_tolerance_px,
     )
     predicted = {name: instance_set.level(name).ids for name, _ in pairs}
+    confidence = {name: instance_set.level(name).confidence for name, _ in pairs}
     if gaussian_ids_override is not None:
-        predicted.update(gaussian_ids_override(scene, {name: gt_gaussians[gt] for name, gt in pairs}))
+        overridden = gaussian_ids_override(scene, {name: gt_gaussians[gt] for name, gt in pairs})
+        predicted.update(overridden)
+        confidence.update({name: None for name in overridden})  # ranked by size (score_level)
 
     output_dir.mkdir(parents=True, exist_ok=True)
     levels_out: Dict[str, dict] = {}
@@ -315,7 +328,10 @@ def evaluate_run(
             dataset.named_ids(gt),
             iou_threshold,
             view_ok=check.ok.tolist(),
+            confidence=confidence[name],
         )
+        if ghost_check:
+            add_ghost_check(result, scene, gt_gaussians[gt], predicted[name], chosen, gt_maps, rasterize)
         picture = output_dir / f"comparison_{name}.png"
         save_comparison_png(gt_maps, [m + 1 for m in pred_maps], picture, scale=2)
         result.update(gt_level=gt, comparison_png=picture.name, clustering=instance_set.level(name).clustering)
@@ -336,11 +352,40 @@ def evaluate_run(
         "gaussian_gt": gt_info,
         "reconstruction": check.to_dict(),
         "per_view": check.per_view(v.name for v in chosen),
-        "summary": {name: {k: levels_out[name][k] for k in SUMMARY_KEYS} for name in levels_out},
+        "summary": {name: {k: levels_out[name].get(k) for k in SUMMARY_KEYS} for name in levels_out},
         "levels": levels_out,
     }
     write_json_atomic(output_dir / METRICS_NAME, metrics)
     return EvaluationResult(metrics, output_dir, format_table(metrics), maps)
+
+
+def add_ghost_check(result: dict, scene: TrainedScene, gt_labels, pred_ids, views, gt_maps, rasterize_fn) -> None:
+    """Run the object-removal check of one level and add it to ``score_level``'s ``result``.
+
+    Each GT object carried by some Gaussian loses the Gaussians of its 3D match
+    (``scores_3d.per_gt_match``; nothing when it has none); ``per_instance`` gains
+    ``ghost_percent`` and ``shown_before_percent``, the level ``ghost_percent`` (their mean over
+    objects with GT pixels, None if none) and ``ghost_objects`` (how many were checked).
+    """
+    keep = scene.finite()
+    means, quats, scales, opacities = scene.gaussians(keep)[:4]
+    pred_kept = np.asarray(pred_ids)[keep]
+    removed = {}
+    for key, match in result["scores_3d"]["per_gt_match"].items():
+        removed[int(key)] = None if match is None else np.flatnonzero(pred_kept == int(match))
+    ghosts = ghost_fractions(
+        rasterize_fn, means, quats, scales, opacities, np.asarray(gt_labels)[keep], removed, views, gt_maps
+    )
+    for entry in result["per_instance"]:
+        ghost = ghosts.get(entry["id"])
+        entry["ghost_percent"] = _percent(None if ghost is None else ghost["ghost_fraction"])
+        entry["shown_before_percent"] = _percent(None if ghost is None else ghost["shown_before"])
+    result["ghost_percent"] = mean_ghost_percent(ghosts)
+    result["ghost_objects"] = sum(g["ghost_fraction"] is not None for g in ghosts.values())
+
+
+def _percent(fraction: Optional[float]) -> Optional[float]:
+    return None if fraction is None else 100.0 * fraction
 
 
 SUMMARY_KEYS = (
@@ -355,6 +400,13 @@ SUMMARY_KEYS = (
     "precision_valid_views",
     "recall_valid_views",
     "num_valid_views",
+    "mean_completeness_3d",
+    "mean_purity_3d",
+    "list_precision",
+    "num_predicted",
+    "num_gt_objects",
+    "ap50_3d",
+    "ghost_percent",
 )
 
 
@@ -375,6 +427,18 @@ def format_table(metrics: dict) -> str:
             f"| {name} | {metrics['views']} ({num_views}) | {level['miou']:.3f} | {level['precision']:.3f} | {level['recall']:.3f} | "
             f"{level['num_valid_views']}/{num_views} | {_fmt(level['miou_valid_views'])} | {_fmt(level['precision_valid_views'])} | "
             f"{_fmt(level['recall_valid_views'])} | {level['purity']:.3f} | {level['completeness']:.3f} | {num_gt} | {level['num_predicted_instances']} |"
+        )
+    rows += [
+        "",
+        "What a user sees (over Gaussians; matched = one-to-one at Gaussian IoU >= 0.5; ghost = % of an object's pixels left after removing its instance):",
+        "| level | completeness/object | purity/object | list precision | #objects | #instances | AP@50 | ghost % |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, level in metrics["levels"].items():
+        ghost = level.get("ghost_percent")
+        rows.append(
+            f"| {name} | {level['mean_completeness_3d']:.3f} | {_fmt(level['mean_purity_3d'])} | {level['list_precision']:.3f} | "
+            f"{level['num_gt_objects']} | {level['num_predicted']} | {_fmt(level['ap50_3d'])} | {'-' if ghost is None else f'{ghost:.1f}'} |"
         )
     check = metrics["reconstruction"]
     median = check["median_psnr"]
