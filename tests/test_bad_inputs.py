@@ -102,7 +102,10 @@ def copy_run(config_path: Path, output_dir: Path) -> Path:
 
     config = yaml.load(Path(config_path).read_text(), Loader=yaml.Loader)
     config.output_dir = output_dir
-    shutil.copytree(Path(config_path).parent, config.get_base_dir())
+    # without the instances another command kept beside the original (ns/run_instances.py): each case starts clean
+    shutil.copytree(
+        Path(config_path).parent, config.get_base_dir(), ignore=shutil.ignore_patterns("votesplat_instances")
+    )
     (config.get_base_dir() / "config.yml").write_text(yaml.dump(config))
     return config.get_base_dir() / "config.yml"
 
@@ -550,7 +553,8 @@ def non_finite_vote_offsets(ws, fixtures):
             "Warning: 7 Gaussians with vote support at level 'instance' have a NaN/Inf mean or vote offset",
             "exported as background",
         ],
-        new_paths=("export", "export/**"),
+        # the run's instances are kept beside it (ns/run_instances.py)
+        new_paths=("export", "export/**", "run/**/votesplat_instances", "run/**/votesplat_instances/**"),
     )
 
 

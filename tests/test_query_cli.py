@@ -248,10 +248,11 @@ def test_query_end_to_end_with_random_clip_weights(trained_demo, demo_scene, tmp
 def test_instances_from_an_export_are_the_ones_clustered_here(demo_scene, tmp_path):
     # votesplat export clusters every level; --instances reads its instance_ids.npz back.
     params = demo_scene.params
-    cluster_levels(params.means, params.vote_offsets, params.vote_support, params.level_names).save(tmp_path)
+    saved = cluster_levels(params.means, params.vote_offsets, params.vote_support, params.level_names)
+    saved.save(tmp_path)
     never = lambda: pytest.fail("--instances must not compute the run's instances")  # noqa: E731
     exported, source = instances_of_level(params, None, tmp_path, never)
-    np.testing.assert_array_equal(exported.ids, demo_scene.level.ids)
+    np.testing.assert_array_equal(exported.ids, saved.levels[0].ids)
     assert source == f"export {tmp_path}"
     part, _ = instances_of_level(params, "1", tmp_path, never)
     assert part.name == "part"
