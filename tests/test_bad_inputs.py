@@ -554,7 +554,7 @@ def non_finite_vote_offsets(ws, fixtures):
             "exported as background",
         ],
         # the run's instances are kept beside it (ns/run_instances.py)
-        new_paths=("export", "export/**", "run/**/votesplat_instances", "run/**/votesplat_instances/**"),
+        new_paths=("export", "export/**", "run/*/*/*/votesplat_instances", "run/*/*/*/votesplat_instances/**"),
     )
 
 
