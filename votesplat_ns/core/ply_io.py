@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import shutil
 from pathlib import Path
 from typing import Any, Dict, Iterator, Optional, Sequence, Tuple, Union
 
@@ -93,6 +94,19 @@ def make_temp_dir(path: PathLike, tag: str = "") -> Path:
             return candidate
         except FileExistsError:  # pragma: no cover - 48 random bits
             continue
+
+
+def replace_folder(staging: PathLike, target: PathLike) -> None:
+    """Rename the finished folder ``staging`` onto ``target``, replacing a folder there (moved aside first, then
+    deleted), so that a reader finds the old folder or the new one, never a mix."""
+    staging, target = Path(staging), Path(target)
+    if target.exists():
+        old = temp_sibling(target, ".old")
+        target.rename(old)
+        staging.rename(target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        staging.rename(target)
 
 
 @contextlib.contextmanager

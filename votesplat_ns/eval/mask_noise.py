@@ -27,7 +27,7 @@ from typing import List, Sequence, Tuple, Union
 
 import numpy as np
 
-from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling
+from votesplat_ns.core.ply_io import make_temp_dir, replace_folder
 from votesplat_ns.eval.ground_truth import GT_LEVELS, GroundTruthDataset, write_json_atomic
 
 _DROP, _MERGE, _SPLIT, _JITTER = 1, 2, 3, 4
@@ -257,13 +257,7 @@ def write_noisy_masks(
             "views_changed": changed,
         }
         write_json_atomic(staging / NOISE_MANIFEST_NAME, manifest)
-        if output.exists():
-            old = temp_sibling(output, ".old")
-            output.rename(old)
-            staging.rename(output)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            staging.rename(output)
+        replace_folder(staging, output)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

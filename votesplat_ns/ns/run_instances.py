@@ -42,7 +42,7 @@ import numpy as np
 
 from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import MANIFEST_NAME, InstanceSet
-from votesplat_ns.core.ply_io import TEMP_MARKER, jsonable, make_temp_dir
+from votesplat_ns.core.ply_io import TEMP_MARKER, jsonable, make_temp_dir, replace_folder
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 
@@ -256,14 +256,7 @@ def _write_record(instances: InstanceSet, run_dir: Path, key: Dict[str, str], se
                 }
             },
         )
-        if target.exists():
-            old = make_temp_dir(target, ".old")
-            old.rmdir()
-            target.rename(old)
-            staging.rename(target)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            staging.rename(target)
+        replace_folder(staging, target)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
