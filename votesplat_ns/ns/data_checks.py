@@ -252,7 +252,7 @@ def check_frames(
         if mode not in NERFSTUDIO_IMAGE_MODES:
             raise VoteSplatInputError(
                 f"image {image} has PIL mode {mode}, which nerfstudio's image loader reads as wrong colours "
-                f"(CMYK as inverted RGBA, palette indices as grey); convert it to RGB (e.g. PIL's "
+                f"(CMYK as inverted RGBA, palette indices as grey); convert it to RGB, or RGBA to keep transparency (e.g. PIL's "
                 f"Image.open(path).convert('RGB').save(path))"
             )
         width, height = frame.get("w", meta.get("w")), frame.get("h", meta.get("h"))
