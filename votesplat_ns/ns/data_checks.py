@@ -178,7 +178,10 @@ def check_frames(
     value that is not a finite number (sklearn's "Input X contains NaN" in splatfacto's set-up),
     the same image listed twice (trained double-weighted), mask paths on only some frames (the
     'auto' mask source would switch to SAM), image files that are missing, not images, or not the
-    size the frame's camera says (later blamed on their masks).
+    size the frame's camera says (later blamed on their masks). And what would train silently
+    wrong: a camera model splatfacto would take for a pinhole (:func:`check_camera_model`), an image
+    in a mode nerfstudio's loader reads as wrong colours (CMYK, palette), label images stored lossily
+    (:func:`check_label_files`).
     """
     frames = meta["frames"]
     name = transforms.name
