@@ -49,12 +49,31 @@ def load_image_file(path: PathLike, what: str = "image") -> Image.Image:
     return image
 
 
+# Formats whose pixels are not the values written: a label image saved in one gets ids blurred into
+# its neighbours' and ids that were never written (JPEG's 8x8 blocks ring at every mask edge).
+LOSSY_LABEL_FORMATS = ("JPEG", "MPO")
+
+# The modes nerfstudio's loader (``InputDataset.get_numpy_image``: ``np.array(image, dtype="uint8")``)
+# reads as the right colours; others are read as wrong colours (CMYK as RGBA with alpha 0, palette
+# indices as grey, 16-bit values wrapped) or fail on an assertion.
+NERFSTUDIO_IMAGE_MODES = ("L", "RGB", "RGBA")
+
+
 def image_file_size(path: PathLike, what: str = "image") -> Tuple[int, int]:
     """``(width, height)`` from an image file's header (nothing decoded); an unreadable file raises a named error."""
+    return image_file_header(path, what)[0]
+
+
+def image_file_header(path: PathLike, what: str = "image") -> Tuple[Tuple[int, int], str, str]:
+    """``((width, height), PIL mode, file format)`` from an image file's header (nothing decoded).
+
+    The format is the one the file's bytes hold (a JPEG named ``.png`` is "JPEG"); an unreadable
+    file raises a named error.
+    """
     path = Path(path)
     try:
         with Image.open(path) as image:
-            return image.size
+            return image.size, image.mode, str(image.format)
     except FileNotFoundError:
         raise VoteSplatInputError(f"{what} {path} does not exist") from None
     except Exception:  # not an image, or a header PIL cannot parse: load_image_file says which
@@ -81,6 +100,7 @@ def read_label_png(path: PathLike) -> np.ndarray:
     """Read a single-channel 8- or 16-bit label PNG as int32 [H, W]."""
     path = Path(path)
     image = load_image_file(path, "label image")
+    check_label_format(path, str(image.format))
     mode = image.mode
     labels = np.array(image)
     if labels.ndim != 2 or mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
@@ -92,6 +112,15 @@ def read_label_png(path: PathLike) -> np.ndarray:
     if labels.size and labels.min() < 0:
         raise VoteSplatInputError(f"label image {path} holds negative ids; use 0 for no mask and 1..K for masks")
     return labels
+
+
+def check_label_format(path: PathLike, file_format: str) -> None:
+    """Refuse a label image stored in a lossy format (by its bytes, not its name): its ids would be wrong."""
+    if file_format in LOSSY_LABEL_FORMATS:
+        raise VoteSplatInputError(
+            f"label image {path} is a {file_format} file, whose lossy compression changes mask ids at every "
+            "edge and invents new ones; write label images as PNG (lossless)"
+        )
 
 
 def check_label_size(label_hw: Tuple[int, ...], image_hw: Tuple[int, ...], what: str) -> None:

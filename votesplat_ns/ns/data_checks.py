@@ -15,7 +15,7 @@ from typing import Any, Dict, Optional, Protocol, Tuple
 import numpy as np
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-from votesplat_ns.core.mask_sources import image_file_size
+from votesplat_ns.core.image_files import NERFSTUDIO_IMAGE_MODES, check_label_format, image_file_header
 from votesplat_ns.errors import VoteSplatInputError
 
 DEFAULT_OUTPUT_DIR = Path("outputs")
@@ -178,7 +178,10 @@ def check_frames(
     value that is not a finite number (sklearn's "Input X contains NaN" in splatfacto's set-up),
     the same image listed twice (trained double-weighted), mask paths on only some frames (the
     'auto' mask source would switch to SAM), image files that are missing, not images, or not the
-    size the frame's camera says (later blamed on their masks).
+    size the frame's camera says (later blamed on their masks). And what would train silently
+    wrong: a camera model splatfacto would take for a pinhole (:func:`check_camera_model`), an image
+    in a mode nerfstudio's loader reads as wrong colours (CMYK, palette), label images stored lossily
+    (:func:`check_label_files`).
     """
     frames = meta["frames"]
     name = transforms.name
@@ -194,6 +197,7 @@ def check_frames(
                 )
 
     check_camera_values(meta, "the file")
+    check_camera_model(transforms, meta)
     for number, frame in enumerate(frames):
         matrix = frame.get("transform_matrix")
         rows = np.asarray(matrix, dtype=object) if isinstance(matrix, list) else None
@@ -229,6 +233,9 @@ def check_frames(
                     f"give every frame one, or make masks another way with {mask_source_flag} sam (or folder)"
                 )
 
+    if config.mask_source in ("auto", "dataset"):
+        check_label_files(transforms, frames, config.mask_levels or DATASET_LEVELS)
+
     downscale_factor = config.dataparser.downscale_factor
     downscaled = downscale_factor is not None and downscale_factor > 1
     images = [frame_image_path(transforms.parent, frame["file_path"], downscale_factor) for frame in frames]
@@ -244,14 +251,86 @@ def check_frames(
         )
     scale = float(downscale_factor) if downscaled else 1.0
     for number, (frame, image) in enumerate(zip(frames, images)):
+        (actual_w, actual_h), mode, _ = image_file_header(image)
+        if mode not in NERFSTUDIO_IMAGE_MODES:
+            raise VoteSplatInputError(
+                f"image {image} has PIL mode {mode}, which nerfstudio's image loader reads as wrong colours "
+                f"(CMYK as inverted RGBA, palette indices as grey); convert it to RGB, or RGBA to keep transparency (e.g. PIL's "
+                f"Image.open(path).convert('RGB').save(path))"
+            )
         width, height = frame.get("w", meta.get("w")), frame.get("h", meta.get("h"))
         if width is None or height is None:
             continue
-        actual_w, actual_h = image_file_size(image)
         if abs(actual_w - width / scale) > 1 or abs(actual_h - height / scale) > 1:
             expected = f"{int(width // scale)}x{int(height // scale)}"
             raise VoteSplatInputError(
                 f"image {image} is {actual_w}x{actual_h} but {name} gives its camera ({_frame_name(number, frame)}) as "
                 f"{expected}{f' at --downscale-factor {downscale_factor}' if downscaled else ''}; "
                 f"replace the image with one of the camera's size, or fix w/h and the intrinsics in {name}"
+            )
+
+
+def check_label_files(transforms: Path, frames: list, levels: Tuple[str, ...]) -> None:
+    """Refuse label images (``<level>_mask_path``) stored in a lossy format, by their header.
+
+    Missing or broken label files are named later, by the mask source that reads them.
+    """
+    for frame in frames:
+        for level in levels:
+            relative = frame.get(f"{level}_mask_path")
+            if not isinstance(relative, str):
+                continue
+            path = transforms.parent / relative
+            if not path.is_file():
+                continue
+            try:
+                _, _, file_format = image_file_header(path, "label image")
+            except VoteSplatInputError:
+                continue  # read (and named) by the mask source
+            check_label_format(path, file_format)
+
+
+# camera_model values (nerfstudio's CAMERA_MODEL_TO_TYPE) whose images splatfacto renders correctly:
+# the pinhole models, with OpenCV's Brown distortion or the fisheye model undistorted by nerfstudio's
+# full-image datamanager (and the vote labels warped the same way, see the vote datamanager).
+SUPPORTED_CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def _distortion_params(entry: dict) -> list:
+    """The [k1, k2, k3, k4, p1, p2] nerfstudio's dataparser reads from a transforms.json entry."""
+    if "distortion_params" in entry:
+        return list(entry["distortion_params"])
+    return [entry.get(key, 0.0) for key in DISTORTION_KEYS]
+
+
+def check_camera_model(transforms: Path, meta: dict) -> None:
+    """Refuse cameras that would be trained as pinholes though their images are not.
+
+    nerfstudio reads ``camera_model`` for the whole file. Splatfacto renders every camera as a
+    pinhole; the full-image datamanager undistorts OPENCV and OPENCV_FISHEYE images first, but only
+    when a distortion parameter is non-zero, so a fisheye file without k1..k4 would be taken for a
+    pinhole one. Equirectangular, stereo, VR180, orthographic and FISHEYE624 images are not undistorted.
+    """
+    model = meta.get("camera_model", "OPENCV")
+    supported = ", ".join(SUPPORTED_CAMERA_MODELS)
+    if model not in SUPPORTED_CAMERA_MODELS:
+        raise VoteSplatInputError(
+            f"{transforms}: camera_model {model!r} is not supported (splatfacto would train it as a pinhole "
+            f"camera); supported: {supported}; undistort the images to pinhole ones (e.g. COLMAP's image_undistorter)"
+        )
+    if model != "OPENCV_FISHEYE":
+        return
+    distort_fixed = any(key in meta for key in ("k1", "k2", "k3", "p1", "p2", "distortion_params"))
+    for number, frame in enumerate(meta["frames"]):
+        params = _distortion_params(meta if distort_fixed else frame)
+        try:
+            flat = np.asarray(params, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            continue  # a malformed value is nerfstudio's dataparser's to report
+        if not np.any(flat[:4]):
+            raise VoteSplatInputError(
+                f"{transforms}: camera_model OPENCV_FISHEYE with k1..k4 all 0 ({_frame_name(number, frame)}) would be "
+                "trained as a pinhole camera (nerfstudio undistorts only non-zero distortion); give the fisheye's "
+                "k1..k4, or undistort the images to pinhole ones and set camera_model PINHOLE"
             )
