@@ -63,6 +63,17 @@ def trained_demo(tmp_path_factory) -> Path:
     return train_votesplat(DEMO_SCENE, output_dir, DEMO_STEPS, DEMO_VOTE_START)
 
 
+@pytest.fixture
+def one_torch_thread():
+    """A model this small runs fastest on one thread; several threads oversubscribe a busy CI machine."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 def assert_offsets_beat_zero(pipeline) -> None:
     """The trained vote offsets give a smaller vote error on training view 0 than zero offsets, at every level.
 

@@ -189,15 +189,6 @@ def blocks_image() -> np.ndarray:
     return image
 
 
-@pytest.fixture
-def one_torch_thread():
-    """A model this small runs fastest on one thread; several threads oversubscribe a busy CI machine."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def test_sam_source_end_to_end_with_tiny_random_sam(one_torch_thread):
     sam = tiny_sam()
     options = dict(

@@ -29,14 +29,6 @@ LANGSPLAT = dict(
 NO_MODEL = SimpleNamespace(image_encoder=SimpleNamespace(img_size=1024), mask_threshold=0.0)
 
 
-@pytest.fixture
-def one_torch_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def assert_same_labels(reference, fast):
     assert len(reference) == len(fast)
     for level, ref, out in zip(LEVELS, reference, fast):
