@@ -34,22 +34,16 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence
 import numpy as np
 import torch
 
-from votesplat_ns.core.cameras import PinholeView
+from votesplat_ns.core.cameras import PinholeView, scaled_view
 
 RasterizeFn = Callable[..., tuple]
-
-
-def _scaled_K(view: PinholeView, height: int, width: int, device) -> torch.Tensor:
-    K = view.K.clone().float()
-    K[0] *= width / view.width
-    K[1] *= height / view.height
-    return K.reshape(1, 3, 3).to(device)
 
 
 @torch.no_grad()
 def _blended(rasterize_fn: RasterizeFn, gaussians, keep: torch.Tensor, colors: torch.Tensor, view, shape, device):
     means, quats, scales, opacities = gaussians
     height, width = int(shape[0]), int(shape[1])
+    view = scaled_view(view, width=width, height=height)
     rendered, _, _ = rasterize_fn(
         means[keep],
         quats[keep],
@@ -57,7 +51,7 @@ def _blended(rasterize_fn: RasterizeFn, gaussians, keep: torch.Tensor, colors: t
         opacities[keep],
         colors[keep],
         view.viewmat.float().reshape(1, 4, 4).to(device),
-        _scaled_K(view, height, width, device),
+        view.K.float().reshape(1, 3, 3).to(device),
         width,
         height,
         sh_degree=None,
