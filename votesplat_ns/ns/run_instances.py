@@ -281,9 +281,11 @@ def run_instances(
         and masks); rasterize_fn: gsplat's ``rasterization`` signature (the check renders with it).
     on_level: called before each level is clustered (progress); log: one-line messages (rebuilds, warnings).
     """
+    if run_dir is None:  # nothing is kept, so no key is needed (hashing 5M Gaussians costs about a second)
+        return compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log)[0]
     key = record_key(scene, settings, pipeline)
-    target = None if run_dir is None else Path(run_dir) / RECORD_FOLDER
-    if target is not None and target.is_dir():
+    target = Path(run_dir) / RECORD_FOLDER
+    if target.is_dir():
         found = _read_record(target)
         if found is not None and found[0] == key:
             with contextlib.suppress(OSError, ValueError, KeyError):
@@ -299,7 +301,7 @@ def run_instances(
             )
             log(f"The instances kept in {target} were computed for {what}; computing them again")
     instances, checked = compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log)
-    if target is not None and checked:
+    if checked:
         try:
             _write_record(instances, target.parent, key, settings)
         except OSError as error:
