@@ -70,7 +70,8 @@ from votesplat_ns.eval.ground_truth import (
     write_json_atomic,
 )
 from votesplat_ns.eval.removal import ghost_fractions, mean_ghost_percent
-from votesplat_ns.ns.run import dataset_views, load_run, read_run_config
+from votesplat_ns.ns.run import dataset_views, load_run
+from votesplat_ns.ns.run_config import load_run_config
 from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
 METRICS_NAME = "metrics.json"
@@ -106,7 +107,7 @@ def render_rgb_psnr(model, dataset, index: int) -> Tuple[float, float]:
 def load_votesplat_config(config_path: Union[str, Path]):
     """The run's TrainerConfig; a clear error for a missing file, another method or no checkpoint."""
     config_path = Path(config_path)
-    config = read_run_config(config_path)
+    config = load_run_config(config_path)
     method = getattr(config, "method_name", None)
     if method is None:
         raise ValueError(f"{config_path} is not a nerfstudio config.yml (no method_name)")

@@ -1,7 +1,7 @@
 """A trained run through nerfstudio: the one checkpoint loader and the one camera-to-view conversion.
 
 :func:`load_run` is nerfstudio's ``eval_setup`` with one-line errors (:func:`check_run` checks the config.yml,
-read without running code by :func:`read_run_config` (``ns/run_config.py``), and its checkpoint first), reading the
+read without running code by ``ns/run_config.py`` ``load_run_config``, and its checkpoint first), reading the
 checkpoint with ``weights_only=True``, and returns the run as a :class:`~votesplat_ns.core.scene.TrainedScene`; :func:`latest_checkpoint`
 and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retrofit's source). :func:`camera_view` and
 :func:`dataset_views` turn nerfstudio ``Cameras`` into :class:`~votesplat_ns.core.cameras.PinholeView`s
@@ -49,13 +49,6 @@ def checkpoint_problem(checkpoint: Path) -> Optional[str]:
     return None
 
 
-def read_run_config(load_config: Union[str, Path], flag: str = "--load-config"):
-    """A run's config.yml as nerfstudio wrote it (its TrainerConfig), read without running code
-    (``ns/run_config.py``); a missing or unreadable file, or one that names anything but config classes,
-    paths, enums and tuples, raises :class:`VoteSplatInputError` naming ``flag`` and the file."""
-    return load_run_config(load_config, flag)
-
-
 def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Path:
     """The checkpoint :func:`load_run` will load for a run's config.yml, checked before any model is built.
 
@@ -63,7 +56,11 @@ def check_run(load_config: Union[str, Path], flag: str = "--load-config") -> Pat
     raise :class:`VoteSplatInputError` naming the file.
     """
     load_config = Path(load_config)
-    config = read_run_config(load_config, flag)
+    return checked_checkpoint(load_run_config(load_config, flag), load_config, flag)
+
+
+def checked_checkpoint(config: Any, load_config: Path, flag: str = "--load-config") -> Path:
+    """:func:`check_run` on a config already read from ``load_config``."""
     try:
         checkpoint = _run_checkpoint(config) if hasattr(config, "get_checkpoint_dir") else None
     except Exception as error:  # a YAML file that is not a nerfstudio run config
@@ -104,8 +101,8 @@ def load_run(
     built where possible; a checkpoint without votes raises ``ValueError`` (not a votesplat run).
     """
     load_config = Path(load_config)
-    check_run(load_config, flag)  # the config and its checkpoint, before any model is built
     config = load_run_config(load_config, flag)
+    checked_checkpoint(config, load_config, flag)  # before any model is built
     pipeline, _, step = setup_run(config, load_config, flag, test_mode, update_config_callback)
     return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), step)
 
