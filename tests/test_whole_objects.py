@@ -79,10 +79,30 @@ def test_fragment_touching_its_object_with_agreeing_masks_joins() -> None:
 def test_contact_alone_never_joins() -> None:
     scene = Scene()
     scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, -1])
-    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 1, [-1] * 6)  # never seen
+    # touching, seen in two views, in masks of its own there
+    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 1, [4, -1, 5, -1, -1, -1])
     out, _, stats = run(*scene.build())
-    assert stats["join"]["joined"] == 0
-    assert (out[fragment] >= 0).all() and len(set(out[out >= 0])) == 2  # touches the body: no floater
+    assert stats["join"]["joined"] == 0 and stats["join"]["refused_by_masks"] == 1
+    assert (out[fragment] >= 0).all() and len(set(out[out >= 0])) == 2
+
+
+def test_instance_no_view_sees_dissolves_into_the_object_it_lies_in() -> None:
+    scene = Scene()
+    cube = scene.add(box_surface([0, 0, 0], [2, 2, 2]), 0, [1, 1, 2, 2, 3, 3])
+    # a cluster of Gaussians hidden inside the cube in every view (they voted, so the vote
+    # clustering made an instance of them), and one behind it, touching, in no view either
+    inner = scene.add(box_interior([0, 0, 0], [2, 2, 2])[::7], 1, [-1] * 6)
+    behind = scene.add(box_surface([2.1, 0.8, 0.8], [2.3, 1.2, 1.2]), 2, [-1] * 6)
+    # seen in one view only: too little evidence to stand as an instance
+    glimpsed = scene.add(box_surface([-0.3, 0.8, 0.8], [-0.1, 1.2, 1.2]), 3, [4, -1, -1, -1, -1, -1])
+    means, labels, table = scene.build()
+    out, _, stats = run(means, labels, table)
+    assert (out[cube] == 0).all() and (out[inner] == 0).all()
+    assert (out[behind] == -1).all() and (out[glimpsed] == -1).all()
+    assert stats["floaters"]["floaters"] == 3 and stats["num_instances"] == 1
+    # switched off, an unseen instance that touches another one is kept (contact as its only evidence)
+    kept, _, _ = run(means, labels, table, unseen=False)
+    assert len(set(kept[kept >= 0])) == 4
 
 
 def test_small_object_with_its_own_masks_stays_apart() -> None:

@@ -19,7 +19,7 @@ import argparse
 import io
 import sys
 from pathlib import Path, PurePath
-from typing import Dict, List
+from typing import Dict, List, Sequence
 
 import torch
 import yaml
@@ -30,16 +30,22 @@ HALF_KEYS = ("scales", "quats", "opacities", "features_dc", "vote_offsets", "vot
 DROPPED_KEY = "features_rest"
 
 
-def slim_run(config_path: Path) -> Dict[str, object]:
+def slim_run(config_path: Path, drop: Sequence[str] = ()) -> Dict[str, object]:
     checkpoints = sorted((config_path.parent / "nerfstudio_models").glob("step-*.ckpt"))
     if not checkpoints:
         raise FileNotFoundError(f"{config_path.parent} has no checkpoint")
     loaded = torch.load(checkpoints[-1], map_location="cpu", weights_only=False)
     state = {}
     rest_shape = None
+    dropped = {}
     for key, value in loaded["pipeline"].items():
         if key.endswith(DROPPED_KEY):
             rest_shape = tuple(value.shape)
+            continue
+        if any(
+            key.endswith(k) for k in drop
+        ):  # zeros after unpack (e.g. features_dc: instance scores never read colour)
+            dropped[key] = tuple(value.shape)
             continue
         if any(key.endswith(k) for k in HALF_KEYS):
             value = value.half()
@@ -50,6 +56,7 @@ def slim_run(config_path: Path) -> Dict[str, object]:
         "step": loaded["step"],
         "state": state,
         "rest_shape": rest_shape,
+        "dropped": dropped,
         "run_dir": str(config_path.parent),
         "dataparser_transforms": _read_optional(config_path.parent / "dataparser_transforms.json"),
     }
@@ -59,13 +66,21 @@ def _read_optional(path: Path):
     return path.read_text() if path.is_file() else None
 
 
-def pack(work_dir: Path, out_dir: Path, root: str, max_files: int, max_bytes: int, select: List[str]) -> List[Path]:
+def pack(
+    work_dir: Path,
+    out_dir: Path,
+    root: str,
+    max_files: int,
+    max_bytes: int,
+    select: List[str],
+    drop: Sequence[str] = (),
+) -> List[Path]:
     runs = []
     for config in sorted(work_dir.rglob("config.yml")):
         if select and not any(word in str(config.relative_to(work_dir)) for word in select):
             continue
         try:
-            runs.append(slim_run(config))
+            runs.append(slim_run(config, drop))
         except FileNotFoundError as err:  # a run cut short by the call's time limit
             print(f"skipped: {err}", file=sys.stderr)
     groups: List[List[dict]] = [[] for _ in range(max(1, min(max_files, len(runs))))]
@@ -140,6 +155,8 @@ def unpack(archives: List[Path], dest: Path, root: Path) -> List[Path]:
                 parser = parser_config.setup()
                 parser.get_dataparser_outputs(split="train").save_dataparser_transform(transforms)
             state = {k: (v.float() if v.is_floating_point() else v) for k, v in run["state"].items()}
+            for key, shape in run.get("dropped", {}).items():
+                state[key] = torch.zeros(shape)
             if run["rest_shape"] is not None:
                 prefix = next(k for k in state if k.endswith("features_dc"))[: -len("features_dc")]
                 state[prefix + DROPPED_KEY] = torch.zeros(run["rest_shape"])
@@ -159,13 +176,14 @@ def main(argv=None) -> int:
     p.add_argument("--max-files", type=int, default=4)
     p.add_argument("--max-bytes", type=int, default=16 * 2**20)
     p.add_argument("--select", nargs="*", default=[], help="only runs whose path holds one of these words")
+    p.add_argument("--drop", nargs="*", default=[], help="parameters left out (zeros after unpack), e.g. features_dc")
     u = sub.add_parser("unpack")
     u.add_argument("archives", nargs="+", type=Path)
     u.add_argument("--dest", type=Path, required=True)
     u.add_argument("--root", type=Path, default=Path.cwd())
     args = parser.parse_args(argv)
     if args.command == "pack":
-        pack(args.work_dir, args.out_dir, args.root, args.max_files, args.max_bytes, args.select)
+        pack(args.work_dir, args.out_dir, args.root, args.max_files, args.max_bytes, args.select, args.drop)
     else:
         unpack(args.archives, args.dest, args.root)
     return 0
