@@ -81,7 +81,10 @@ def _rank(local_rank: int, init_file: str, config, result: str) -> None:
         assert manager.view_shard == (local_rank, RANKS)
         assert all(index % RANKS == local_rank for index in manager.train_unseen_cameras)
         trainer.train()
-        torch.save(trainer.pipeline.model.gauss_params["vote_offsets"].detach().clone(), f"{result}.{local_rank}")
+        params = trainer.pipeline.model.gauss_params
+        torch.save(
+            {name: params[name].detach().clone() for name in ("vote_offsets", "vote_support")}, f"{result}.{local_rank}"
+        )
     finally:
         dist.destroy_process_group()
 
@@ -113,8 +116,9 @@ def one_process_two_views_a_step(config) -> torch.Tensor:
         offsets.grad.div_(RANKS)
         trainer.optimizers.optimizer_scaler_step_all(trainer.grad_scaler)
         trainer.optimizers.scheduler_step_all(step)
+        model.record_vote_support()  # the step's callback
     assert all(index % RANKS == rank for rank, index in seen) and len(seen) == RANKS * STEPS
-    return offsets.detach().clone()
+    return offsets.detach().clone(), model.gauss_params["vote_support"].detach().clone()
 
 
 def _overrides(config):
@@ -131,14 +135,16 @@ def _overrides(config):
 
 def test_two_ranks_over_gloo_match_one_process_seeing_the_same_views(retrofit_source, tmp_path):
     config = retrofit_config(tmp_path / "runs", retrofit_source, tmp_path / "cache")
-    expected = one_process_two_views_a_step(config)
+    expected, support = one_process_two_views_a_step(config)
     assert expected.abs().max() > 0  # the steps moved the offsets
 
     result = str(tmp_path / "offsets.pt")
     torch.multiprocessing.spawn(_rank, args=(str(tmp_path / "rendezvous"), config, result), nprocs=RANKS)
     ranks = [torch.load(f"{result}.{rank}", weights_only=True) for rank in range(RANKS)]
-    assert torch.equal(ranks[0], ranks[1])  # the same step on every rank
-    torch.testing.assert_close(ranks[0], expected, rtol=1e-5, atol=1e-7)
+    for name in ("vote_offsets", "vote_support"):
+        assert torch.equal(ranks[0][name], ranks[1][name]), name  # the same step, the same support on every rank
+    torch.testing.assert_close(ranks[0]["vote_offsets"], expected, rtol=1e-5, atol=1e-7)
+    assert torch.equal(ranks[0]["vote_support"] > 0, support > 0) and (support > 0).any()
     # rank 0 wrote the run's checkpoint, with those offsets
     checkpoint = sorted(config.get_checkpoint_dir().glob("step-*.ckpt"))[-1]
     torch.testing.assert_close(load_gaussians(checkpoint, names=("vote_offsets",))["vote_offsets"], expected)

@@ -4,8 +4,10 @@ Each rank votes on its own training views (the datamanager gives rank r of N the
 :func:`training_ranks`), computes the offsets' gradient on its view, and before every optimizer step the
 gradients are averaged over the ranks (one all-reduce of the offsets' gradient, 12 bytes per Gaussian and
 level); every rank then takes the same Adam step, so the offsets stay the same on every rank and rank 0's
-checkpoint is the run's. Only the offsets train (the scene is frozen in a retrofit), so nothing else needs
-to meet. A step of N ranks is the step one process would take on the mean of the N views' gradients.
+checkpoint is the run's. Only the offsets train (the scene is frozen in a retrofit); the vote support each rank
+counts is made its maximum over the ranks at the same time (4 bytes per Gaussian and level), so a Gaussian
+supervised in any rank's views is foreground in that checkpoint. A step of N ranks is the step one process would
+take on the mean of the N views' gradients.
 
 Launch, on one host with N GPUs (NCCL):
 
@@ -39,6 +41,10 @@ from votesplat_ns.errors import VoteSplatInputError
 
 # the groups a retrofit trains, whose gradients the ranks average
 TRAINED_GROUPS = ("vote_offsets",)
+# the groups whose values are counts each rank keeps of its own views (the fused vote backward counts the support
+# of the pixels it drew), made the element-wise maximum over the ranks at each step: every consumer of the
+# support asks whether it is > 0, which the maximum answers as the views of all ranks would
+COUNTED_GROUPS = ("vote_support",)
 # ranks wait this long for each other at a collective (the vote cache build of a large capture included)
 RANKS_TIMEOUT = timedelta(hours=6)
 
@@ -113,6 +119,13 @@ def average_gradients(params: Sequence[torch.Tensor], world_size: int) -> None:
         param.grad.div_(world_size)
 
 
+def maximum_over_ranks(params: Sequence[torch.Tensor]) -> None:
+    """Replace each parameter's values by their element-wise maximum over the ranks."""
+    with torch.no_grad():
+        for param in params:
+            dist.all_reduce(param.data, op=dist.ReduceOp.MAX)
+
+
 def broadcast_parameters(params: Sequence[torch.Tensor]) -> None:
     """Give every rank rank 0's values of ``params`` (the ranks start from the same offsets)."""
     with torch.no_grad():
@@ -121,22 +134,37 @@ def broadcast_parameters(params: Sequence[torch.Tensor]) -> None:
 
 
 class DataParallelOptimizers(Optimizers):
-    """nerfstudio's optimizers whose steps first average the gradients of ``averaged`` groups over the ranks."""
+    """nerfstudio's optimizers whose steps first average the gradients of the ``averaged`` groups over the ranks
+    and make the values of the ``counted`` groups their maximum over the ranks."""
 
-    def __init__(self, config: Dict[str, Any], param_groups: Dict[str, List], averaged: Sequence[str], world_size: int):
+    def __init__(
+        self,
+        config: Dict[str, Any],
+        param_groups: Dict[str, List],
+        averaged: Sequence[str],
+        world_size: int,
+        counted: Sequence[str] = (),
+    ):
         super().__init__(config, param_groups)
         self.averaged = tuple(name for name in averaged if name in self.optimizers)
+        self.counted = tuple(name for name in counted if name in self.optimizers)
         self.world_size = int(world_size)
 
+    def _held(self, names: Sequence[str]) -> List[torch.Tensor]:
+        # as the optimizers hold them now (a resume may have replaced them: VoteSplatModel.adopt_optimizers)
+        return [param for name in names for group in self.optimizers[name].param_groups for param in group["params"]]
+
     def averaged_parameters(self) -> List[torch.Tensor]:
-        """The parameters whose gradients the ranks average, as the optimizers hold them now (a resume may have
-        replaced them: ``VoteSplatModel.adopt_optimizers``)."""
-        return [
-            param for name in self.averaged for group in self.optimizers[name].param_groups for param in group["params"]
-        ]
+        """The parameters whose gradients the ranks average."""
+        return self._held(self.averaged)
+
+    def counted_parameters(self) -> List[torch.Tensor]:
+        """The parameters whose values the ranks make their maximum."""
+        return self._held(self.counted)
 
     def average_gradients(self) -> None:
         average_gradients(self.averaged_parameters(), self.world_size)
+        maximum_over_ranks(self.counted_parameters())
 
     def optimizer_step_all(self) -> None:
         self.average_gradients()

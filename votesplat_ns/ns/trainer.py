@@ -31,6 +31,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.data_parallel import (
+    COUNTED_GROUPS,
     TRAINED_GROUPS,
     DataParallelOptimizers,
     broadcast_parameters,
@@ -150,7 +151,7 @@ class VoteSplatTrainer(Trainer):
         if self.ranks == 1:
             return super().setup_optimizers()
         config, groups = self.config.optimizers.copy(), self.pipeline.get_param_groups()
-        return DataParallelOptimizers(config, groups, TRAINED_GROUPS, self.ranks)
+        return DataParallelOptimizers(config, groups, TRAINED_GROUPS, self.ranks, counted=COUNTED_GROUPS)
 
     def _load_checkpoint(self) -> None:
         found = resume_state(self.config.load_dir, self.config.load_step, self.config.load_checkpoint)
