@@ -133,6 +133,8 @@ def build_on_ranks(
     views = [(int(index), Path(path)) for index, path in views]
     keys = [cache.view_key(path, index) for index, path in views]
     missing = sum(1 for key in keys if not cache.votes_path(key).is_file())
+    if not missing:  # every entry is there: checked here, no process to start
+        return cache.build_all(views, progress=progress, description=description, keys=keys)
     cpu_ranks = sum(1 for device in devices if not device.startswith("cuda"))
     threads = max(1, (os.cpu_count() or 1) // max(1, cpu_ranks))
     jobs = [
