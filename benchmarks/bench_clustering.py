@@ -3,6 +3,8 @@
     python benchmarks/bench_clustering.py                       # 100k, 1M, 3M Gaussians + 1M export
     python benchmarks/bench_clustering.py --sizes 100000 --export-size 0 --json out.json
     python benchmarks/bench_clustering.py --sizes --export-size 0 --instances-size 5000000   # a run's instances
+    python benchmarks/bench_clustering.py --sizes --export-size 0 --upsample-run <run>/config.yml \
+        --upsample-sizes 1000000 5000000 20000000 --json scale.json          # a trained run, upsampled
 
 The scene: ``--instances`` objects of random size; 80% of the Gaussians belong to an object and
 vote for its centre (a converged core plus a looser shell and 2% stray votes), 20% are background
@@ -11,6 +13,17 @@ foreground votes, the number of instances found and how many Gaussians landed in
 their true object (after matching found to true instances). The export measurement writes the
 whole-scene 3DGS PLY (SH degree 3) for ``--export-size`` Gaussians, then runs the full
 ``export_instances`` (2 levels, one PLY per instance) on the same scene.
+
+``--upsample-run`` takes a trained run (a family scene's, say) and, for each of ``--upsample-sizes``, in a process
+of its own (so that its peak memory is its own): loads the run as ``votesplat export`` does, copies its Gaussians
+up to that many (:func:`upsampled_scene`: copy k of Gaussian i sits at a random point within its extent, scaled
+so the copies fill the same volume, and votes where Gaussian i votes), computes the instances of every level
+with the training-mask check (``ns/run_instances.py`` ``compute_instances``, on the run's device) and writes the
+export folder (``export_instances``, no picture). Recorded: seconds of each stage, peak host RSS after each
+stage and peak GPU memory (torch's allocator) of the instances and of the export, and per level how many
+Gaussians fall in the instance of the Gaussian they were copied from, found at the run's own size (after
+matching the found instances to those; background counted as a class): the instances must not change as the
+same scene gets more Gaussians.
 """
 
 from __future__ import annotations
@@ -195,6 +208,122 @@ def bench_instances(size: int, num_instances: int, max_points: int, num_views: i
     }
 
 
+def upsampled_scene(scene, size: int, seed: int = 0):
+    """(``scene``'s Gaussians copied up to ``size``, the index of each one's original): Gaussian j copies Gaussian
+    j % N. Copies past the first move by a normal offset of half the original's mean scale and shrink so that the
+    c copies of a Gaussian fill its volume (log scale - log(c) / 3); every copy's vote stays the original's."""
+    from votesplat_ns.core.scene import TrainedScene
+
+    n = scene.num_gaussians
+    parents = np.arange(size, dtype=np.int64) % n
+    copies = max(1.0, size / n)
+    rng = np.random.default_rng(seed)
+    spread = 0.5 * np.exp(scene.log_scales.astype(np.float64)).mean(axis=1).astype(np.float32)
+    jitter = rng.standard_normal((size, 3), dtype=np.float32)
+    jitter *= spread[parents][:, None]
+    jitter[: min(n, size)] = 0.0  # the first copy is the original
+    means = scene.means[parents] + jitter
+    offsets = scene.vote_offsets[parents]
+    offsets -= jitter[:, None, :]  # the vote point (mean + offset) of every copy is its original's
+    del jitter
+    return (
+        TrainedScene(
+            means=means,
+            log_scales=scene.log_scales[parents] - np.float32(np.log(copies) / 3.0),
+            quats=scene.quats[parents],
+            opacity_logits=scene.opacity_logits[parents],
+            sh_dc=scene.sh_dc[parents],
+            sh_rest=None if scene.sh_rest is None else scene.sh_rest[parents],
+            vote_offsets=offsets,
+            vote_support=scene.vote_support[parents],
+            level_names=scene.level_names,
+            sh_degree=scene.sh_degree,
+            device=scene.device,
+        ),
+        parents,
+    )
+
+
+def peak_rss_gb() -> float:
+    import resource
+
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2)
+
+
+def bench_upsampled_run(
+    config: Path, size: int, max_points: int, mask_check: bool, mask_check_views: int, seed: int = 0
+) -> dict:
+    """One size of ``--upsample-run`` (see the module doc), in this process."""
+    import torch
+
+    from votesplat_ns.ns.export import default_rasterizer
+    from votesplat_ns.ns.run import load_run
+    from votesplat_ns.ns.run_instances import InstanceSettings, compute_instances
+
+    cuda = torch.cuda.is_available()
+
+    def gpu_peak_gb() -> float:
+        return round(torch.cuda.max_memory_allocated() / 2**30, 2) if cuda else 0.0
+
+    row: dict = {"gaussians": size, "mask_check": mask_check, "mask_check_views": mask_check_views}
+    wall = time.perf_counter()
+    pipeline, scene, _ = load_run(config)
+    row.update(run_gaussians=scene.num_gaussians, device=scene.device, load_s=round(time.perf_counter() - wall, 2))
+    row["rss_after_load_gb"] = peak_rss_gb()
+    settings = InstanceSettings.make(ClusteringOptions(max_points=max_points), mask_check, mask_check_views)
+    rasterize = default_rasterizer()
+    original, _ = compute_instances(scene, settings, pipeline, rasterize)
+
+    wall = time.perf_counter()
+    upsampled, parents = upsampled_scene(scene, size, seed)
+    row["upsample_s"] = round(time.perf_counter() - wall, 2)
+    row["rss_after_upsample_gb"] = peak_rss_gb()
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    wall = time.perf_counter()
+    instances, checked = compute_instances(upsampled, settings, pipeline, rasterize)
+    row["instances_s"] = round(time.perf_counter() - wall, 2)
+    row["mask_check_ran"] = bool(checked and mask_check)
+    row["rss_after_instances_gb"], row["gpu_peak_instances_gb"] = peak_rss_gb(), gpu_peak_gb()
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as folder:
+        wall = time.perf_counter()
+        manifest = export_instances(upsampled, Path(folder) / "export", instances=instances, progress=False)
+        row["export_s"] = round(time.perf_counter() - wall, 2)
+        row["export_gb"] = round(sum(p.stat().st_size for p in Path(folder).rglob("*") if p.is_file()) / 2**30, 2)
+    row["rss_peak_gb"], row["gpu_peak_export_gb"] = peak_rss_gb(), gpu_peak_gb()
+    row["levels"] = {}
+    for level, before in zip(instances.levels, original.levels):
+        row["levels"][level.name] = {
+            "instances_at_run_size": before.num_instances,
+            "instances": level.num_instances,
+            "same_instance_as_original": round(matched_fraction(before.ids[parents] + 1, level.ids + 1), 4),
+        }
+    row["ply_scene_count"] = manifest["export"]["ply_counts"]["scene"]
+    return row
+
+
+def upsample_sizes_in_processes(args) -> list:
+    """Each of ``--upsample-sizes`` in a process of its own (its peak RSS is its own)."""
+    import subprocess
+
+    rows = []
+    for size in args.upsample_sizes:
+        command = [sys.executable, str(Path(__file__).resolve()), "--sizes", "--export-size", "0"]
+        command += ["--upsample-run", str(args.upsample_run), "--upsample-one", str(size)]
+        command += ["--max-points", str(args.max_points), "--mask-check-views", str(args.mask_check_views)]
+        command += [] if args.mask_check else ["--no-mask-check"]
+        result = subprocess.run(command, capture_output=True, text=True, check=False)
+        if result.returncode != 0:
+            row = {"gaussians": size, "error": result.stderr.strip().splitlines()[-1:] or [f"exit {result.returncode}"]}
+        else:
+            row = json.loads(result.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[100_000, 1_000_000, 3_000_000])
@@ -208,12 +337,28 @@ def main() -> None:
         help="also time the instance computation (clustering, mask check, whole-object rules) at this many Gaussians",
     )
     parser.add_argument("--views", type=int, default=64, help="views of the mask table for --instances-size")
+    parser.add_argument("--upsample-run", type=Path, default=None, help="a trained run's config.yml to upsample")
+    parser.add_argument(
+        "--upsample-sizes", type=int, nargs="*", default=[1_000_000, 5_000_000, 20_000_000], help="for --upsample-run"
+    )
+    parser.add_argument("--mask-check", action=argparse.BooleanOptionalAction, default=True, help="for --upsample-run")
+    parser.add_argument("--mask-check-views", type=int, default=64, help="training views of the mask check")
+    parser.add_argument("--upsample-one", type=int, default=0, help=argparse.SUPPRESS)  # one size, in this process
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = parser.parse_args()
 
     import hdbscan  # noqa: F401  (import cost is not clustering time)
 
-    results = {"cpu_count": os.cpu_count(), "clustering": [], "export": None, "instances": None}
+    if args.upsample_one:
+        print(
+            json.dumps(
+                bench_upsampled_run(
+                    args.upsample_run, args.upsample_one, args.max_points, args.mask_check, args.mask_check_views
+                )
+            )
+        )
+        return
+    results = {"cpu_count": os.cpu_count(), "clustering": [], "export": None, "instances": None, "upsampled": None}
     for size in args.sizes:
         row = bench_clustering(size, args.instances, args.max_points)
         results["clustering"].append(row)
@@ -224,6 +369,8 @@ def main() -> None:
     if args.instances_size:
         results["instances"] = bench_instances(args.instances_size, args.instances, args.max_points, args.views)
         print(json.dumps(results["instances"]), flush=True)
+    if args.upsample_run is not None:
+        results["upsampled"] = {"run": str(args.upsample_run), "sizes": upsample_sizes_in_processes(args)}
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
 

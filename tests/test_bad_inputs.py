@@ -454,6 +454,24 @@ def hidden_folder_in_the_mask_folder(ws, fixtures):
 
 
 @case
+def more_mask_processes_than_gpus(ws, fixtures):
+    scene = ws.scene()
+    too_many = max(2, torch.cuda.device_count() + 1)
+    argv = masks(scene, "--num-gpus", str(too_many), "--cache-dir", str(ws.root / "cache"))
+    return Expect(argv, needles=[f"--num-gpus {too_many}: this machine has", "--sam-device cpu"])
+
+
+@case
+def read_only_cache_folder_of_votesplat_masks_on_two_processes(ws, fixtures):
+    scene = ws.scene()
+    cache = ws.read_only(ws.root / "cache")
+    return Expect(
+        masks(scene, "--cache-dir", str(cache), "--num-gpus", "2", "--sam-device", "cpu"),
+        needles=[f"--cache-dir {cache}: cannot write", "choose another --cache-dir"],
+    )
+
+
+@case
 def garbage_sam_checkpoint(ws, fixtures):
     scene = ws.scene()
     checkpoint = ws.root / "sam_vit_b_01ec64.pth"

@@ -10,9 +10,10 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 
 from votesplat_ns.core.instances import render_instance_ids
+from votesplat_ns.core.mask_consensus import drawn_masks, seen_mask_table, seen_pixels
 from votesplat_ns.core.rasterize_torch import rasterize_torch
 from votesplat_ns.core.scene import TrainedScene
-from votesplat_ns.ns.mask_views import mask_check, training_mask_views
+from votesplat_ns.ns.mask_views import mask_check, mask_tables, training_mask_views
 from votesplat_ns.ns.run import camera_view
 
 WIDTH, HEIGHT, VIEWS = 64, 48, 6
@@ -93,6 +94,59 @@ def test_training_mask_views_reads_the_datamanagers_masks():
     assert {1, 2} <= set(np.unique(labels[0]).tolist())  # both objects are in the masks
     with pytest.raises(ValueError, match="no masks for"):
         training_mask_views(pipeline, ["part"])
+
+
+@pytest.mark.parametrize("evidence", ["centre", "blend"])
+def test_mask_tables_are_built_one_view_at_a_time(evidence):
+    """Each view's masks are read as that view is rendered (never every view's at once), and the tables equal
+    those made from every view's masks and renders together."""
+    scene, truth, cameras = two_objects()
+    pipeline, _ = pipeline_with_true_masks(scene, truth, cameras)
+    scene.means[5] = np.nan  # never seen
+    events = []
+    read_masks = pipeline.datamanager.vote_maps_for_train_view
+
+    def recording_read(index, height, width):
+        events.append(("masks", index))
+        return read_masks(index, height, width)
+
+    def recording_rasterize(*args, **kwargs):
+        events.append(("render",))
+        return rasterize_torch(*args, **kwargs)
+
+    pipeline.datamanager.vote_maps_for_train_view = recording_read
+    tables = mask_tables(pipeline, scene, recording_rasterize, max_views=VIEWS, evidence=evidence)
+    table = tables["instance"]
+    assert table.dtype == np.int16 and table.shape == (VIEWS, len(truth))
+    reads = [i for i, event in enumerate(events) if event[0] == "masks"]
+    assert [events[i][1] for i in reads] == list(range(VIEWS))
+    assert all(events[i + 1] == ("render",) for i in reads)  # each view rendered before the next one's masks
+
+    pipeline.datamanager.vote_maps_for_train_view = read_masks
+    views, masks = training_mask_views(pipeline, ["instance"], max_views=VIEWS)
+    finite = scene.finite()
+    gaussians = scene.gaussians(finite)[:4]
+    expected = np.full(table.shape, -1, dtype=np.int32)
+    if evidence == "centre":
+        pixels = []
+        for view in views:
+            seen = np.full(len(truth), -1, dtype=np.int64)
+            seen[finite] = seen_pixels(rasterize_torch, *gaussians, view)
+            pixels.append(seen)
+        expected = seen_mask_table(pixels, masks["instance"])
+    else:
+        for v, view in enumerate(views):
+            expected[v, finite] = drawn_masks(rasterize_torch, *gaussians, view, masks["instance"][v])
+    np.testing.assert_array_equal(table, expected)
+    assert (table[:, 5] == -1).all() and (table >= 1).any()
+
+
+def test_mask_tables_widen_for_more_masks_than_int16_holds():
+    scene, truth, cameras = two_objects()
+    pipeline, labels = pipeline_with_true_masks(scene, truth, cameras)
+    labels[2][labels[2] == 2] = 40000
+    table = mask_tables(pipeline, scene, rasterize_torch, max_views=VIEWS)["instance"]
+    assert table.dtype == np.int32 and table.max() == 40000
 
 
 def test_mask_check_splits_a_small_object_off_the_large_one_it_rests_against():

@@ -184,9 +184,18 @@ def seen_mask_table(pixels_per_view: Sequence[np.ndarray], masks_per_view: Seque
     (0 = no mask) at the view's render size."""
     table = np.full((len(masks_per_view), len(pixels_per_view[0]) if pixels_per_view else 0), -1, dtype=np.int32)
     for v, (pixels, masks) in enumerate(zip(pixels_per_view, masks_per_view)):
-        seen = pixels >= 0
-        table[v, seen] = np.asarray(masks).reshape(-1)[pixels[seen]]
+        fill_seen_masks(table[v], pixels, masks)
     return table
+
+
+def fill_seen_masks(
+    row: np.ndarray, pixels: np.ndarray, masks: np.ndarray, columns: Optional[np.ndarray] = None
+) -> None:
+    """One view's row of a :func:`seen_mask_table`, filled in place: where ``pixels`` (:func:`seen_pixels`, of
+    the Gaussians ``columns`` of the row, default all) is a pixel, the mask id of ``masks`` [H, W] there."""
+    seen = pixels >= 0
+    target = np.flatnonzero(seen) if columns is None else columns[seen]
+    row[target] = np.asarray(masks).reshape(-1)[pixels[seen]]
 
 
 def _components(points: np.ndarray, radius: float) -> np.ndarray:

@@ -37,6 +37,12 @@ class MaskSource(abc.ABC):
         """Digest of the per-view inputs other than the image pixels (default: none)."""
         return ""
 
+    def on_device(self, device: str) -> "MaskSource":
+        """This source for a process that runs on ``device`` (``"cuda:1"``, ``"cpu"``): one of the processes
+        that make a cache together (:mod:`votesplat_ns.core.vote_cache_ranks`). A source that runs no model
+        returns itself; the output must not depend on the device (``config_key`` does not name it)."""
+        return self
+
     @property
     def name(self) -> str:
         return str(self.config_key()["type"])

@@ -5,6 +5,7 @@ The checkpoint is never downloaded: :func:`check_sam_checkpoint` names the offic
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import time
 from contextlib import contextmanager
@@ -117,6 +118,19 @@ class SamMaskSource(MaskSource):
             **self._model_identity,
             **self.generator_kwargs,
         }
+
+    def __getstate__(self) -> Dict[str, Any]:
+        # sent to another process (vote_cache_ranks) without the generator: it holds the encoder's last features
+        state = dict(self.__dict__)
+        state["_generator"] = None
+        return state
+
+    def on_device(self, device: str) -> "SamMaskSource":
+        """A copy that runs SAM on ``device`` (its model is built there at the first image)."""
+        moved = copy.copy(self)
+        moved.device = device
+        moved._generator = None
+        return moved
 
     def _resolve_device(self) -> str:
         if self.device:

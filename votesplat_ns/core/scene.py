@@ -14,7 +14,7 @@ from typing import Any, Callable, Mapping, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from votesplat_ns.core.ply_io import SH_C0, gaussian_vertex_table
+from votesplat_ns.core.ply_io import SH_C0, GaussianRows, gaussian_vertex_table
 
 VOTE_OFFSETS_KEY = "vote_offsets"
 VOTE_SUPPORT_KEY = "vote_support"
@@ -198,3 +198,8 @@ class TrainedScene:
         return gaussian_vertex_table(
             self.means, self.sh_dc, self.sh_rest, self.opacity_logits, self.log_scales, self.quats
         )
+
+    def vertex_rows(self) -> GaussianRows:
+        """The rows of :meth:`vertex_table`, made only for the rows asked for (``ply_io.write_gaussian_table``
+        writes an instance or the whole scene from them chunk by chunk, without the whole table)."""
+        return GaussianRows(self.means, self.sh_dc, self.sh_rest, self.opacity_logits, self.log_scales, self.quats)

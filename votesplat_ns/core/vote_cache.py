@@ -263,15 +263,22 @@ class VoteCache:
         image_loader: Optional[ImageLoader] = None,
         progress: bool = True,
         description: Optional[str] = None,
+        keys: Optional[Sequence[str]] = None,
+        on_built: Optional[Callable[[], object]] = None,
     ) -> List[str]:
         """Make every missing entry (with a progress bar) and return the views' keys in order.
 
         Entries already present and readable are reused, so an interrupted build resumes. Sources that
         read files (``MaskSource.thread_safe``) build BUILD_THREADS views at a time: decoding images and
-        label files and writing entries release the GIL.
+        label files and writing entries release the GIL. ``keys``: the views' keys when the caller has
+        them (``view_key`` reads every image file); ``on_built``: called after each entry made, in order.
         """
         self._remove_stale_temp_files()
-        keys = [self.view_key(Path(path), index) for index, path in views]
+        if keys is None:
+            keys = [self.view_key(Path(path), index) for index, path in views]
+        elif len(keys) != len(views):
+            raise ValueError(f"{len(keys)} keys given for {len(views)} views")
+        keys = list(keys)
         missing = [i for i, key in enumerate(keys) if not self._entry_usable(key)]
         if missing:
             text = description or f"Making vote maps ({self.source.name} masks)"
@@ -287,7 +294,8 @@ class VoteCache:
                 # in order, so the progress bar advances and the first error is raised as it happens
                 done = pool.map(build, missing) if pool is not None else map(build, missing)
                 for _ in zip(steps, done):
-                    pass
+                    if on_built is not None:
+                        on_built()
             finally:
                 if pool is not None:
                     pool.shutdown(cancel_futures=True)
@@ -326,10 +334,9 @@ def _check_label_ids(labels: np.ndarray, centroids: Sequence[np.ndarray]) -> Non
             )
 
 
-def _progress(items: Sequence[int], description: str, enabled: bool):
-    """The items, shown as a progress bar with images per second, elapsed and remaining time (``close()`` ends it)."""
-    if not enabled:
-        return items
+def progress_bar():
+    """A rich progress display (``with progress_bar() as bar: bar.add_task(...)``) that shows images per second,
+    elapsed and remaining time."""
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -345,7 +352,7 @@ def _progress(items: Sequence[int], description: str, enabled: bool):
         def render(self, task) -> Text:
             return Text("" if task.speed is None else f"{task.speed:.2f} images/s")
 
-    progress = Progress(
+    return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -354,6 +361,13 @@ def _progress(items: Sequence[int], description: str, enabled: bool):
         TimeRemainingColumn(),
         transient=False,
     )
+
+
+def _progress(items: Sequence[int], description: str, enabled: bool):
+    """The items, shown as a progress bar with images per second, elapsed and remaining time (``close()`` ends it)."""
+    if not enabled:
+        return items
+    progress = progress_bar()
 
     def steps():
         with progress:

@@ -59,6 +59,7 @@ from votesplat_ns.core.mask_sources import (
     read_image_rgb,
 )
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions
+from votesplat_ns.core.vote_cache_ranks import rank_share
 from votesplat_ns.core.vote_maps import (
     DEFAULT_BORDER_MASKS,
     VoteMaps,
@@ -77,6 +78,7 @@ from votesplat_ns.ns.data_checks import (
     check_vote_schedule,
     default_cache_dir,
 )
+from votesplat_ns.ns.data_parallel import distributed_ranks, training_ranks
 from votesplat_ns.ns.mask_settings import SamOptions
 from votesplat_ns.ns.retrofit import retrofit_reference
 
@@ -198,6 +200,27 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         if test_mode == "val":  # ns-train: make all masks now, before training starts
             self._prepare_votes()
 
+    # ------------------------------------------------------------------ views of this rank
+    @property
+    def view_shard(self) -> Tuple[int, int]:
+        """(rank, ranks): this process trains on the views rank, rank + ranks, ... (several processes: a
+        data-parallel retrofit, ``ns/data_parallel.py``); (0, 1) alone."""
+        return training_ranks(self.world_size, self.local_rank)
+
+    def sample_train_cameras(self):
+        """nerfstudio's order of the training views, keeping this rank's share (every rank draws the same order)."""
+        order = super().sample_train_cameras()
+        rank, ranks = self.view_shard
+        if ranks == 1:
+            return order
+        own = [index for index in order if index % ranks == rank]
+        if not own:
+            raise VoteSplatInputError(
+                f"{ranks} processes share {len(self.train_dataset)} training views, so rank {rank} has none: "
+                f"train on {len(self.train_dataset)} or fewer (--machine.num-devices)"
+            )
+        return own
+
     # ------------------------------------------------------------------ vote cache
     @property
     def vote_levels(self) -> Tuple[str, ...]:
@@ -224,6 +247,15 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         with writing_into(cache_dir, CACHE_DIR_FLAG):
             cache = VoteCache(cache_dir, source, VoteOptions(border_masks=self.config.border_masks))
             CONSOLE.log(f"Vote maps: {source.name} masks, levels {list(source.levels)}, cache {cache.entry_dir}")
+            ranks = distributed_ranks()
+            if ranks is not None:  # several processes: each makes its share (on its GPU), then all wait for all
+                rank, world = ranks
+                cache.build_all(
+                    rank_share(views, rank, world),
+                    progress=rank == 0,
+                    description=f"Making vote maps ({source.name} masks; rank 0's share of {world})",
+                )
+                torch.distributed.barrier()
             self._vote_keys = cache.build_all(views, description=f"Making vote maps ({source.name} masks)")
         self._vote_cache = cache
         if not any(self._view_has_votes(key) for key in self._vote_keys):
@@ -305,7 +337,8 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
         resolution: reading, undistorting and pinning a view costs ms to 0.2 s of CPU, which would
         otherwise stall the step that first visits it (cv2, numpy and torch release the GIL for it)."""
         self._prefetch = {}
-        views = [index for index in range(len(self.cached_train)) if index not in self._in_memory]
+        rank, ranks = self.view_shard  # this rank's views only
+        views = [i for i in range(len(self.cached_train)) if i not in self._in_memory and i % ranks == rank]
         pool = ThreadPoolExecutor(max_workers=PREFETCH_THREADS, thread_name_prefix="vote-maps")
         for index in views[: max(0, self.config.vote_maps_in_memory - len(self._in_memory))]:
             image = self.cached_train[index]["image"]

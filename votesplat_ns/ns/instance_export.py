@@ -297,7 +297,7 @@ def _write_export(
 ) -> Dict[str, object]:
     chosen = instance_set.levels[level_index]
     ids = chosen.ids
-    table = params.vertex_table()
+    table = params.vertex_rows()  # rows made per chunk of each file: no copy of the whole table
     width = max(4, len(str(chosen.num_instances - 1)))
     (folder / "instances").mkdir()
     advance = task("writing PLY files", total=chosen.num_instances + 2 + bool(remove_ids))

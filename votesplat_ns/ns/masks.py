@@ -1,26 +1,37 @@
 """``votesplat masks``: make and cache a dataset's masks and 2D votes without training.
 
     votesplat masks --data <dataset> [--output-dir outputs] [--source auto|dataset|folder|sam ...] [--preview N]
+    votesplat masks --data <dataset> --num-gpus 4                      # one process per GPU, one cache
+    torchrun --standalone --nproc-per-node 4 $(which votesplat) masks --data <dataset>   # the same, ranks by torchrun
 
 The cache goes where ``ns-train votesplat`` looks by default
 (``<output-dir>/<dataset folder name>/votesplat_cache``), so training reuses it when run with
 the same mask options and image downscale. ``--preview N`` saves, for N views spread over the
 dataset, a PNG with one panel per mask level: masks in colour, centroids marked with a cross,
 under ``<output-dir>/<dataset folder name>/votesplat_previews/``.
+
+With ``--num-gpus N`` (or N ranks started by ``torchrun``) rank r makes the images r, r + N, ... on GPU r,
+all into the one cache (:mod:`votesplat_ns.core.vote_cache_ranks`); the entries are those one process
+makes. ``--sam-device cpu`` runs the N ranks as CPU processes instead.
 """
 
 from __future__ import annotations
 
+import os
+import time
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Tuple
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
+import torch
 
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, load_image_rgb
+from votesplat_ns.core.vote_cache_ranks import build_on_ranks, rank_share
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS
 from votesplat_ns.core.vote_preview import render_vote_preview, write_png
-from votesplat_ns.errors import VoteSplatInputError, writing_into
+from votesplat_ns.errors import VoteSplatInputError, check_writable_folder, writing_into
 from votesplat_ns.ns.mask_settings import SamOptions
 
 PREVIEW_FOLDER_NAME = "votesplat_previews"
@@ -54,6 +65,83 @@ class MasksConfig(SamOptions, _MasksInput):
     """nerfstudio's --downscale-factor (images_N/); give training's for the cache to be reused."""
     preview: int = 0
     """Number of views to save a picture of the masks and centroids for."""
+    num_gpus: int = 1
+    """Processes making the masks, one per GPU (rank r on cuda:r takes images r, r+N, ...), all into one cache; with --sam-device cpu, N CPU processes. Under torchrun leave it at 1."""
+
+
+# a rank started by torchrun may wait this long at the end for the slowest rank
+RANKS_TIMEOUT = timedelta(days=1)
+
+
+def rank_devices(num_gpus: int, sam_device: Optional[str]) -> List[str]:
+    """The devices of ``--num-gpus`` ranks (one line when this machine lacks them): cuda:0..N-1, or N times cpu
+    with ``--sam-device cpu``; [] for one process (it runs on ``--sam-device``)."""
+    if num_gpus < 1:
+        raise VoteSplatInputError(f"--num-gpus {num_gpus}: give 1 or more processes")
+    if num_gpus == 1:
+        return []
+    if sam_device == "cpu":
+        return ["cpu"] * num_gpus
+    if sam_device not in (None, "cuda"):
+        raise VoteSplatInputError(
+            f"--num-gpus {num_gpus} runs rank r on cuda:r, but --sam-device {sam_device} names one device: "
+            f"leave --sam-device out, or give --sam-device cpu for {num_gpus} CPU processes"
+        )
+    available = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if num_gpus > available:
+        have = f"{available} GPU{'s' if available != 1 else ''}" + (" (CUDA is not available)" if not available else "")
+        raise VoteSplatInputError(
+            f"--num-gpus {num_gpus}: this machine has {have}; give --num-gpus {max(1, available)} or less, "
+            f"or add --sam-device cpu to run {num_gpus} CPU processes"
+        )
+    return [f"cuda:{rank}" for rank in range(num_gpus)]
+
+
+def launcher_rank() -> Optional[Tuple[int, int, int]]:
+    """(rank, world size, local rank) when a launcher (torchrun) started this process as one of several ranks."""
+    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if world <= 1 or "RANK" not in os.environ:
+        return None
+    rank = int(os.environ["RANK"])
+    return rank, world, int(os.environ.get("LOCAL_RANK", rank))
+
+
+def _launched_rank_device(local_rank: int, sam_device: Optional[str]) -> str:
+    if sam_device == "cpu":
+        return "cpu"
+    available = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if local_rank >= available:
+        raise VoteSplatInputError(
+            f"torchrun started local rank {local_rank}, but this machine has {available} GPU(s): start at most "
+            f"{available} processes per node (--nproc-per-node), or give --sam-device cpu"
+        )
+    return f"cuda:{local_rank}"
+
+
+def _build_as_launched_rank(
+    cache: VoteCache, views: Sequence[Tuple[int, Path]], keys: List[str], ranks: Tuple[int, int, int], sam_device
+) -> None:
+    """This process's share of the cache as rank ``ranks[0]`` of ``ranks[1]`` (torchrun), then wait for all ranks."""
+    import torch.distributed as dist
+
+    rank, world, local_rank = ranks
+    device = _launched_rank_device(local_rank, sam_device)
+    if device.startswith("cuda"):
+        torch.cuda.set_device(torch.device(device))
+    else:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ.get("LOCAL_WORLD_SIZE", world))))
+    own = VoteCache(cache.entry_dir.parent, cache.source.on_device(device), cache.vote_options)
+    dist.init_process_group("gloo", timeout=RANKS_TIMEOUT)  # only a barrier: gloo serves CPU and GPU ranks
+    try:
+        own.build_all(
+            rank_share(views, rank, world),
+            keys=rank_share(keys, rank, world),
+            progress=rank == 0,
+            description=f"Making vote maps ({cache.source.name} masks; rank 0's share of {world})",
+        )
+        dist.barrier()
+    finally:
+        dist.destroy_process_group()
 
 
 def dataset_images(data: Path, downscale_factor: Optional[int]) -> List[Path]:
@@ -87,6 +175,13 @@ def make_masks(config: MasksConfig) -> Dict[str, object]:
 
     if config.preview < 0:
         raise VoteSplatInputError(f"--preview must be >= 0, got {config.preview}")
+    devices = rank_devices(config.num_gpus, config.sam_device)
+    launched = launcher_rank()
+    if launched is not None and devices:
+        raise VoteSplatInputError(
+            f"--num-gpus {config.num_gpus} starts its own processes, and torchrun started this one as rank "
+            f"{launched[0]} of {launched[1]}: use one of the two (under torchrun leave --num-gpus at 1)"
+        )
     manager_config = VoteDataManagerConfig(
         data=config.data,
         mask_source=config.source,
@@ -106,8 +201,28 @@ def make_masks(config: MasksConfig) -> Dict[str, object]:
     views = list(enumerate(images))
     with writing_into(folder, flag):
         cache = VoteCache(cache_dir, source, VoteOptions(border_masks=config.border_masks))
-        keys = cache.build_all(views)
+        keys = [cache.view_key(path, index) for index, path in views]
+        missing = sum(1 for key in keys if not cache.votes_path(key).is_file())
+        if missing and (devices or launched is not None):  # before any process starts
+            check_writable_folder(cache.entry_dir, flag, given=folder)
+        started = time.perf_counter()
+        if launched is not None:
+            _build_as_launched_rank(cache, views, keys, launched, config.sam_device)
+            if launched[0] != 0:  # rank 0 reports and draws the previews
+                return {"entry_dir": cache.entry_dir, "keys": keys, "previews": [], "dataset": dataset_dir(config.data)}
+            keys = cache.build_all(views, keys=keys, progress=False)  # every entry is there: checks them
+        elif devices:
+            keys = build_on_ranks(cache, views, devices, write_check=(folder, flag))
+        else:
+            keys = cache.build_all(views, keys=keys)
+        elapsed = time.perf_counter() - started
     print(f"vote maps of {len(views)} views ({source.name} masks, levels {list(source.levels)}) in {cache.entry_dir}")
+    if missing:
+        processes = len(devices) or (launched[1] if launched is not None else 1)
+        print(
+            f"made {missing} in {elapsed:.1f} s ({missing / max(elapsed, 1e-9):.2f} images/s, "
+            f"{processes} process{'es' if processes > 1 else ''})"
+        )
     if cache.rebuilt_damaged:
         print(f"{cache.rebuilt_damaged} damaged cache entries were rebuilt")
 

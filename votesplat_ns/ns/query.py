@@ -309,7 +309,7 @@ def run_click(
     keep = np.asarray((isolate if mode == "isolate" else remove)(scene.level.ids, instance_id), dtype=bool)
     name = f"instance_{instance_id}.ply" if mode == "isolate" else f"scene_without_{instance_id}.ply"
     output_dir.mkdir(parents=True, exist_ok=True)
-    written = write_gaussian_table(output_dir / name, scene.vertex_table(), select=keep)
+    written = write_gaussian_table(output_dir / name, scene.vertex_rows(), select=keep)
     rgb, alpha = scene.render(keep, camera)
     render_name = f"render_{view:04d}.png"
     _write_png(output_dir / render_name, _rgba(rgb, alpha))

@@ -18,6 +18,7 @@ import torch
 
 from votesplat_ns.core.cameras import PinholeView, scaled_view
 from votesplat_ns.core.instances import InstanceSet, LevelInstances, render_instance_ids, vote_level_index
+from votesplat_ns.core.ply_io import GaussianRows
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.core.semantics import click_select, isolate
 from votesplat_ns.ns.rasterizer import rasterize
@@ -74,7 +75,6 @@ class QueryScene:
             finite, self.device
         )[:6]
         self.ids = torch.as_tensor(level.ids[finite], dtype=torch.long, device=self.device)
-        self._table: Optional[np.ndarray] = None
         self._id_maps: "OrderedDict[tuple, np.ndarray]" = OrderedDict()
 
     # ------------------------------------------------------------------ loading
@@ -220,10 +220,9 @@ class QueryScene:
         """[N] bool over all Gaussians of the model: members of the selected instances."""
         return np.asarray(isolate(self.level.ids, list(selected)), dtype=bool)
 
-    def vertex_table(self) -> np.ndarray:
-        if self._table is None:
-            self._table = self.params.vertex_table()
-        return self._table
+    def vertex_rows(self) -> GaussianRows:
+        """The PLY vertex rows of every Gaussian, made per chunk as a file is written (``ply_io.GaussianRows``)."""
+        return self.params.vertex_rows()
 
     def fingerprint(self) -> Dict[str, Any]:
         """What the instance features of this scene depend on, besides encoder and views."""

@@ -13,18 +13,32 @@ ends in a traceback for a missing, truncated or foreign file. :class:`VoteSplatT
   as does a folder without a loadable checkpoint or a ``--load-step`` / ``--load-checkpoint`` that cannot be read.
 
 The rest of the load (pipeline, optimizers, schedulers, gradient scaler) is nerfstudio's, on the loaded state.
+
+On several processes (``--machine.num-devices N`` or torchrun; a retrofit only) the pipeline is built as for one
+process and the ranks meet in the optimizers, which average the offsets' gradients before each step
+(:mod:`votesplat_ns.ns.data_parallel` says why nerfstudio's DistributedDataParallel cannot serve).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import torch
-from nerfstudio.engine.trainer import Trainer
+from nerfstudio.engine.optimizers import Optimizers
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from votesplat_ns.errors import VoteSplatInputError
+from votesplat_ns.ns.data_parallel import (
+    COUNTED_GROUPS,
+    TRAINED_GROUPS,
+    DataParallelOptimizers,
+    broadcast_parameters,
+    check_data_parallel,
+    join_launched_group,
+    rank_zero_value,
+)
 from votesplat_ns.ns.run import checkpoint_failure_reason
 
 DAMAGED = "the file is truncated or damaged"
@@ -93,8 +107,51 @@ def resume_state(load_dir: Optional[Path], load_step: Optional[int], load_checkp
     return None  # unreachable: the loop returns or raises on its last candidate
 
 
+def _share_run_folder(config: TrainerConfig) -> None:
+    """Under torchrun every rank's ns-train named its own run folder by the second it started and saved its
+    config.yml there: take rank 0's, and remove a folder of this rank's that holds nothing else."""
+    timestamp = rank_zero_value(config.timestamp)
+    if timestamp == config.timestamp:
+        return
+    own = config.get_base_dir()
+    config.timestamp = timestamp
+    if own.is_dir() and {path.name for path in own.iterdir()} <= {"config.yml"}:
+        (own / "config.yml").unlink(missing_ok=True)
+        own.rmdir()
+
+
 class VoteSplatTrainer(Trainer):
-    """nerfstudio's ``Trainer`` whose checkpoint loading reads with ``weights_only=True`` and fails in one line."""
+    """nerfstudio's ``Trainer`` whose checkpoint loading reads with ``weights_only=True`` and fails in one line, and
+    which trains a retrofit on several processes by averaging the offsets' gradients (module docstring)."""
+
+    def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        launched = join_launched_group(config.machine.device_type) if world_size == 1 else None
+        if launched is not None:  # torchrun
+            _, world_size, local_rank = launched
+            _share_run_folder(config)
+        elif world_size > 1 and config.machine.device_type == "cuda":
+            torch.cuda.set_device(local_rank)  # nerfstudio's launch leaves every rank's current device at 0
+        check_data_parallel(config, world_size)
+        self.ranks = world_size
+        super().__init__(config, local_rank, world_size)
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        # nerfstudio's pipeline wraps the model in DistributedDataParallel when told of several processes: it is
+        # told of one, and the datamanager finds its share of the views in the process group (data_parallel.py)
+        self.world_size = 1
+        try:
+            super().setup(test_mode)
+        finally:
+            self.world_size = self.ranks
+        if self.ranks > 1:
+            assert isinstance(self.optimizers, DataParallelOptimizers)
+            broadcast_parameters(self.optimizers.averaged_parameters())  # every rank starts from rank 0's offsets
+
+    def setup_optimizers(self) -> Optimizers:
+        if self.ranks == 1:
+            return super().setup_optimizers()
+        config, groups = self.config.optimizers.copy(), self.pipeline.get_param_groups()
+        return DataParallelOptimizers(config, groups, TRAINED_GROUPS, self.ranks, counted=COUNTED_GROUPS)
 
     def _load_checkpoint(self) -> None:
         found = resume_state(self.config.load_dir, self.config.load_step, self.config.load_checkpoint)

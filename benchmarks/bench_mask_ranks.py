@@ -1,0 +1,134 @@
+"""Images per second of ``votesplat masks`` on 1 and on N GPUs (``--num-gpus``), on the same images, and whether
+the caches they make hold the same entries.
+
+    python benchmarks/bench_mask_ranks.py --data <nerfstudio dataset> --ranks 1 2 --json out.json
+    python benchmarks/bench_mask_ranks.py --data <dataset> --source dataset --ranks 1 2 --sam-device cpu   # plumbing, CPU
+
+Each count of ranks runs the real command (``votesplat masks --source sam --num-gpus N``) in a subprocess, into a
+cache of its own, so process start, the SAM model's load on every rank and the cache writes are all counted;
+the command's own line ``made K in T s (X images/s, N processes)`` gives the build's time (from the first image's
+hash to the last entry written; the dataset parse before it is the same for every N). Without
+``--sam-checkpoint`` a RANDOMLY INITIALISED model of ``--sam-model-type`` is saved first and used by every run:
+the encoder and decoder cost what real weights cost, fewer masks survive the filters. Then every entry of each
+cache is compared with the 1-rank cache: the labels file byte for byte, the record's arrays value for value
+(its zip's dates aside). Give enough images that a rank's model load (seconds) is a small part of its share.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+VOTESPLAT = Path(sys.executable).parent / "votesplat"
+MADE = re.compile(r"made (\d+) in ([0-9.]+) s \(([0-9.]+) images/s, (\d+) process")
+
+
+def random_checkpoint(folder: Path, model_type: str, seed: int = 0) -> Path:
+    """A randomly initialised SAM of ``model_type``, saved as a checkpoint file."""
+    import torch
+    from segment_anything import sam_model_registry
+
+    path = folder / f"random_sam_{model_type}_seed{seed}.pth"
+    if not path.is_file():
+        torch.manual_seed(seed)
+        torch.save(sam_model_registry[model_type](checkpoint=None).state_dict(), path)
+    return path
+
+
+def run_masks(args, ranks: int, cache: Path, checkpoint: Optional[Path]) -> Dict[str, object]:
+    command = [str(VOTESPLAT), "masks", "--data", str(args.data), "--cache-dir", str(cache), "--source", args.source]
+    command += ["--num-gpus", str(ranks)]
+    if args.source == "sam":
+        command += ["--sam-checkpoint", str(checkpoint), "--sam-model-type", args.sam_model_type]
+        command += ["--sam-max-long-side", str(args.max_long_side)]
+    if args.sam_device:
+        command += ["--sam-device", args.sam_device]
+    wall = time.perf_counter()
+    result = subprocess.run(command, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - wall
+    if result.returncode != 0:
+        raise SystemExit(f"{' '.join(command)} failed:\n{result.stderr[-3000:]}")
+    found = MADE.search(result.stdout)
+    row: Dict[str, object] = {"ranks": ranks, "command_wall_s": round(wall, 2)}
+    if found:
+        made, seconds = int(found.group(1)), float(found.group(2))
+        row.update(images=made, build_s=round(seconds, 2), images_per_s=round(made / seconds, 3))
+    return row
+
+
+def entry_dir(cache: Path) -> Path:
+    (folder,) = [path for path in cache.iterdir() if path.is_dir()]
+    return folder
+
+
+def same_entries(first: Path, second: Path) -> Dict[str, int]:
+    """How many entries of ``first`` ``second`` holds identically, and how many differ or are missing."""
+    keys = sorted(path.name[: -len(".votes.npz")] for path in first.glob("*.votes.npz"))
+    same = 0
+    for key in keys:
+        labels = second / f"{key}.labels.npy"
+        if not labels.is_file() or labels.read_bytes() != (first / f"{key}.labels.npy").read_bytes():
+            continue
+        with np.load(first / f"{key}.votes.npz") as a, np.load(second / f"{key}.votes.npz") as b:
+            if sorted(a.files) == sorted(b.files) and all(
+                np.array_equal(a[name], b[name], equal_nan=a[name].dtype.kind == "f") for name in a.files
+            ):
+                same += 1
+    return {"entries": len(keys), "identical": same, "different_or_missing": len(keys) - same}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, required=True, help="a nerfstudio dataset (transforms.json)")
+    parser.add_argument(
+        "--ranks", type=int, nargs="+", default=[1, 2], help="--num-gpus values; the first is the baseline"
+    )
+    parser.add_argument("--source", choices=["sam", "dataset", "folder"], default="sam")
+    parser.add_argument("--sam-checkpoint", type=Path, default=None, help="default: a random-init model, saved first")
+    parser.add_argument("--sam-model-type", default="vit_h")
+    parser.add_argument("--sam-device", default=None, help="cpu: the ranks are CPU processes")
+    parser.add_argument("--max-long-side", type=int, default=1080)
+    parser.add_argument("--work-dir", type=Path, default=Path("build/bench_mask_ranks"))
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args()
+
+    args.work_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint = None
+    if args.source == "sam":
+        checkpoint = args.sam_checkpoint or random_checkpoint(args.work_dir, args.sam_model_type)
+    rows: List[Dict[str, object]] = []
+    caches = {}
+    for ranks in args.ranks:
+        cache = args.work_dir / f"cache_{ranks}_ranks"
+        if cache.exists():
+            import shutil
+
+            shutil.rmtree(cache)
+        rows.append(run_masks(args, ranks, cache, checkpoint))
+        caches[ranks] = entry_dir(cache)
+        print(json.dumps(rows[-1]), flush=True)
+    base = rows[0]
+    for row in rows:
+        row["identical_to_baseline"] = same_entries(caches[int(base["ranks"])], caches[int(row["ranks"])])  # type: ignore[arg-type]
+        if "images_per_s" in row and "images_per_s" in base:
+            speedup = float(row["images_per_s"]) / float(base["images_per_s"])  # type: ignore[arg-type]
+            row["speedup"] = round(speedup, 3)
+            row["speedup_per_rank"] = round(speedup * int(base["ranks"]) / int(row["ranks"]), 3)  # type: ignore[arg-type]
+    result = {"data": str(args.data), "source": args.source, "model_type": args.sam_model_type, "runs": rows}
+    print(json.dumps(result, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
