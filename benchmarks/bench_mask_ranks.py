@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -29,7 +30,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+# the console script beside this interpreter (a venv), else the one on PATH (a --target install, as on the GPU host)
 VOTESPLAT = Path(sys.executable).parent / "votesplat"
+if not VOTESPLAT.exists() and shutil.which("votesplat"):
+    VOTESPLAT = Path(shutil.which("votesplat") or "votesplat")
 MADE = re.compile(r"made (\d+) in ([0-9.]+) s \(([0-9.]+) images/s, (\d+) process")
 
 
