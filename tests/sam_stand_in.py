@@ -15,13 +15,16 @@ Given a real ``model_predictor`` (a ``SamPredictor``), the model's encoder, deco
 also run on the same prompts and masks, their outputs dropped, so that a timing pays their cost and
 memory: ``decode_points`` hands out the model's low-resolution logits with the stand-in's segment
 written into each mask's first three values, and ``upscale_masks`` upscales them as the model would
-before making the stand-in's logits (its own work, which real weights do not have, is on top).
+before making the stand-in's logits. Its own work, which real weights do not have, is on top: a copy of
+each mask's precomputed segment logits plus the prompt's bias (``own_seconds`` adds up its time).
 """
 
 from __future__ import annotations
 
+import time
+from contextlib import contextmanager
 from types import SimpleNamespace
-from typing import List, Sequence, Tuple
+from typing import Iterator, List, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -81,7 +84,8 @@ class StandInPredictor:
         self.labels = torch.as_tensor(np.stack(label_maps), device=self.device)
         generator = torch.Generator().manual_seed(seed)
         self.noise = (noise * torch.randn(self.labels.shape, generator=generator)).to(self.device)
-        self._maps = None  # [segments of every level, H, W] blurred indicators, made on first use
+        self._maps = None  # [segments of every level, H, W]: each segment's logits before the prompt's bias
+        self.own_seconds = None  # set to 0.0 to add up the time of the stand-in's own work (synchronised)
         self._first = torch.as_tensor(
             np.cumsum([0] + [int(m.max()) + 1 for m in label_maps[:2]]), device=self.device
         )  # each level's first segment in _maps
@@ -102,16 +106,20 @@ class StandInPredictor:
         assert len(matches) == 1, f"{len(matches)} crops of the stand-in's image match the image given"
         return matches[0]
 
-    def _blurred_maps(self) -> torch.Tensor:
-        """Every segment's indicator over the whole image, box-blurred (5 x 5), level after level."""
+    def segment_maps(self) -> torch.Tensor:
+        """Every segment's logits over the whole image before the prompt's bias, level after level: its indicator
+        box-blurred (5 x 5), ``12 (blurred - 0.5)``, plus the level's noise field times ``4 blurred (1 - blurred)``
+        (1 on the segment's boundary, 0 two pixels away from it). Made once, on first use."""
         if self._maps is None:
             maps = []
-            for level in self.labels:
+            for index, level in enumerate(self.labels):
                 for first in range(0, int(level.max()) + 1, 16):
                     segments = torch.arange(first, min(first + 16, int(level.max()) + 1), device=self.device)
                     inside = (level[None] == segments[:, None, None]).float()[:, None]
                     blurred = torch.nn.functional.avg_pool2d(inside, 5, stride=1, padding=2, count_include_pad=False)
-                    maps.append(blurred[:, 0])
+                    blurred = blurred[:, 0]
+                    band = 4.0 * blurred * (1.0 - blurred)
+                    maps.append(12.0 * (blurred - 0.5) + band * self.noise[index])
             self._maps = torch.cat(maps)
         return self._maps
 
@@ -121,28 +129,39 @@ class StandInPredictor:
         x0, y0, _, _ = crop
         h, w = original_size
         new_h, new_w = self.transform.get_preprocess_shape(h, w, self.transform.target_length)
-        points = transformed_points.to(torch.float64)
-        px = (points[:, 0] * (w / new_w)).floor().long().clamp(0, w - 1)
-        py = (points[:, 1] * (h / new_h)).floor().long().clamp(0, h - 1)
-        ids = self.labels[:, y0 + py, x0 + px].T  # [B, 3]
-        # per-point bias from the point's pixel: a deterministic hash, in [-1.5, 1.5] once made a bias
-        code = (px + 1) * 7919 + (py + x0 + 3) * 104729 + y0 * 31
-        levels = torch.arange(3, device=ids.device)
-        iou_code = (ids * 2654435761 + levels[None] * 40503 + code[:, None] * 97) % 64
-        iou = (0.5 + 0.5 * iou_code.float() / 63.0).to(torch.float32)
-        return ids, iou, code
+        with self._own_time():
+            points = transformed_points.to(torch.float64)
+            px = (points[:, 0] * (w / new_w)).floor().long().clamp(0, w - 1)
+            py = (points[:, 1] * (h / new_h)).floor().long().clamp(0, h - 1)
+            ids = self.labels[:, y0 + py, x0 + px].T  # [B, 3]
+            # per-point bias from the point's pixel: a deterministic hash, in [-1.5, 1.5] once made a bias
+            code = (px + 1) * 7919 + (py + x0 + 3) * 104729 + y0 * 31
+            levels = torch.arange(3, device=ids.device)
+            iou_code = (ids * 2654435761 + levels[None] * 40503 + code[:, None] * 97) % 64
+            iou = (0.5 + 0.5 * iou_code.float() / 63.0).to(torch.float32)
+            return ids, iou, code
 
     def _logits(self, crop, masks: torch.Tensor) -> torch.Tensor:
         """Logits [m, h, w] in the crop of masks given as rows (level, segment, code % 997)."""
         x0, y0, x1, y1 = crop
-        level, segment, bias_code = masks[:, 0].long(), masks[:, 1].long(), masks[:, 2].long()
-        blurred = self._blurred_maps()[:, y0:y1, x0:x1].index_select(0, self._first[level] + segment)
-        noise = self.noise[:, y0:y1, x0:x1].index_select(0, level)
-        bias = (bias_code.double() / 996.0 * 3.0 - 1.5).float()
-        band = (1.0 - blurred).mul_(blurred).mul_(4.0)  # 1 on the segment's boundary, 0 two pixels away from it
-        noise = noise.mul_(band)
-        del band
-        return blurred.sub_(0.5).mul_(12.0).add_(noise).add_(bias[:, None, None])
+        with self._own_time():
+            level, segment, bias_code = masks[:, 0].long(), masks[:, 1].long(), masks[:, 2].long()
+            logits = self.segment_maps()[:, y0:y1, x0:x1].index_select(0, self._first[level] + segment)
+            bias = (bias_code.double() / 996.0 * 3.0 - 1.5).float()
+            return logits.add_(bias[:, None, None])
+
+    @contextmanager
+    def _own_time(self) -> Iterator[None]:
+        if self.own_seconds is None:
+            yield
+            return
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        start = time.perf_counter()
+        yield
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        self.own_seconds += time.perf_counter() - start
 
     @staticmethod
     def _mask_rows(ids: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
