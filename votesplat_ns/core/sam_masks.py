@@ -640,42 +640,50 @@ class _Window:
 
 
 class _MaskWindows:
-    """The masks some level keeps, by key, as windows on the host; their small-region clean-ups."""
+    """The masks some level keeps, by key, as windows on the host (unpacked from their bits when first asked for,
+    on the thread that asks); their small-region clean-ups."""
 
     def __init__(self, shape: Tuple[int, int]):
         self.shape = shape
+        self._packed: Dict[Any, Tuple[np.ndarray, np.ndarray, Tuple[int, int]]] = {}
         self._windows: Dict[Any, _Window] = {}
         self._cleaned: Dict[Any, Tuple[_Window, bool]] = {}
 
     def add_packed(self, key: Any, mask_bits: np.ndarray, box: np.ndarray, offset: Tuple[int, int]) -> None:
         """A crop's mask from its packed bits [h, ceil(w / 8)] and its box in the crop (batched_mask_to_box)."""
-        bx0, by0, bx1, by1 = (int(v) for v in box)
-        rows = np.unpackbits(mask_bits[by0 : by1 + 1, bx0 // 8 : bx1 // 8 + 1], axis=-1)
-        window = np.ascontiguousarray(rows[:, bx0 % 8 : bx0 % 8 + bx1 - bx0 + 1]).view(bool)
-        self._windows[key] = _Window(offset[0] + bx0, offset[1] + by0, window)
+        self._packed[key] = (mask_bits, box, offset)
 
     def original(self, key: Any) -> _Window:
-        return self._windows[key]
+        window = self._windows.get(key)
+        if window is None:
+            mask_bits, box, offset = self._packed[key]
+            bx0, by0, bx1, by1 = (int(v) for v in box)
+            rows = np.unpackbits(mask_bits[by0 : by1 + 1, bx0 // 8 : bx1 // 8 + 1], axis=-1)
+            mask = np.ascontiguousarray(rows[:, bx0 % 8 : bx0 % 8 + bx1 - bx0 + 1]).view(bool)
+            window = self._windows[key] = _Window(offset[0] + bx0, offset[1] + by0, mask)
+        return window
 
     def clean(self, keys: Sequence[Any], min_area: int, workers: int = 1) -> None:
         """Compute the clean-ups of ``keys`` ahead, on ``workers`` threads (OpenCV and numpy release the GIL)."""
         todo = [key for key in keys if key not in self._cleaned]
+
+        def cleaned(key: Any) -> Tuple[_Window, bool]:
+            return _small_regions_removed(self.original(key), self.shape, min_area)
+
         if workers > 1 and len(todo) > 1:
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(max_workers=workers) as pool:
-                results = list(
-                    pool.map(lambda key: _small_regions_removed(self._windows[key], self.shape, min_area), todo)
-                )
+                results = list(pool.map(cleaned, todo))
         else:
-            results = [_small_regions_removed(self._windows[key], self.shape, min_area) for key in todo]
+            results = [cleaned(key) for key in todo]
         self._cleaned.update(zip(todo, results))
 
     def cleaned(self, key: Any, min_area: int) -> Tuple[_Window, bool]:
         """segment_anything's hole then island removal of one mask, and whether it left the mask unchanged."""
         saved = self._cleaned.get(key)
         if saved is None:
-            saved = _small_regions_removed(self._windows[key], self.shape, min_area)
+            saved = _small_regions_removed(self.original(key), self.shape, min_area)
             self._cleaned[key] = saved
         return saved
 
@@ -730,16 +738,22 @@ def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: in
 
     # holes: background components inside the box smaller than min_area are filled
     _, regions, stats, _ = cv2.connectedComponentsWithStats((~padded).astype(np.uint8), connectivity=8)
-    ring = np.ones(padded.shape, dtype=bool)
-    ring[inner] = False
     touching = np.zeros(len(stats), dtype=bool)
-    touching[np.unique(regions[ring])] = True
-    small = np.flatnonzero((stats[:, -1] < min_area) & ~touching)
-    small = small[small > 0]  # label 0: the mask's own pixels
+    # the ring: the rows and columns of the padded window outside the box (none on a side at the image's edge)
+    for present, edge in (
+        (py0 < y0, regions[0]),
+        (py1 > y0 + h, regions[-1]),
+        (px0 < x0, regions[:, 0]),
+        (px1 > x0 + w, regions[:, -1]),
+    ):
+        if present:
+            touching[edge] = True
+    small = (stats[:, -1] < min_area) & ~touching
+    small[0] = False  # label 0: the mask's own pixels
     mask = window.mask
-    holes_changed = small.size > 0
+    holes_changed = bool(small.any())
     if holes_changed:
-        mask = mask | np.isin(regions[inner], small)
+        mask = mask | small[regions[inner]]
 
     # islands: mask components smaller than min_area are dropped, the largest one kept if all are
     _, regions, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
@@ -749,8 +763,12 @@ def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: in
         return _Window.of_window(x0, y0, mask), not holes_changed
     if small_islands.all() and np.count_nonzero(sizes == sizes.max()) > 1:
         return _small_regions_removed_whole_image(_Window(x0, y0, mask), shape, min_area)[0], False
-    keep = np.flatnonzero(~small_islands) + 1 if not small_islands.all() else [int(np.argmax(sizes)) + 1]
-    return _Window.of_window(x0, y0, np.isin(regions, keep)), False
+    keep = np.zeros(len(stats), dtype=bool)
+    if small_islands.all():
+        keep[int(np.argmax(sizes)) + 1] = True
+    else:
+        keep[1:] = ~small_islands
+    return _Window.of_window(x0, y0, keep[regions]), False
 
 
 def _paint_windows(masks: List[_Window], shape: Tuple[int, int]) -> np.ndarray:
