@@ -23,7 +23,10 @@ encoder shared between the runs (tests/sam_reference.py), configured the same (`
 included, so that its decoder calls are the one pass's); ``one pass`` is SamLevelsMaskGenerator, what
 ``votesplat masks`` and the training cache use, at each ``--precision``. The fp32 one pass's label
 images are compared with the per-level path's (pixels that differ); another precision's with fp32's
-as matched-mask IoU (each fp32 label region's best IoU with a region of the other precision's labels).
+as matched-mask IoU (each fp32 label region's best IoU with a region of the other precision's labels), and
+the model's own masks prompt by prompt, before any filter (``--no-decoder-agreement`` skips it): with random
+weights few masks pass the filters, and the stand-in's masks do not depend on the precision at all (its
+labels agree by construction), so that comparison is the one that measures a precision.
 ``one pass`` is also run once with its per-stage split (synchronised at each stage, so the split's total
 is a little above the plain time): encoder (every crop), decoder (prompt encoder + mask decoder),
 filtering (upscaling, stability, boxes, NMS within and across crops), labels (the kept masks upscaled
@@ -253,6 +256,53 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
     return {"rows": rows}
 
 
+def decoder_agreement(sam, image: np.ndarray, precision: str, settings: dict) -> dict:
+    """The model's own masks at ``precision`` against fp32's, prompt by prompt: every point of the grid on the whole
+    image, all three outputs, before any filter (so that random weights give as many masks as trained ones)."""
+    import torch
+    from segment_anything import SamPredictor
+    from segment_anything.utils.amg import build_point_grid, calculate_stability_score
+
+    from votesplat_ns.core.sam_masks import SamSteps
+
+    points = build_point_grid(settings["points_per_side"]) * np.array(image.shape[:2])[None, ::-1]
+    steps = {p: SamSteps(SamPredictor(sam), p) for p in ("fp32", precision)}
+    states = {p: steps[p].encode_crops([image])[0] for p in steps}
+    mask_iou, iou_change, stability_change, iou_flips, stability_flips = [], [], [], [], []
+    batch = settings["points_per_batch"]
+    for start in range(0, len(points), batch):
+        outputs = {}
+        for p, step in steps.items():
+            low_res, iou = step.decode_points(states[p], points[start : start + batch])
+            logits = step.upscale_masks(states[p], low_res.flatten(0, 1))
+            stability = calculate_stability_score(logits, step.mask_threshold, 1.0)
+            outputs[p] = (logits > step.mask_threshold, iou.flatten(), stability)
+            del logits
+        (a, iou_a, stab_a), (b, iou_b, stab_b) = outputs["fp32"], outputs[precision]
+        union = (a | b).flatten(1).sum(1)
+        overlap = (a & b).flatten(1).sum(1)
+        mask_iou.append(torch.where(union > 0, overlap / union.clamp(min=1), torch.ones_like(union, dtype=torch.float)))
+        iou_change.append((iou_a - iou_b).abs())
+        stability_change.append((stab_a - stab_b).abs())
+        iou_flips.append((iou_a > settings["pred_iou_thresh"]) != (iou_b > settings["pred_iou_thresh"]))
+        threshold = settings["stability_score_thresh"]
+        stability_flips.append((stab_a >= threshold) != (stab_b >= threshold))
+    mask_iou_all = torch.cat(mask_iou).double().cpu().numpy()
+    return {
+        "masks": int(mask_iou_all.size),
+        "mask_iou_mean": float(mask_iou_all.mean()),
+        "mask_iou_p05": float(np.quantile(mask_iou_all, 0.05)),
+        "mask_iou_min": float(mask_iou_all.min()),
+        "share_mask_iou_ge_0_9": float(np.mean(mask_iou_all >= 0.9)),
+        "share_mask_iou_ge_0_99": float(np.mean(mask_iou_all >= 0.99)),
+        "pred_iou_abs_change_mean": float(torch.cat(iou_change).mean()),
+        "pred_iou_abs_change_max": float(torch.cat(iou_change).max()),
+        "stability_abs_change_mean": float(torch.cat(stability_change).nan_to_num().mean()),
+        "share_pred_iou_filter_flips": float(torch.cat(iou_flips).float().mean()),
+        "share_stability_filter_flips": float(torch.cat(stability_flips).float().mean()),
+    }
+
+
 def encoder_seconds(sam, image: np.ndarray, precision: str) -> float:
     """One encoder pass on the whole image, after a warm-up pass."""
     from segment_anything import SamPredictor
@@ -285,6 +335,10 @@ def bench(model_type: str, image: np.ndarray, args, settings, write) -> list:
             if sam is not None:
                 with torch.no_grad():
                     row["encoder_one_pass_s"] = encoder_seconds(sam, images[0][1], row["precision"])
+                    if row["precision"] != "fp32" and args.decoder_agreement:
+                        row["decoder_agreement_with_fp32"] = decoder_agreement(
+                            sam, images[0][1], row["precision"], settings
+                        )
             rows.append(row)
             print(json.dumps(row), flush=True)
         write(rows)
@@ -311,6 +365,12 @@ def main(argv=None) -> int:
     parser.add_argument("--one-pass-only", action="store_true", help="skip the per-level path (no comparison)")
     parser.add_argument("--no-model", action="store_true", help="stand-in without a SAM model (identity check only)")
     parser.add_argument("--precision", nargs="+", default=["fp32"], choices=list(SAM_PRECISIONS))
+    parser.add_argument(
+        "--no-decoder-agreement",
+        dest="decoder_agreement",
+        action="store_false",
+        help="skip the prompt-by-prompt comparison of each precision's masks with fp32's",
+    )
     parser.add_argument("--points-per-batch", type=int, default=DEFAULT_POINTS_PER_BATCH, help="both paths")
     parser.add_argument("--crops-per-encoder-pass", type=int, default=None, help="default: 1 in fp32, else all")
     parser.add_argument("--points-per-side", type=int, default=LANGSPLAT["points_per_side"])
@@ -379,6 +439,25 @@ def main(argv=None) -> int:
             f"{row['one_pass_s']:.3f} | {row['masks_per_level']} | {differ} | {matched} | "
             f"{row['per_level_peak_mib']} / {row['one_pass_peak_mib']} ({row['one_pass_working_peak_mib']}) |"
         )
+    agreeing = [row for row in rows if "decoder_agreement_with_fp32" in row]
+    if agreeing:
+        print(
+            "\nthe model's own masks against fp32's, prompt by prompt (whole image, every grid point, all three outputs, "
+            "before the filters)"
+        )
+        print(
+            "| model | workload image | precision | masks | mask IoU mean | 5th percentile | share >= 0.99 | "
+            "predicted IoU change, mean / max | filter decisions changed: predicted IoU, stability |"
+        )
+        print("|---|---|---|---|---|---|---|---|---|")
+        for row in agreeing:
+            d = row["decoder_agreement_with_fp32"]
+            print(
+                f"| {row['model_type']} | {row['workload']} | {row['precision']} | {d['masks']} | "
+                f"{d['mask_iou_mean']:.4f} | {d['mask_iou_p05']:.4f} | {d['share_mask_iou_ge_0_99']:.3f} | "
+                f"{d['pred_iou_abs_change_mean']:.4f} / {d['pred_iou_abs_change_max']:.4f} | "
+                f"{d['share_pred_iou_filter_flips']:.4f}, {d['share_stability_filter_flips']:.4f} |"
+            )
     print("\none pass per stage (s/image, median; the encoder stage is every crop's pass)")
     groups = list(STAGE_GROUPS)
     names = [name for group in STAGE_GROUPS.values() for name in group] + ["stand_in_own"]

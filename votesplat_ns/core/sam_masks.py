@@ -317,15 +317,18 @@ class SamLevelsMaskGenerator:
     three, in the generator's point-major order) and goes through segment_anything's own filters: predicted IoU,
     stability score, crop-edge boxes, box NMS within the crop, NMS across crops, small-region removal with its
     NMS. Every filter calls the same segment_anything/torchvision function on the same values in the same order
-    as ``SamAutomaticMaskGenerator`` run once per level (configured the same, ``points_per_batch`` included), so
-    ties break the same way and the label images are the same.
+    as ``SamAutomaticMaskGenerator`` run once per level (configured the same, ``points_per_batch`` included, and in
+    fp32 one crop per encoder call, so that the model's calls are its calls), so ties break the same way and the
+    label images are the same.
 
     What is not repeated: the encoder and decoder per level; the upscaling of a mask below the predicted IoU
     threshold (that filter does not look at the mask); the per-mask quantities, computed once on the device for
     all levels, ``UPSCALE_BUDGET_BYTES`` of masks at a time; the RLE round trip. A crop keeps, on the device, only
     the low-resolution logits of the masks its NMS keeps; after the NMS across crops the survivors are upscaled
     again (the same bits), packed to bits and moved to the host in one copy per crop, each kept as its
-    bounding-box window (``rle_to_mask(mask_to_rle(m)) == m``). The small-region clean-up runs once per mask,
+    bounding-box window (``rle_to_mask(mask_to_rle(m)) == m``). Nothing in the decoder batches waits for the
+    device; a crop's filters read back a few small results (the masks' counts, outputs, each level's NMS), the
+    NMS across crops its kept indices. The small-region clean-up runs once per mask,
     however many levels keep it, in the mask's box rather than the whole image (:func:`_small_regions_removed`,
     same result), on ``workers`` threads.
 
@@ -499,7 +502,7 @@ class SamLevelsMaskGenerator:
                 rows = torch.arange(len(iou), device=device)
             stability, boxes = [], []
             threshold = self.steps.mask_threshold
-            for chunk in torch.split(rows, self._chunk(crop_size)):
+            for chunk in torch.split(rows, self._chunk(crop_size)) if len(rows) else ():
                 logits = self.steps.upscale_masks(state, low_res[chunk])
                 stability.append(calculate_stability_score(logits, threshold, self.stability_score_offset))
                 boxes.append(batched_mask_to_box(logits > threshold))
