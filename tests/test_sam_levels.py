@@ -222,6 +222,7 @@ def test_random_vit_b_decoder_equals_segment_anything(one_torch_thread):
     image = np.ascontiguousarray(np.kron(blocks_image(), np.ones((2, 2, 1), dtype=np.uint8)))  # 48 x 64
     options = dict(
         points_per_side=3,
+        points_per_batch=4,  # three decoder calls, the last with one prompt
         pred_iou_thresh=0.0,
         stability_score_thresh=0.0,
         box_nms_thresh=0.98,
