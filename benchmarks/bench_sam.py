@@ -46,7 +46,7 @@ import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Tuple
 
 import numpy as np
 
@@ -197,14 +197,17 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
                 peaks[precision].append(peak_mib())
                 working[precision].append(peak_mib() - before)
             if args.repeats > 0:
-                generator.stage_seconds = {}
-                if maps is not None:
-                    generator.steps.own_seconds = 0.0
+                split: Dict[str, float] = {}
+                generator.stage_seconds = split
+                stand_in: Any = generator.steps if maps is not None else None
+                if stand_in is not None:
+                    stand_in.own_seconds = 0.0
                 generator.label_images(image)
-                for name, seconds in generator.stage_seconds.items():
+                for name, seconds in split.items():
                     stages[precision].setdefault(name, []).append(seconds)
-                if maps is not None:
-                    stages[precision].setdefault("stand_in_own", []).append(generator.steps.own_seconds)
+                if stand_in is not None:
+                    stages[precision].setdefault("stand_in_own", []).append(stand_in.own_seconds)
+            assert labels is not None
             labels_of[precision].append(labels)
             counts[precision].append([int(np.unique(level).size - 1) for level in labels])
             del generator
@@ -324,20 +327,22 @@ def bench(model_type: str, image: np.ndarray, args, settings, write) -> list:
     rows = []
     levels = tuple(args.levels)
     for workload in args.workloads:
+        images: List[Tuple[int, np.ndarray, Any]]
         if workload == "random":
             images = [(0, image, None)]
         else:
             seeds = range(args.first_seed, args.first_seed + args.images)
             images = [(seed, *scene(args.height, args.width, seed=seed, fine_cells=args.cells)) for seed in seeds]
+        first_image = images[0][1]
         result = bench_workload(sam, workload, images, levels, args, settings)
         for row in result["rows"]:
             row.update(model_type=model_type)
             if sam is not None:
                 with torch.no_grad():
-                    row["encoder_one_pass_s"] = encoder_seconds(sam, images[0][1], row["precision"])
+                    row["encoder_one_pass_s"] = encoder_seconds(sam, first_image, row["precision"])
                     if row["precision"] != "fp32" and args.decoder_agreement:
                         row["decoder_agreement_with_fp32"] = decoder_agreement(
-                            sam, images[0][1], row["precision"], settings
+                            sam, first_image, row["precision"], settings
                         )
             rows.append(row)
             print(json.dumps(row), flush=True)

@@ -89,8 +89,9 @@ class StandInPredictor:
         self._first = torch.as_tensor(
             np.cumsum([0] + [int(m.max()) + 1 for m in label_maps[:2]]), device=self.device
         )  # each level's first segment in _maps
-        self.crop_boxes = [
-            tuple(box) for box in generate_crop_boxes(image.shape[:2], crop_n_layers, crop_overlap_ratio)[0]
+        self.crop_boxes: List[Tuple[int, int, int, int]] = [
+            (box[0], box[1], box[2], box[3])
+            for box in generate_crop_boxes(image.shape[:2], crop_n_layers, crop_overlap_ratio)[0]
         ]
         self.reset_image()
 
@@ -190,6 +191,7 @@ class StandInPredictor:
         self, point_coords, point_labels, boxes=None, mask_input=None, multimask_output=True, return_logits=False
     ):
         assert self.is_image_set and multimask_output
+        assert self.features is not None and self.original_size is not None
         if self.model_predictor is not None:
             self.model_predictor.predict_torch(
                 point_coords, point_labels, multimask_output=True, return_logits=return_logits
@@ -211,7 +213,7 @@ class StandInPredictor:
         transformed = torch.as_tensor(self.transform.apply_coords(points, original_size), device=self.device)
         ids, iou, code = self._segments(crop, original_size, transformed)
         rows = self._mask_rows(ids, code)
-        if model_state is None:
+        if model_state is None or self.model_steps is None:
             return rows, iou
         low_res = self.model_steps.decode_points(model_state, points)[0].contiguous()
         low_res.view(len(points), 3, -1)[:, :, :3] = rows.to(low_res.dtype)  # exact: every value is below 2**24
@@ -219,6 +221,6 @@ class StandInPredictor:
 
     def upscale_masks(self, state, low_res: torch.Tensor) -> torch.Tensor:
         crop, _, model_state = state
-        if model_state is not None:
+        if model_state is not None and self.model_steps is not None:
             self.model_steps.upscale_masks(model_state, low_res)
         return self._logits(crop, low_res.reshape(len(low_res), -1)[:, :3])

@@ -771,7 +771,7 @@ def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: in
         keep[int(np.argmax(sizes)) + 1] = True
     else:
         keep[1:] = ~small_islands
-    return _Window.of_window(x0, y0, keep[regions]), False
+    return _Window.of_window(x0, y0, keep[np.asarray(regions, dtype=np.int32)]), False
 
 
 def _paint_windows(masks: List[_Window], shape: Tuple[int, int]) -> np.ndarray:
