@@ -274,22 +274,26 @@ def decoder_agreement(sam, image: np.ndarray, precision: str, settings: dict) ->
     mask_iou, iou_change, stability_change, iou_flips, stability_flips = [], [], [], [], []
     batch = settings["points_per_batch"]
     for start in range(0, len(points), batch):
-        outputs = {}
-        for p, step in steps.items():
-            low_res, iou = step.decode_points(states[p], points[start : start + batch])
-            logits = step.upscale_masks(states[p], low_res.flatten(0, 1))
-            stability = calculate_stability_score(logits, step.mask_threshold, 1.0)
-            outputs[p] = (logits > step.mask_threshold, iou.flatten(), stability)
-            del logits
-        (a, iou_a, stab_a), (b, iou_b, stab_b) = outputs["fp32"], outputs[precision]
-        union = (a | b).flatten(1).sum(1)
-        overlap = (a & b).flatten(1).sum(1)
-        mask_iou.append(torch.where(union > 0, overlap / union.clamp(min=1), torch.ones_like(union, dtype=torch.float)))
+        decoded = {p: step.decode_points(states[p], points[start : start + batch]) for p, step in steps.items()}
+        iou_a, iou_b = decoded["fp32"][1].flatten(), decoded[precision][1].flatten()
         iou_change.append((iou_a - iou_b).abs())
-        stability_change.append((stab_a - stab_b).abs())
         iou_flips.append((iou_a > settings["pred_iou_thresh"]) != (iou_b > settings["pred_iou_thresh"]))
-        threshold = settings["stability_score_thresh"]
-        stability_flips.append((stab_a >= threshold) != (stab_b >= threshold))
+        for rows in torch.split(torch.arange(len(iou_a), device=iou_a.device), 64):  # 64 masks at a time: 4K fits
+            masks, stability = {}, {}
+            for p, step in steps.items():
+                logits = step.upscale_masks(states[p], decoded[p][0].flatten(0, 1)[rows])
+                stability[p] = calculate_stability_score(logits, step.mask_threshold, 1.0)
+                masks[p] = logits > step.mask_threshold
+                del logits
+            a, b = masks["fp32"], masks[precision]
+            union = (a | b).flatten(1).sum(1)
+            overlap = (a & b).flatten(1).sum(1)
+            mask_iou.append(
+                torch.where(union > 0, overlap / union.clamp(min=1), torch.ones_like(overlap, dtype=torch.float))
+            )
+            stability_change.append((stability["fp32"] - stability[precision]).abs())
+            threshold = settings["stability_score_thresh"]
+            stability_flips.append((stability["fp32"] >= threshold) != (stability[precision] >= threshold))
     mask_iou_all = torch.cat(mask_iou).double().cpu().numpy()
     return {
         "masks": int(mask_iou_all.size),
