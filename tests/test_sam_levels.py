@@ -134,9 +134,11 @@ def test_crops_encoded_in_one_call_get_the_features_of_one_call_each(one_torch_t
 
 
 def test_sam_precisions(one_torch_thread):
-    """tf32 is fp32 on a CPU (and leaves torch's matmul precision as it was); bf16 runs SAM under autocast: masks
-    close to fp32's, not the same, and a cache key of its own."""
-    from votesplat_ns.core.sam_masks import SamMaskSource
+    """tf32 is fp32 on a CPU (and leaves torch's matmul precision as it was); bf16 runs SAM under autocast: other
+    logits, masks close to fp32's, and a cache key of its own."""
+    from segment_anything import SamPredictor
+
+    from votesplat_ns.core.sam_masks import SamMaskSource, SamSteps
     from votesplat_ns.errors import VoteSplatInputError
 
     sam = tiny_sam()
@@ -152,7 +154,15 @@ def test_sam_precisions(one_torch_thread):
     assert_same_labels(labels["fp32"], labels["tf32"])
     for fp32, bf16 in zip(labels["fp32"], labels["bf16"]):
         assert bf16.max() > 0 and np.mean(fp32 != bf16) < 0.05
-    assert any(not np.array_equal(a, b) for a, b in zip(labels["fp32"], labels["bf16"]))
+    points = np.array([[5.0, 6.0], [20.0, 12.0]])
+    decoded = {}
+    for precision in ("fp32", "bf16"):
+        steps = SamSteps(SamPredictor(sam), precision)
+        low_res, iou = steps.decode_points(steps.encode_crops([image])[0], points)
+        assert low_res.dtype == iou.dtype == torch.float32 and low_res.shape[:2] == iou.shape == (2, 3)
+        decoded[precision] = low_res
+    assert not torch.equal(decoded["fp32"], decoded["bf16"])
+    torch.testing.assert_close(decoded["bf16"], decoded["fp32"], rtol=0.05, atol=0.05)
     with pytest.raises(VoteSplatInputError, match="unknown SAM precision 'fp16'"):
         SamMaskSource(sam_model=sam, precision="fp16")
 
