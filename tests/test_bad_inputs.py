@@ -22,6 +22,8 @@ Issue 16, items 3-7 (item 8, the help, is checked in test_method.py):
   6 some_frames_without_instance_masks, hidden_folder_in_the_mask_folder, image_of_the_wrong_size,
     garbage_clip_checkpoint, duplicate_frames, query_longer_than_clip_reads
   7 export_over_a_user_file, previous_export_that_cannot_be_deleted, non_finite_vote_offsets
+Issue 37 (SAM masks): sam_checkpoint_of_another_model_type, truncated_sam_checkpoint,
+  sixteen_bit_grey_image_for_sam (grey and RGBA images are read as RGB: tests/test_data_checks.py).
 The other cases are earlier ones (issue 2) and neighbours of these.
 """
 
@@ -493,6 +495,61 @@ def garbage_sam_checkpoint(ws, fixtures):
         argv,
         needles=[f"could not load SAM checkpoint {checkpoint}", "not a PyTorch weights file"],
         forbidden=["weights_only"],
+    )
+
+
+def sam_masks(ws: Workspace, scene: Path, checkpoint: Path, model_type: str = "vit_b") -> List[str]:
+    return masks(
+        scene,
+        "--source",
+        "sam",
+        "--sam-checkpoint",
+        str(checkpoint),
+        "--sam-model-type",
+        model_type,
+        "--sam-device",
+        "cpu",
+        "--cache-dir",
+        str(ws.root / "cache"),
+    )
+
+
+@case
+def sam_checkpoint_of_another_model_type(ws, fixtures):
+    scene = ws.scene()
+    checkpoint = ws.root / "sam_vit_l_0b3195.pth"
+    torch.save({"image_encoder.patch_embed.proj.weight": torch.zeros(1024, 3, 16, 16)}, checkpoint)  # vit_l's width
+    return Expect(
+        sam_masks(ws, scene, checkpoint, "vit_b"),
+        needles=[f"could not load SAM checkpoint {checkpoint} as model type 'vit_b'", "weights of another model"],
+        forbidden=["weights_only"],
+    )
+
+
+@case
+def truncated_sam_checkpoint(ws, fixtures):
+    scene = ws.scene()
+    checkpoint = ws.root / "sam_vit_b_01ec64.pth"
+    torch.save({"image_encoder.patch_embed.proj.weight": torch.zeros(768, 3, 16, 16)}, checkpoint)
+    truncate(checkpoint)
+    return Expect(
+        sam_masks(ws, scene, checkpoint),
+        needles=[f"could not load SAM checkpoint {checkpoint} as model type 'vit_b'", "truncated"],
+        forbidden=["weights_only"],
+    )
+
+
+@case
+def sixteen_bit_grey_image_for_sam(ws, fixtures):
+    scene = ws.scene()
+    image = scene / "images" / "frame_00005.png"
+    grey = np.asarray(Image.open(image).convert("L")).astype(np.uint16) * 257
+    Image.fromarray(grey).save(image)
+    checkpoint = ws.root / "sam_vit_b_01ec64.pth"
+    checkpoint.write_bytes(b"never read")
+    return Expect(
+        sam_masks(ws, scene, checkpoint),
+        needles=[f"image {image} is a 16/32-bit single-channel image (PIL mode I;16)", "8-bit RGB or greyscale"],
     )
 
 

@@ -90,6 +90,33 @@ def test_cmyk_image_is_read_as_rgb_by_the_plugin_and_refused_for_nerfstudio(scen
     assert str(cmyk_path) in message and "mode CMYK" in message and "convert it to RGB" in message
 
 
+def test_sixteen_bit_grey_image_is_refused_grey_rgba_and_sixteen_bit_colour_are_read(scene):
+    """What SAM and nerfstudio both read right passes the checks (SAM gets 8-bit RGB); a 16-bit grey image is refused
+    with one line naming it, before anything is cached."""
+    import cv2
+
+    images = scene / "images"
+    rgb = np.asarray(Image.open(images / "frame_00004.png").convert("RGB"))
+    Image.fromarray(rgb).convert("L").save(images / "frame_00005.png")
+    Image.fromarray(np.concatenate([rgb, np.full(rgb.shape[:2] + (1,), 200, np.uint8)], axis=-1)).save(
+        images / "frame_00006.png"
+    )
+    deep_colour = rgb.astype(np.uint16) * 257 + 3
+    cv2.imwrite(str(images / "frame_00007.png"), deep_colour[..., ::-1])  # a 48-bit PNG (OpenCV writes BGR)
+    assert [Image.open(images / f"frame_0000{i}.png").mode for i in (5, 6, 7)] == ["L", "RGBA", "RGB"]
+    check_data_input(VoteDataManagerConfig(data=scene, mask_source="sam"))
+    assert np.array_equal(read_image_rgb(images / "frame_00006.png"), rgb)
+    assert np.array_equal(read_image_rgb(images / "frame_00007.png"), rgb)  # the high byte of each value
+
+    deep_grey = images / "frame_00004.png"
+    Image.fromarray(rgb[..., 0].astype(np.uint16) * 257).save(deep_grey)
+    assert Image.open(deep_grey).mode == "I;16"
+    for source in ("sam", "dataset"):
+        message = refusal(VoteDataManagerConfig(data=scene, mask_source=source))
+        assert message.startswith(f"image {deep_grey} is a 16/32-bit single-channel image (PIL mode I;16)")
+        assert "save it as an 8-bit RGB or greyscale image" in message and "\n" not in message
+
+
 def test_palette_image_is_refused_for_nerfstudio(scene):
     path = scene / "images" / "frame_00004.png"
     Image.open(path).convert("RGB").convert("P", palette=Image.Palette.ADAPTIVE).save(path)

@@ -50,7 +50,7 @@ def test_stand_in_decoder_levels_equal_segment_anything(seed, one_torch_thread):
     assert counts[0] >= 40 and min(counts) >= 4, counts
     changed = [a for level in LEVELS[1:] for a in reference.annotations[level] if a["stability_score"] < 1]
     assert changed
-    assert {"encoder", "decoder", "filter", "nms", "small_regions", "paint"} <= set(fast.stage_seconds)
+    assert {"encoder", "decoder", "filter", "nms", "masks", "small_regions", "paint"} <= set(fast.stage_seconds)
 
 
 def test_stand_in_without_crops_or_small_region_removal(one_torch_thread):
@@ -80,11 +80,114 @@ def test_tiny_random_sam_with_crops_equals_segment_anything(one_torch_thread):
             min_mask_region_area=0,
         ),
         dict(points_per_side=3, pred_iou_thresh=2.0, stability_score_thresh=0.0, crop_n_layers=1),  # nothing kept
+        dict(  # several decoder batches per crop, the last one short
+            points_per_side=5,
+            points_per_batch=7,
+            pred_iou_thresh=0.0,
+            stability_score_thresh=0.0,
+            crop_n_layers=1,
+            min_mask_region_area=20,
+        ),
     ):
         expected = ReferenceGenerator(sam, None, LEVELS, **options).label_images(image)
         labels = SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image)
         assert_same_labels(expected, labels)
         assert (labels[0].max() > 0) == (options["pred_iou_thresh"] < 1)
+
+
+def test_masks_upscaled_one_at_a_time_and_with_the_model_alongside_are_the_same(one_torch_thread):
+    """A mask upscaled alone has the bits it has in a batch; the stand-in gives the same masks with a model running
+    alongside (its timing mode), whose low-resolution logits then carry the stand-in's segments."""
+    from segment_anything import SamPredictor
+
+    image, maps = scene(64, 96, seed=4, fine_cells=40)
+    expected = ReferenceGenerator(NO_MODEL, StandInPredictor(image, maps, 1, seed=4), LEVELS, **LANGSPLAT).label_images(
+        image
+    )
+    one_at_a_time = SamLevelsMaskGenerator(
+        StandInPredictor(image, maps, 1, seed=4), LEVELS, upscale_budget_bytes=1, **LANGSPLAT
+    )
+    assert one_at_a_time._chunk((64, 96)) == 1
+    assert_same_labels(expected, one_at_a_time.label_images(image))
+    with_model = StandInPredictor(image, maps, 1, seed=4, model_predictor=SamPredictor(tiny_sam()))
+    assert_same_labels(expected, SamLevelsMaskGenerator(with_model, LEVELS, **LANGSPLAT).label_images(image))
+    reference_with_model = StandInPredictor(image, maps, 1, seed=4, model_predictor=SamPredictor(tiny_sam()))
+    assert_same_labels(
+        expected, ReferenceGenerator(NO_MODEL, reference_with_model, LEVELS, **LANGSPLAT).label_images(image)
+    )
+
+
+def test_crops_encoded_in_one_call_get_the_features_of_one_call_each(one_torch_thread):
+    from segment_anything import SamPredictor
+
+    from votesplat_ns.core.sam_masks import SamSteps
+
+    sam = tiny_sam()
+    image = blocks_image()
+    crops = [image, image[:16, :20], image[8:, 12:], image[:, ::-1].copy()]
+    alone = SamSteps(SamPredictor(sam)).encode_crops(crops)
+    together = SamSteps(SamPredictor(sam), crops_per_encoder_pass=3).encode_crops(crops)
+    for one, batched in zip(alone, together):
+        assert one.original_size == batched.original_size and one.input_size == batched.input_size
+        assert batched.features.shape == one.features.shape == (1, 32, 4, 4)
+        torch.testing.assert_close(batched.features, one.features, rtol=1e-5, atol=1e-6)
+
+
+def test_sam_precisions(one_torch_thread):
+    """tf32 is fp32 on a CPU (and leaves torch's matmul precision as it was); bf16 runs SAM under autocast: other
+    logits, masks close to fp32's, and a cache key of its own."""
+    from segment_anything import SamPredictor
+
+    from votesplat_ns.core.sam_masks import SamMaskSource, SamSteps
+    from votesplat_ns.errors import VoteSplatInputError
+
+    sam = tiny_sam()
+    image = blocks_image()
+    options = dict(points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0, min_mask_region_area=20)
+    labels, keys = {}, {}
+    for precision in ("fp32", "tf32", "bf16"):
+        source = SamMaskSource(sam_model=sam, device="cpu", precision=precision, **options)
+        labels[precision] = source.masks_for_image(image, "blocks.png", 0)
+        keys[precision] = source.config_key()
+        assert torch.get_float32_matmul_precision() == "highest"
+    assert len({str(key) for key in keys.values()}) == 3
+    assert_same_labels(labels["fp32"], labels["tf32"])
+    for fp32, bf16 in zip(labels["fp32"], labels["bf16"]):
+        assert bf16.max() > 0 and np.mean(fp32 != bf16) < 0.05
+    points = np.array([[5.0, 6.0], [20.0, 12.0]])
+    decoded = {}
+    for precision in ("fp32", "bf16"):
+        steps = SamSteps(SamPredictor(sam), precision)
+        low_res, iou = steps.decode_points(steps.encode_crops([image])[0], points)
+        assert low_res.dtype == iou.dtype == torch.float32 and low_res.shape[:2] == iou.shape == (2, 3)
+        decoded[precision] = low_res
+    assert not torch.equal(decoded["fp32"], decoded["bf16"])
+    torch.testing.assert_close(decoded["bf16"], decoded["fp32"], rtol=0.05, atol=0.05)
+    with pytest.raises(VoteSplatInputError, match="unknown SAM precision 'fp16'"):
+        SamMaskSource(sam_model=sam, precision="fp16")
+
+
+def test_masks_packed_to_bits_come_back_as_their_windows():
+    from votesplat_ns.core.sam_masks import _MaskWindows, _packed_bits, _Window
+
+    rng = np.random.default_rng(1)
+    windows = _MaskWindows((40, 50))
+    expected = {}
+    for key in range(30):
+        height, width = int(rng.integers(1, 30)), int(rng.integers(1, 41))
+        mask = random_blob_mask(rng, (height, width)) if min(height, width) >= 8 else rng.random((height, width)) < 0.5
+        packed = _packed_bits(torch.as_tensor(mask)[None]).numpy()[0]
+        assert np.array_equal(packed, np.packbits(mask, axis=-1))
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        box = np.array([cols[0], rows[0], cols[-1], rows[-1]]) if rows.size else np.zeros(4, dtype=np.int64)
+        windows.add_packed(key, packed, box, (7, 3))
+        expected[key] = mask if rows.size else np.zeros((1, 1), dtype=bool)
+    for key, mask in expected.items():
+        window = windows.original(key)
+        full = np.zeros((40, 50), dtype=bool)
+        full[3 : 3 + mask.shape[0], 7 : 7 + mask.shape[1]] = mask
+        assert isinstance(window, _Window) and window.mask.dtype == bool
+        assert np.array_equal(window.full((40, 50)), full), key
 
 
 def test_sam_mask_source_runs_the_one_pass_generator(one_torch_thread):
@@ -97,6 +200,7 @@ def test_sam_mask_source_runs_the_one_pass_generator(one_torch_thread):
     labels = source.masks_for_image(image, "blocks.png", 0)
     assert isinstance(source._generator, SamLevelsMaskGenerator)
     settings = {**source.generator_kwargs}
+    assert settings.pop("precision") == "fp32"  # the oracle is segment_anything's float32 model
     expected = ReferenceGenerator(sam, None, ("m", "default", "s"), **settings).label_images(image)
     assert all(np.array_equal(a, b) for a, b in zip(expected, labels))
     assert labels[1].max() > 0
@@ -128,6 +232,7 @@ def test_random_vit_b_decoder_equals_segment_anything(one_torch_thread):
     image = np.ascontiguousarray(np.kron(blocks_image(), np.ones((2, 2, 1), dtype=np.uint8)))  # 48 x 64
     options = dict(
         points_per_side=3,
+        points_per_batch=4,  # three decoder calls, the last with one prompt
         pred_iou_thresh=0.0,
         stability_score_thresh=0.0,
         box_nms_thresh=0.98,

@@ -342,8 +342,13 @@ stage_bench_sam() {
   local image rc
   image=$(find "$FOX" -path '*/images*' -type f \( -name '*.jpg' -o -name '*.png' \) 2>/dev/null | sort | head -1)
   log "bench_sam on ${image:-a random image}" | tee -a "$OUT/bench_sam.log"
+  # SAM_PRECISIONS: one-pass precisions (matched-mask IoU against fp32); SAM_BENCH_ARGS: more bench_sam.py
+  # arguments, after these so that they win (e.g. "--4k --workloads stand-in", or "--workloads stand-in
+  # --no-model --images 10 --first-seed 10 --repeats 1" for the identity check)
+  # shellcheck disable=SC2086
   timeout "$(limit_s)" "$PY" benchmarks/bench_sam.py ${image:+--image "$image"} --model-types vit_h \
     --workloads stand-in random --images "${SAM_IMAGES:-2}" --width 1920 --height 1080 --repeats 2 \
+    --precision ${SAM_PRECISIONS:-fp32 bf16} ${SAM_BENCH_ARGS:-} \
     --json "$OUT/bench_sam.json" 2>&1 | tee -a "$OUT/bench_sam.log"
   rc=${PIPESTATUS[0]}
   if [ -d "$RUNS/votesplat_cache_fox" ]; then

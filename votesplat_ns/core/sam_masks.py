@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import os
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -34,6 +35,22 @@ _OUTPUT_INDEX = {"default": None, "s": 0, "m": 1, "l": 2}
 """SAM multimask output index per level; ``None``: all three outputs together (the standard generator)."""
 
 
+SAM_PRECISIONS = ("fp32", "tf32", "bf16")
+"""How SAM's encoder and decoder compute: ``fp32`` as segment_anything runs them (the masks are its masks);
+``tf32``: float32 matrix products on TensorFloat-32 tensor cores (``torch.set_float32_matmul_precision("high")``;
+on a CPU the same as fp32); ``bf16``: under ``torch.autocast`` in bfloat16. The last two are faster on a GPU and
+give masks that differ a little from fp32's."""
+
+DEFAULT_POINTS_PER_BATCH = 256
+"""Point prompts per decoder call. The decoder's activations take some 20-30 MiB per prompt in fp32 (the image
+embedding is repeated per prompt through its two-way transformer and upscaling), whatever the image's size: 5-8 GiB
+at 256. Its masks are upscaled apart, :data:`UPSCALE_BUDGET_BYTES` at a time."""
+
+UPSCALE_BUDGET_BYTES = 1 << 31
+"""Device memory for the masks upscaled at once: per mask, the 1024 x 1024 step of ``Sam.postprocess_masks`` (4 MiB)
+and 8 bytes per crop pixel (the float logits and the thresholded masks), so a 4K crop takes smaller chunks."""
+
+
 class SamMaskSource(MaskSource):
     """Segment Anything's automatic mask generator, LangSplat-style hierarchical levels.
 
@@ -49,7 +66,10 @@ class SamMaskSource(MaskSource):
     LangSplat additionally removes redundant masks by score/inner-overlap; that step is not done.
 
     The generator defaults are LangSplat's (points_per_side=32, pred_iou_thresh=0.7,
-    box_nms_thresh=0.7, stability_score_thresh=0.85, crop_n_layers=1, min_mask_region_area=100).
+    box_nms_thresh=0.7, stability_score_thresh=0.85, crop_n_layers=1, min_mask_region_area=100), with
+    ``points_per_batch`` prompts per decoder call (:data:`DEFAULT_POINTS_PER_BATCH`). ``precision="bf16"`` runs
+    SAM's encoder and decoder in bfloat16, ``"tf32"`` their float32 matrix products on TensorFloat-32
+    (:class:`SamSteps`); the masks then differ a little from fp32's.
     Images whose long side exceeds ``max_long_side`` are downscaled before SAM (masks come back
     at that size; the vote maps are resized to the training resolution later).
 
@@ -63,7 +83,7 @@ class SamMaskSource(MaskSource):
         device: Optional[str] = None,
         levels: Sequence[str] = SAM_LEVELS,
         points_per_side: int = 32,
-        points_per_batch: int = 64,
+        points_per_batch: int = DEFAULT_POINTS_PER_BATCH,
         pred_iou_thresh: float = 0.7,
         stability_score_thresh: float = 0.85,
         box_nms_thresh: float = 0.7,
@@ -71,6 +91,7 @@ class SamMaskSource(MaskSource):
         crop_n_points_downscale_factor: int = 1,
         min_mask_region_area: int = 100,
         max_long_side: Optional[int] = 1080,
+        precision: str = "fp32",
         sam_model: Any = None,
     ):
         if model_type not in SAM_CHECKPOINT_FILES:
@@ -81,6 +102,8 @@ class SamMaskSource(MaskSource):
         unknown = [level for level in self.levels if level not in SAM_LEVELS]
         if unknown:
             raise VoteSplatInputError(f"unknown SAM mask levels {unknown}; use a subset of {list(SAM_LEVELS)}")
+        if precision not in SAM_PRECISIONS:
+            raise VoteSplatInputError(f"unknown SAM precision '{precision}'; use one of {list(SAM_PRECISIONS)}")
         if max_long_side is not None and max_long_side < 16:
             raise VoteSplatInputError(f"max_long_side={max_long_side} is too small; use >= 16 or None")
         self.model_type = model_type
@@ -95,6 +118,7 @@ class SamMaskSource(MaskSource):
             crop_n_layers=int(crop_n_layers),
             crop_n_points_downscale_factor=int(crop_n_points_downscale_factor),
             min_mask_region_area=int(min_mask_region_area),
+            precision=precision,
         )
         self._sam_model = sam_model
         self._generator = None
@@ -167,27 +191,165 @@ class SamMaskSource(MaskSource):
         return self._generator.label_images(_limit_long_side(image, self.max_long_side))
 
 
+class SamCropState:
+    """What the encoder leaves for one crop: its features and the sizes ``SamPredictor`` keeps with them."""
+
+    __slots__ = ("features", "original_size", "input_size")
+
+    def __init__(self, features: Any, original_size: Tuple[int, int], input_size: Tuple[int, int]):
+        self.features, self.original_size, self.input_size = features, original_size, input_size
+
+
+class SamSteps:
+    """segment_anything's ``SamPredictor`` cut into the three steps that :class:`SamLevelsMaskGenerator` runs apart.
+
+    - ``encode_crops``: the image encoder per crop, as ``SamPredictor.set_image``; ``crops_per_encoder_pass``
+      crops per encoder call (``None``: one in fp32, the encoder call segment_anything makes, so that the features
+      are its bits, which a batched call need not give; all crops of the image in tf32 and bf16);
+    - ``decode_points``: prompt encoder and mask decoder on a batch of point prompts, all three outputs: the
+      low-resolution logits and the predicted IoUs (``SamPredictor.predict_torch`` up to ``postprocess_masks``);
+    - ``upscale_masks``: ``Sam.postprocess_masks`` on some of those low-resolution logits. Its interpolations
+      compute every output pixel from the input alone, so a mask upscaled in any batch has the bits it has in
+      ``predict_torch``'s batch.
+
+    ``precision`` (:data:`SAM_PRECISIONS`): ``"tf32"`` and ``"bf16"`` apply to encoder and decoder (their outputs
+    come back as float32); the upscaling stays float32.
+    """
+
+    def __init__(self, predictor: Any, precision: str = "fp32", crops_per_encoder_pass: Optional[int] = None):
+        import torch
+
+        if precision not in SAM_PRECISIONS:
+            raise VoteSplatInputError(f"unknown SAM precision '{precision}'; use one of {list(SAM_PRECISIONS)}")
+        if crops_per_encoder_pass is not None and crops_per_encoder_pass < 1:
+            raise VoteSplatInputError(f"crops_per_encoder_pass={crops_per_encoder_pass} must be >= 1 (or None)")
+        self.predictor = predictor
+        self.model = predictor.model
+        self.transform = predictor.transform
+        self.device = torch.device(predictor.device)
+        self.mask_threshold = float(self.model.mask_threshold)
+        self.precision = precision
+        self.crops_per_encoder_pass = crops_per_encoder_pass
+        if precision == "bf16" and self.device.type == "cuda" and not torch.cuda.is_bf16_supported():
+            raise VoteSplatInputError(
+                f"SAM precision bf16 needs a GPU with bfloat16 (compute capability 8.0 or newer), not "
+                f"{torch.cuda.get_device_name(self.device)}; use fp32"
+            )
+
+    def _autocast(self):
+        import torch
+
+        if self.precision == "bf16":
+            return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
+        if self.precision == "tf32":
+            return _float32_matmul_precision("high")
+        return nullcontext()
+
+    def encode_crops(self, crops: Sequence[np.ndarray]) -> List[SamCropState]:
+        """The features of each RGB uint8 crop."""
+        import torch
+
+        states: List[SamCropState] = []
+        step = self.crops_per_encoder_pass or (1 if self.precision == "fp32" else max(1, len(crops)))
+        for start in range(0, len(crops), step):
+            group = crops[start : start + step]
+            with self._autocast():
+                if len(group) == 1:
+                    self.predictor.set_image(group[0])
+                    states.append(
+                        SamCropState(self.predictor.features, self.predictor.original_size, self.predictor.input_size)
+                    )
+                    self.predictor.reset_image()
+                    continue
+                inputs, sizes = [], []
+                for crop in group:  # SamPredictor.set_image and set_torch_image, the encoder call left out
+                    if self.model.image_format != "RGB":
+                        crop = crop[..., ::-1]
+                    transformed = torch.as_tensor(self.transform.apply_image(crop), device=self.device)
+                    transformed = transformed.permute(2, 0, 1).contiguous()[None, :, :, :]
+                    sizes.append((tuple(crop.shape[:2]), tuple(transformed.shape[-2:])))
+                    inputs.append(self.model.preprocess(transformed))
+                features = self.model.image_encoder(torch.cat(inputs))
+            for i, (original_size, input_size) in enumerate(sizes):
+                states.append(SamCropState(features[i : i + 1], original_size, input_size))
+        return states
+
+    def decode_points(self, state: SamCropState, points: np.ndarray):
+        """Low-resolution logits [P, 3, 256, 256] and predicted IoUs [P, 3] of P point prompts (crop pixels, x y)."""
+        import torch
+
+        transformed = self.transform.apply_coords(points, state.original_size)
+        in_points = torch.as_tensor(transformed, device=self.device)
+        in_labels = torch.ones(in_points.shape[0], dtype=torch.int, device=self.device)
+        with self._autocast():
+            sparse, dense = self.model.prompt_encoder(
+                points=(in_points[:, None, :], in_labels[:, None]), boxes=None, masks=None
+            )
+            low_res, iou_predictions = self.model.mask_decoder(
+                image_embeddings=state.features,
+                image_pe=self.model.prompt_encoder.get_dense_pe(),
+                sparse_prompt_embeddings=sparse,
+                dense_prompt_embeddings=dense,
+                multimask_output=True,
+            )
+        return low_res.float(), iou_predictions.float()
+
+    def upscale_masks(self, state: SamCropState, low_res: Any):
+        """Mask logits [m, h, w] at the crop's size from m rows [m, 256, 256] of ``decode_points``' logits."""
+        return self.model.postprocess_masks(low_res[:, None], state.input_size, state.original_size)[:, 0]
+
+
+@contextmanager
+def _float32_matmul_precision(precision: str) -> Iterator[None]:
+    """``torch.set_float32_matmul_precision`` for a while (it is global: restored after)."""
+    import torch
+
+    previous = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(precision)
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(previous)
+
+
+class _Crop:
+    """A crop after its filters: per level the kept masks (segment_anything's ``MaskData``), and the
+    low-resolution logits of the masks some level keeps (``rows``: their indices among the crop's masks)."""
+
+    __slots__ = ("state", "crop_box", "levels", "rows", "low_res")
+
+    def __init__(self, state, crop_box, levels, rows, low_res):
+        self.state, self.crop_box, self.levels, self.rows, self.low_res = state, crop_box, levels, rows, low_res
+
+
 class SamLevelsMaskGenerator:
     """segment_anything's ``SamAutomaticMaskGenerator`` for several granularity levels in one pass.
 
-    Per crop the image encoder runs once and the prompt decoder once per point batch, keeping all
-    three multimask outputs; each level then takes its masks from that one set (``"s"``, ``"m"``,
-    ``"l"``: output 0, 1, 2; ``"default"``: all three, in the generator's point-major order) and
-    goes through segment_anything's own filters: predicted IoU, stability score, crop-edge boxes,
-    box NMS within the crop, NMS across crops, small-region removal with its NMS. Every step calls
-    the same segment_anything/torchvision function on the same values in the same order as
-    ``SamAutomaticMaskGenerator`` run once per level, so ties break the same way and the label
-    images are the same. What is not repeated: the encoder and decoder per level, the per-mask
-    quantities (computed once per mask and shared by the levels that hold it), the RLE round trip
-    (a binary mask is kept as its bounding-box window instead: ``rle_to_mask(mask_to_rle(m)) == m``),
-    and the small-region clean-up of a mask that several levels keep; that clean-up also works in the
-    mask's box rather than the whole image (:func:`_small_regions_removed`, same result). A crop's
-    masks that pass the filters stay on the device until its NMS; the kept ones move to the host.
+    Per image the encoder runs once per crop (:class:`SamSteps`, or crops batched), and the prompt decoder once
+    per batch of ``points_per_batch`` prompts, keeping all three multimask outputs as low-resolution logits.
+    Each level takes its masks from that one set (``"s"``, ``"m"``, ``"l"``: output 0, 1, 2; ``"default"``: all
+    three, in the generator's point-major order) and goes through segment_anything's own filters: predicted IoU,
+    stability score, crop-edge boxes, box NMS within the crop, NMS across crops, small-region removal with its
+    NMS. Every filter calls the same segment_anything/torchvision function on the same values in the same order
+    as ``SamAutomaticMaskGenerator`` run once per level (configured the same, ``points_per_batch`` included, and in
+    fp32 one crop per encoder call, so that the model's calls are its calls), so ties break the same way and the
+    label images are the same.
 
-    ``predictor`` is a ``SamPredictor`` (or anything with its ``set_image`` / ``predict_torch`` /
-    ``reset_image`` / ``transform`` / ``device`` / ``model.mask_threshold``).
-    Set ``stage_seconds = {}`` to accumulate seconds per stage (the device is synchronised at each
-    stage boundary then, so only for measuring).
+    What is not repeated: the encoder and decoder per level; the upscaling of a mask below the predicted IoU
+    threshold (that filter does not look at the mask); the per-mask quantities, computed once on the device for
+    all levels, ``UPSCALE_BUDGET_BYTES`` of masks at a time; the RLE round trip. A crop keeps, on the device, only
+    the low-resolution logits of the masks its NMS keeps; after the NMS across crops the survivors are upscaled
+    again (the same bits), packed to bits and moved to the host in one copy per crop, each kept as its
+    bounding-box window (``rle_to_mask(mask_to_rle(m)) == m``). Nothing in the decoder batches waits for the
+    device; a crop's filters read back a few small results (the masks' counts, outputs, each level's NMS), the
+    NMS across crops its kept indices. The small-region clean-up runs once per mask,
+    however many levels keep it, in the mask's box rather than the whole image (:func:`_small_regions_removed`,
+    same result), on ``workers`` threads.
+
+    ``predictor``: a ``SamPredictor`` (run by :class:`SamSteps` with ``precision`` and ``crops_per_encoder_pass``),
+    or an object with ``SamSteps``' ``encode_crops`` / ``decode_points`` / ``upscale_masks`` / ``device`` /
+    ``mask_threshold``, used as it is. Set ``stage_seconds = {}`` to accumulate seconds per stage (the device is
+    synchronised at each stage boundary then, so only for measuring).
     """
 
     def __init__(
@@ -195,7 +357,7 @@ class SamLevelsMaskGenerator:
         predictor: Any,
         levels: Sequence[str],
         points_per_side: int = 32,
-        points_per_batch: int = 64,
+        points_per_batch: int = DEFAULT_POINTS_PER_BATCH,
         pred_iou_thresh: float = 0.88,
         stability_score_thresh: float = 0.95,
         stability_score_offset: float = 1.0,
@@ -205,13 +367,22 @@ class SamLevelsMaskGenerator:
         crop_overlap_ratio: float = 512 / 1500,
         crop_n_points_downscale_factor: int = 1,
         min_mask_region_area: int = 0,
+        precision: str = "fp32",
+        crops_per_encoder_pass: Optional[int] = None,
+        upscale_budget_bytes: int = UPSCALE_BUDGET_BYTES,
+        workers: Optional[int] = None,
     ):
         from segment_anything.utils.amg import build_all_layer_point_grids
 
         unknown = [level for level in levels if level not in _OUTPUT_INDEX]
         if unknown:
             raise VoteSplatInputError(f"unknown SAM mask levels {unknown}; use a subset of {list(SAM_LEVELS)}")
-        self.predictor = predictor
+        if points_per_batch < 1:
+            raise VoteSplatInputError(f"points_per_batch={points_per_batch} must be >= 1")
+        if hasattr(predictor, "decode_points"):
+            self.steps = predictor
+        else:
+            self.steps = SamSteps(predictor, precision, crops_per_encoder_pass)
         self.levels = tuple(levels)
         self.point_grids = build_all_layer_point_grids(points_per_side, crop_n_layers, crop_n_points_downscale_factor)
         self.points_per_batch = points_per_batch
@@ -223,6 +394,8 @@ class SamLevelsMaskGenerator:
         self.crop_nms_thresh = crop_nms_thresh
         self.crop_overlap_ratio = crop_overlap_ratio
         self.min_mask_region_area = min_mask_region_area
+        self.upscale_budget_bytes = upscale_budget_bytes
+        self.workers = workers if workers is not None else min(8, os.cpu_count() or 1)
         self.stage_seconds: Optional[Dict[str, float]] = None
 
     @contextmanager
@@ -239,9 +412,14 @@ class SamLevelsMaskGenerator:
     def _synchronize(self) -> None:
         import torch
 
-        device = torch.device(self.predictor.device)
+        device = torch.device(self.steps.device)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
+
+    def _chunk(self, crop_size: Tuple[int, int]) -> int:
+        """Masks per upscaling call at a crop's size (:data:`UPSCALE_BUDGET_BYTES`)."""
+        per_mask = 4 * 1024 * 1024 + 8 * crop_size[0] * crop_size[1]
+        return max(1, self.upscale_budget_bytes // per_mask)
 
     def label_images(self, image: np.ndarray) -> List[np.ndarray]:
         """One int32 label image per level for an RGB uint8 [H, W, 3] image (0: no mask)."""
@@ -257,20 +435,23 @@ class SamLevelsMaskGenerator:
 
         orig_size = (int(image.shape[0]), int(image.shape[1]))
         crop_boxes, layer_idxs = generate_crop_boxes(orig_size, self.crop_n_layers, self.crop_overlap_ratio)
-        windows = _MaskWindows(orig_size)
-        per_level = {level: MaskData() for level in self.levels}
-        for crop_box, layer_idx in zip(crop_boxes, layer_idxs):
-            crop_data = self._process_crop(image, crop_box, layer_idx, orig_size, windows)
-            for level in self.levels:
-                per_level[level].cat(crop_data[level])
+        with self._stage("encoder"):
+            states = self.steps.encode_crops([image[y0:y1, x0:x1, :] for x0, y0, x1, y1 in crop_boxes])
+        crops = [
+            self._process_crop(index, state, crop_box, layer_idx, orig_size)
+            for index, (state, crop_box, layer_idx) in enumerate(zip(states, crop_boxes, layer_idxs))
+        ]
+        del states
 
-        label_images = []
-        for level in self.levels:
-            data = per_level[level]
-            with self._stage("nms"):
+        kept: Dict[str, List[Tuple[int, int]]] = {}
+        with self._stage("nms"):
+            for level in self.levels:
+                data = MaskData()
+                for crop in crops:
+                    data.cat(crop.levels[level])
                 # SamAutomaticMaskGenerator._generate_masks: duplicates between crops, smaller crops preferred;
                 # skipped without masks (segment_anything 1.0's box_area fails on the empty 1-D tensor there)
-                if len(crop_boxes) > 1 and len(data["ids"]) > 0:
+                if len(crop_boxes) > 1 and len(data["rows"]) > 0:
                     scores = 1 / box_area(data["crop_boxes"])
                     scores = scores.to(data["boxes"].device)
                     keep_by_nms = batched_nms(
@@ -280,107 +461,137 @@ class SamLevelsMaskGenerator:
                         iou_threshold=self.crop_nms_thresh,
                     )
                     data.filter(keep_by_nms)
-                data.to_numpy()
-            ids = [int(i) for i in data["ids"]]
-            with self._stage("small_regions"):
-                if self.min_mask_region_area > 0 and ids:
-                    masks = self._remove_small_regions(ids, windows)
-                else:
-                    masks = [windows.original(i) for i in ids]
-            with self._stage("paint"):
-                label_images.append(_paint_windows(masks, orig_size))
-        return label_images
+                kept[level] = list(zip(data["crop_index"].tolist(), data["rows"].tolist()))
 
-    def _process_crop(self, image, crop_box, crop_layer_idx, orig_size, windows: "_MaskWindows") -> Dict[str, Any]:
+        with self._stage("masks"):
+            windows = self._kept_windows(crops, kept, orig_size)
+        del crops
+        with self._stage("small_regions"):
+            if self.min_mask_region_area > 0:
+                every_key = sorted({key for keys in kept.values() for key in keys})
+                windows.clean(every_key, self.min_mask_region_area, self.workers)
+            masks = {
+                level: self._remove_small_regions(keys, windows)
+                if self.min_mask_region_area > 0 and keys
+                else [windows.original(key) for key in keys]
+                for level, keys in kept.items()
+            }
+        with self._stage("paint"):
+            return [_paint_windows(masks[level], orig_size) for level in self.levels]
+
+    def _process_crop(self, crop_index: int, state, crop_box, layer_idx: int, orig_size) -> _Crop:
+        """SamAutomaticMaskGenerator._process_crop and _process_batch for every level: the crop's masks that each
+        level keeps, with the low-resolution logits of those masks."""
         import torch
-        from segment_anything.utils.amg import MaskData, batch_iterator, uncrop_boxes_xyxy
+        from segment_anything.utils.amg import (
+            MaskData,
+            batched_mask_to_box,
+            calculate_stability_score,
+            is_box_near_crop_edge,
+            uncrop_boxes_xyxy,
+        )
         from torchvision.ops.boxes import batched_nms
 
         x0, y0, x1, y1 = crop_box
-        cropped_im = image[y0:y1, x0:x1, :]
-        cropped_im_size = cropped_im.shape[:2]
-        with self._stage("encoder"):
-            self.predictor.set_image(cropped_im)
-        points_scale = np.array(cropped_im_size)[None, ::-1]
-        points_for_image = self.point_grids[crop_layer_idx] * points_scale
-
-        per_level = {level: MaskData() for level in self.levels}
-        batch_masks, batch_boxes = [], []
-        first_id = windows.next_id
-        for (points,) in batch_iterator(self.points_per_batch, points_for_image):
-            with self._stage("decoder"):
-                transformed_points = self.predictor.transform.apply_coords(points, cropped_im_size)
-                in_points = torch.as_tensor(transformed_points, device=self.predictor.device)
-                in_labels = torch.ones(in_points.shape[0], dtype=torch.int, device=in_points.device)
-                logits, iou_preds, _ = self.predictor.predict_torch(
-                    in_points[:, None, :], in_labels[:, None], multimask_output=True, return_logits=True
+        crop_size = (y1 - y0, x1 - x0)
+        points_for_image = self.point_grids[layer_idx] * np.array(crop_size)[None, ::-1]
+        with self._stage("decoder"):
+            low_res, iou = [], []
+            for start in range(0, len(points_for_image), self.points_per_batch):
+                batch_low_res, batch_iou = self.steps.decode_points(
+                    state, points_for_image[start : start + self.points_per_batch]
                 )
-            with self._stage("filter"):
-                masks, boxes, iou, outputs = self._filter_batch(logits, iou_preds, crop_box, orig_size)
-                del logits
-                ids = torch.arange(windows.next_id, windows.next_id + len(iou), device=iou.device)
-                windows.next_id += len(iou)
-                for level in self.levels:
-                    index = _OUTPUT_INDEX[level]
-                    select = slice(None) if index is None else outputs == index
-                    per_level[level].cat(MaskData(boxes=boxes[select], iou_preds=iou[select], ids=ids[select]))
-                batch_masks.append(masks)
-                batch_boxes.append(boxes)
-        self.predictor.reset_image()
+                low_res.append(batch_low_res.flatten(0, 1))  # point-major, as the generator's flatten(0, 1)
+                iou.append(batch_iou.flatten(0, 1))
+                n_outputs = batch_iou.shape[1]
+            low_res = torch.cat(low_res) if len(low_res) > 1 else low_res[0]
+            iou = torch.cat(iou) if len(iou) > 1 else iou[0]
 
+        with self._stage("filter"):
+            device = iou.device
+            # predicted IoU first: it does not look at the mask, so a mask below it is never upscaled
+            if self.pred_iou_thresh > 0.0:
+                rows = torch.nonzero(iou > self.pred_iou_thresh).flatten()
+            else:
+                rows = torch.arange(len(iou), device=device)
+            stability, boxes = [], []
+            threshold = self.steps.mask_threshold
+            for chunk in torch.split(rows, self._chunk(crop_size)) if len(rows) else ():
+                logits = self.steps.upscale_masks(state, low_res[chunk])
+                stability.append(calculate_stability_score(logits, threshold, self.stability_score_offset))
+                boxes.append(batched_mask_to_box(logits > threshold))
+                del logits
+            if stability:
+                stability_all, boxes_all = torch.cat(stability), torch.cat(boxes)
+            else:
+                stability_all = torch.zeros(0, device=device)
+                boxes_all = torch.zeros(0, 4, dtype=torch.long, device=device)
+            keep = ~is_box_near_crop_edge(boxes_all, crop_box, [0, 0, orig_size[1], orig_size[0]])
+            if self.stability_score_thresh > 0.0:
+                keep &= stability_all >= self.stability_score_thresh
+            kept = torch.nonzero(keep).flatten()
+            rows, boxes_all = rows[kept], boxes_all[kept]
+            iou_kept = iou[rows]
+            outputs = (rows % n_outputs).cpu().numpy()
+
+        levels: Dict[str, Any] = {}
         with self._stage("nms"):
             for level in self.levels:
-                data = per_level[level]
+                index = _OUTPUT_INDEX[level]
+                if index is None:
+                    level_rows, level_boxes, level_iou = rows, boxes_all, iou_kept
+                else:
+                    select = torch.as_tensor(np.flatnonzero(outputs == index), device=device)
+                    level_rows, level_boxes, level_iou = rows[select], boxes_all[select], iou_kept[select]
                 # remove duplicates within this crop (SamAutomaticMaskGenerator._process_crop)
                 keep_by_nms = batched_nms(
-                    data["boxes"].float(),
-                    data["iou_preds"],
-                    torch.zeros(len(data["boxes"])),
+                    level_boxes.float(),
+                    level_iou,
+                    torch.zeros(len(level_boxes)),
                     iou_threshold=self.box_nms_thresh,
                 )
-                data.filter(keep_by_nms)
-                data["boxes"] = uncrop_boxes_xyxy(data["boxes"], crop_box)
-                data["crop_boxes"] = torch.tensor([crop_box for _ in range(len(data["ids"]))])
-        with self._stage("keep_masks"):
-            kept = sorted({int(i) for level in self.levels for i in per_level[level]["ids"].tolist()})
-            windows.add(kept, first_id, batch_masks, batch_boxes, (x0, y0))
-        return per_level
+                count = len(keep_by_nms)
+                levels[level] = MaskData(
+                    rows=level_rows[keep_by_nms],
+                    boxes=uncrop_boxes_xyxy(level_boxes[keep_by_nms], crop_box),
+                    crop_boxes=torch.tensor([crop_box for _ in range(count)]),
+                    crop_index=torch.full((count,), crop_index, dtype=torch.long),
+                )
+            union = torch.unique(torch.cat([data["rows"] for data in levels.values()]))
+            return _Crop(state, crop_box, levels, union, low_res[union])
 
-    def _filter_batch(self, logits, iou_preds, crop_box, orig_size):
-        """SamAutomaticMaskGenerator._process_batch's filters on all outputs of a batch at once.
-
-        Every quantity is per mask (integer pixel counts, the box), so a level's subset gets the
-        values the generator computes for it; the outputs come back point-major like its flatten(0, 1).
-        """
+    def _kept_windows(self, crops: List[_Crop], kept: Dict[str, List[Tuple[int, int]]], orig_size) -> "_MaskWindows":
+        """The masks that some level keeps, upscaled again from their logits, as windows on the host."""
         import torch
-        from segment_anything.utils.amg import batched_mask_to_box, calculate_stability_score, is_box_near_crop_edge
+        from segment_anything.utils.amg import batched_mask_to_box
 
-        orig_h, orig_w = orig_size
-        n_points, n_outputs = logits.shape[:2]
-        logits = logits.flatten(0, 1)
-        iou = iou_preds.flatten(0, 1)
-        outputs = torch.arange(n_outputs, device=iou.device).repeat(n_points)
-        if self.pred_iou_thresh > 0.0:
-            keep = iou > self.pred_iou_thresh
-            logits, iou, outputs = logits[keep], iou[keep], outputs[keep]
-        mask_threshold = self.predictor.model.mask_threshold
-        stability = calculate_stability_score(logits, mask_threshold, self.stability_score_offset)
-        if self.stability_score_thresh > 0.0:
-            keep = stability >= self.stability_score_thresh
-            logits, iou, outputs = logits[keep], iou[keep], outputs[keep]
-        masks = logits > mask_threshold
-        boxes = batched_mask_to_box(masks)
-        keep = ~is_box_near_crop_edge(boxes, crop_box, [0, 0, orig_w, orig_h])
-        if not torch.all(keep):
-            masks, boxes, iou, outputs = masks[keep], boxes[keep], iou[keep], outputs[keep]
-        return masks, boxes, iou, outputs
+        windows = _MaskWindows(orig_size)
+        wanted: Dict[int, List[int]] = {}
+        for crop_index, row in sorted({key for keys in kept.values() for key in keys}):
+            wanted.setdefault(crop_index, []).append(row)
+        threshold = self.steps.mask_threshold
+        for crop_index, rows in wanted.items():
+            crop = crops[crop_index]
+            x0, y0, x1, y1 = crop.crop_box
+            positions = torch.searchsorted(crop.rows, torch.as_tensor(rows, device=crop.rows.device))
+            packed, boxes = [], []
+            for chunk in torch.split(positions, self._chunk((y1 - y0, x1 - x0))):
+                masks = self.steps.upscale_masks(crop.state, crop.low_res[chunk]) > threshold
+                boxes.append(batched_mask_to_box(masks))
+                packed.append(_packed_bits(masks))
+                del masks
+            host_packed = torch.cat(packed).cpu().numpy()
+            host_boxes = torch.cat(boxes).long().cpu().numpy()
+            for row, mask_bits, box in zip(rows, host_packed, host_boxes):
+                windows.add_packed((crop_index, row), mask_bits, box, (x0, y0))
+        return windows
 
-    def _remove_small_regions(self, ids: List[int], windows: "_MaskWindows") -> List["_Window"]:
+    def _remove_small_regions(self, keys: List[Tuple[int, int]], windows: "_MaskWindows") -> List["_Window"]:
         """SamAutomaticMaskGenerator.postprocess_small_regions on one level's masks, in its order."""
         import torch
         from torchvision.ops.boxes import batched_nms
 
-        cleaned = [windows.cleaned(i, self.min_mask_region_area) for i in ids]
+        cleaned = [windows.cleaned(key, self.min_mask_region_area) for key in keys]
         boxes = torch.stack([torch.as_tensor(window.box_xyxy()) for window, _ in cleaned])
         scores = [float(unchanged) for _, unchanged in cleaned]
         keep_by_nms = batched_nms(
@@ -390,6 +601,18 @@ class SamLevelsMaskGenerator:
             iou_threshold=max(self.box_nms_thresh, self.crop_nms_thresh),
         )
         return [cleaned[int(i)][0] for i in keep_by_nms]
+
+
+def _packed_bits(masks: Any) -> Any:
+    """Boolean masks [m, h, w] as uint8 [m, h, ceil(w / 8)], eight columns a byte, the first in the high bit (np.packbits)."""
+    import torch
+
+    m, h, w = masks.shape
+    values = masks.to(torch.uint8)
+    if w % 8:
+        values = torch.nn.functional.pad(values, (0, 8 - w % 8))
+    weights = torch.tensor([128, 64, 32, 16, 8, 4, 2, 1], dtype=torch.uint8, device=masks.device)
+    return (values.view(m, h, -1, 8) * weights).sum(-1, dtype=torch.uint8)
 
 
 class _Window:
@@ -434,41 +657,51 @@ class _Window:
 
 
 class _MaskWindows:
-    """The masks some level keeps, by candidate id, as windows on the host; small-region results cached."""
+    """The masks some level keeps, by key, as windows on the host (unpacked from their bits when first asked for,
+    on the thread that asks); their small-region clean-ups."""
 
     def __init__(self, shape: Tuple[int, int]):
         self.shape = shape
-        self.next_id = 0
-        self._windows: Dict[int, _Window] = {}
-        self._cleaned: Dict[int, Tuple[_Window, bool]] = {}
+        self._packed: Dict[Any, Tuple[np.ndarray, np.ndarray, Tuple[int, int]]] = {}
+        self._windows: Dict[Any, _Window] = {}
+        self._cleaned: Dict[Any, Tuple[_Window, bool]] = {}
 
-    def add(self, kept: List[int], first_id: int, batch_masks, batch_boxes, offset: Tuple[int, int]) -> None:
-        import torch
+    def add_packed(self, key: Any, mask_bits: np.ndarray, box: np.ndarray, offset: Tuple[int, int]) -> None:
+        """A crop's mask from its packed bits [h, ceil(w / 8)] and its box in the crop (batched_mask_to_box)."""
+        self._packed[key] = (mask_bits, box, offset)
 
-        start = first_id
-        kept_array = np.asarray(kept, dtype=np.int64)
-        for masks, boxes in zip(batch_masks, batch_boxes):
-            stop = start + len(masks)
-            local = kept_array[(kept_array >= start) & (kept_array < stop)] - start
-            if local.size:
-                index = torch.as_tensor(local, device=masks.device)
-                host_masks = masks[index].cpu().numpy()
-                host_boxes = boxes[index].long().cpu().numpy()
-                for j, mask, box in zip(local.tolist(), host_masks, host_boxes):
-                    bx0, by0, bx1, by1 = (int(v) for v in box)
-                    window = np.ascontiguousarray(mask[by0 : by1 + 1, bx0 : bx1 + 1])
-                    self._windows[start + j] = _Window(offset[0] + bx0, offset[1] + by0, window)
-            start = stop
+    def original(self, key: Any) -> _Window:
+        window = self._windows.get(key)
+        if window is None:
+            mask_bits, box, offset = self._packed[key]
+            bx0, by0, bx1, by1 = (int(v) for v in box)
+            rows = np.unpackbits(mask_bits[by0 : by1 + 1, bx0 // 8 : bx1 // 8 + 1], axis=-1)
+            mask = np.ascontiguousarray(rows[:, bx0 % 8 : bx0 % 8 + bx1 - bx0 + 1]).view(bool)
+            window = self._windows[key] = _Window(offset[0] + bx0, offset[1] + by0, mask)
+        return window
 
-    def original(self, mask_id: int) -> _Window:
-        return self._windows[mask_id]
+    def clean(self, keys: Sequence[Any], min_area: int, workers: int = 1) -> None:
+        """Compute the clean-ups of ``keys`` ahead, on ``workers`` threads (OpenCV and numpy release the GIL)."""
+        todo = [key for key in keys if key not in self._cleaned]
 
-    def cleaned(self, mask_id: int, min_area: int) -> Tuple[_Window, bool]:
+        def cleaned(key: Any) -> Tuple[_Window, bool]:
+            return _small_regions_removed(self.original(key), self.shape, min_area)
+
+        if workers > 1 and len(todo) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                results = list(pool.map(cleaned, todo))
+        else:
+            results = [cleaned(key) for key in todo]
+        self._cleaned.update(zip(todo, results))
+
+    def cleaned(self, key: Any, min_area: int) -> Tuple[_Window, bool]:
         """segment_anything's hole then island removal of one mask, and whether it left the mask unchanged."""
-        saved = self._cleaned.get(mask_id)
+        saved = self._cleaned.get(key)
         if saved is None:
-            saved = _small_regions_removed(self._windows[mask_id], self.shape, min_area)
-            self._cleaned[mask_id] = saved
+            saved = _small_regions_removed(self.original(key), self.shape, min_area)
+            self._cleaned[key] = saved
         return saved
 
 
@@ -522,16 +755,22 @@ def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: in
 
     # holes: background components inside the box smaller than min_area are filled
     _, regions, stats, _ = cv2.connectedComponentsWithStats((~padded).astype(np.uint8), connectivity=8)
-    ring = np.ones(padded.shape, dtype=bool)
-    ring[inner] = False
     touching = np.zeros(len(stats), dtype=bool)
-    touching[np.unique(regions[ring])] = True
-    small = np.flatnonzero((stats[:, -1] < min_area) & ~touching)
-    small = small[small > 0]  # label 0: the mask's own pixels
+    # the ring: the rows and columns of the padded window outside the box (none on a side at the image's edge)
+    for present, edge in (
+        (py0 < y0, regions[0]),
+        (py1 > y0 + h, regions[-1]),
+        (px0 < x0, regions[:, 0]),
+        (px1 > x0 + w, regions[:, -1]),
+    ):
+        if present:
+            touching[edge] = True
+    small = (stats[:, -1] < min_area) & ~touching
+    small[0] = False  # label 0: the mask's own pixels
     mask = window.mask
-    holes_changed = small.size > 0
+    holes_changed = bool(small.any())
     if holes_changed:
-        mask = mask | np.isin(regions[inner], small)
+        mask = mask | small[regions[inner]]
 
     # islands: mask components smaller than min_area are dropped, the largest one kept if all are
     _, regions, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
@@ -541,8 +780,12 @@ def _small_regions_removed(window: _Window, shape: Tuple[int, int], min_area: in
         return _Window.of_window(x0, y0, mask), not holes_changed
     if small_islands.all() and np.count_nonzero(sizes == sizes.max()) > 1:
         return _small_regions_removed_whole_image(_Window(x0, y0, mask), shape, min_area)[0], False
-    keep = np.flatnonzero(~small_islands) + 1 if not small_islands.all() else [int(np.argmax(sizes)) + 1]
-    return _Window.of_window(x0, y0, np.isin(regions, keep)), False
+    keep = np.zeros(len(stats), dtype=bool)
+    if small_islands.all():
+        keep[int(np.argmax(sizes)) + 1] = True
+    else:
+        keep[1:] = ~small_islands
+    return _Window.of_window(x0, y0, keep[np.asarray(regions, dtype=np.int32)]), False
 
 
 def _paint_windows(masks: List[_Window], shape: Tuple[int, int]) -> np.ndarray:

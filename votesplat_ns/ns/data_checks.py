@@ -252,6 +252,12 @@ def check_frames(
     scale = float(downscale_factor) if downscaled else 1.0
     for number, (frame, image) in enumerate(zip(frames, images)):
         (actual_w, actual_h), mode, _ = image_file_header(image)
+        if mode in ("I", "F") or mode.startswith("I;16"):
+            raise VoteSplatInputError(
+                f"image {image} is a {'float' if mode == 'F' else '16/32-bit'} single-channel image (PIL mode {mode}), "
+                "which nerfstudio's image loader and SAM would read wrapped or clipped to 8 bits; save it as an 8-bit "
+                "RGB or greyscale image"
+            )
         if mode not in NERFSTUDIO_IMAGE_MODES:
             raise VoteSplatInputError(
                 f"image {image} has PIL mode {mode}, which nerfstudio's image loader reads as wrong colours "

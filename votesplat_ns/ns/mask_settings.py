@@ -37,6 +37,8 @@ class SamOptions:
     """SAM automatic mask generator: smallest mask region kept, in pixels."""
     sam_max_long_side: Optional[int] = 1080
     """Images are shrunk to this long side before SAM (None: full size); LangSplat uses 1080."""
+    sam_precision: Literal["fp32", "tf32", "bf16"] = "fp32"
+    """SAM encoder and decoder arithmetic: fp32 (segment_anything's own masks); tf32 or bf16: faster on a GPU, masks differ a little."""
 
     def sam_settings(self) -> Dict[str, Any]:
         """Every SAM option by field name, to hand to another config that takes them."""
@@ -51,4 +53,5 @@ class SamOptions:
             crop_n_layers=self.sam_crop_n_layers,
             min_mask_region_area=self.sam_min_mask_region_area,
             max_long_side=self.sam_max_long_side,
+            precision=self.sam_precision,
         )
