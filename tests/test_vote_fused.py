@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import load_benchmark
+from op_counter import OpCounter, count_step, launch_names, launches, model_step
 from test_vote_kernel import (
     DEVICES,
     HEIGHT,
@@ -340,14 +340,9 @@ def test_fused_errors(device):
 # Launches and host reads of a step
 
 
-@pytest.fixture(scope="module")
-def count_ops():
-    return load_benchmark("count_vote_ops.py", "votesplat_count_vote_ops_fused")
-
-
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
-def test_fused_launches_and_host_reads(count_ops, distortion, device):
+def test_fused_launches_and_host_reads(distortion, device):
     """Forward + backward of the fused losses, as the model combines them: at most 15 launches (torch
     kernels and Triton kernels), no host read."""
     scene, level_votes, pixel_xy, lists = scene_of_size(50)
@@ -366,10 +361,10 @@ def test_fused_launches_and_host_reads(count_ops, distortion, device):
 
     step().backward()  # warm-up: first-call caches out of the count
     offsets_param.grad = None
-    counter = count_ops.count_step(step)
+    counter = count_step(step)
     assert counter.total_syncs == 0, dict(counter.syncs)
     # 3 Triton kernels and the zeroed vote gradient; the rest is the test's own loss and its backward
-    assert count_ops.launches(counter) <= 15, count_ops.launch_names(counter)
+    assert launches(counter) <= 15, launch_names(counter)
     assert counter.triton_launches == 3
     assert offsets_param.grad is not None and offsets_param.grad.abs().sum() > 0
 
@@ -547,10 +542,10 @@ def test_warm_up_fills_tritons_cache_with_what_a_training_step_launches(distorti
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
-def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
+def test_model_vote_step_takes_the_fused_losses(device, monkeypatch):
     """VoteSplatModel.vote_loss_terms with the Triton backend and the default switches: the fused losses,
     equal to the torch path's, with no host read; other switches keep the separate path."""
-    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    model, step = model_step(levels=2, n=200, width=32, height=24, pixels=24)
     results = {}
     support = model.gauss_params["vote_support"]
     for backend in ("torch", "triton"):
@@ -560,7 +555,7 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
         with torch.no_grad():
             support.zero_()
         model.vote_step.support_stamps = None  # the warm-up's step counted with this step's stamp
-        counter = count_ops.OpCounter()
+        counter = OpCounter()
         with counter:
             loss = step(seed=0)
             with counter.phase("backward"):
@@ -582,13 +577,13 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
     assert counter.total_syncs == 0, dict(counter.syncs)
     # alpha*T weights: the separate kernels, not the fused ones
     monkeypatch.setattr(model, "vote_options", VoteRenderOptions(weighting="alpha_t", distortion="l1_pixels"))
-    with count_ops.OpCounter() as counter:
+    with OpCounter() as counter:
         step().backward()
     assert set(counter.triton_names) == {"_vote_fwd_kernel", "_vote_bwd_kernel"}
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
-def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, monkeypatch):
+def test_training_step_takes_the_offsets_gradient_at_once(device, monkeypatch):
     """The trainer's path (_vote_losses, then the backward of the loss dict's sum with the colour losses) runs
     the fused backward at once, outside autograd: the offsets' gradient and support counts of the autograd path,
     bitwise, added to a gradient already there (accumulation); a retrofit (a loss dict of the vote loss alone),
@@ -596,7 +591,7 @@ def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, mon
     import functools
 
     monkeypatch.setenv(BACKEND_ENV, "triton")
-    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    model, step = model_step(levels=2, n=200, width=32, height=24, pixels=24)
     offsets, support = model.gauss_params["vote_offsets"], model.gauss_params["vote_support"]
     colour = torch.zeros((), requires_grad=True)  # splatfacto's losses' stand-in
 
@@ -636,14 +631,14 @@ def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, mon
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
-def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, monkeypatch):
+def test_model_stops_on_diverged_votes_with_the_fused_losses(device, monkeypatch):
     """The fused losses read nothing on the host, so a NaN vote gives a NaN loss; the model reads the loss's
     finiteness on every FUSED_FINITE_CHECK_EVERY-th fused vote step and stops with the same one-line error as
     the torch path, whatever the trainer steps are (votes every 4th step from 500 never land on a step ending
     in 99, where a check on the step count once looked: diverged votes then trained on to the end)."""
     from votesplat_ns.ns.model import FUSED_FINITE_CHECK_EVERY
 
-    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    model, step = model_step(levels=2, n=200, width=32, height=24, pixels=24)
     monkeypatch.setenv(BACKEND_ENV, "triton")
     with torch.no_grad():
         model.gauss_params["vote_offsets"][:5] = float("nan")
