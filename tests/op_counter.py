@@ -48,8 +48,6 @@ CHECK_FUNCTIONS = {
     "_read_host",
     "_raise_unless",
     "_pixel_runs",
-    "_use_kernel",
-    "_requested_backend",
     "_check_render_inputs",
     "_check_loss_inputs",
 }
