@@ -782,9 +782,9 @@ if triton is not None:
         walking = pos < end
         while walking:
             gid, _alpha, member, _t_before, t, last, pos, walking = _walk_block(
-                geo, False, pos, end, pix, walk, t, last, BLOCK
+                geo, pos, end, pix, walk, t, last, BLOCK
             )
-            depth, x, y, z = _entry_depths(zsrc, PROJECT, 3, gid, member, lvl, LEVELS)
+            depth, x, y, z = _entry_depths(zsrc, PROJECT, gid, member, lvl, LEVELS)
             sx += tl.sum(x, axis=0)
             sy += tl.sum(y, axis=0)
             sz += tl.sum(z, axis=0)
@@ -848,9 +848,7 @@ if triton is not None:
         factor = tl.zeros([LP], dtype=px.dtype)
         if DIST != 0:
             runs = (geo, pix, zsrc, start, last + 1)
-            spread = _member_spread(
-                member_row, count, mean_z, runs, lvl, LEVELS, False, PROJECT, 3, DIST, BLOCK, CAP, PB
-            )
+            spread = _member_spread(member_row, count, mean_z, runs, lvl, LEVELS, PROJECT, DIST, BLOCK, CAP, PB)
             if DIST == 1:
                 distortion = spread
                 factor = spread * 0.0 + 1.0
@@ -1014,9 +1012,9 @@ if triton is not None:
                     s = tl.zeros([PB, LP], dtype=denominator.dtype)
                     if DIST != 0 and (HAS_DIST or HAS_TOTAL):
                         # the members' depths as the walk computed them (the same bits)
-                        z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, 3, gid, ok, lvl, LEVELS)
+                        z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid, ok, lvl, LEVELS)
                         if DIST == 1:
-                            s = _compact_signs(z_i, member_row, count, zsrc, lvl, LEVELS, PROJECT, 3, PB)
+                            s = _compact_signs(z_i, member_row, count, zsrc, lvl, LEVELS, PROJECT, PB)
                         if DIST == 2:
                             s = z_i - mean_z[None, :]
                     _scatter_vote_grads(
@@ -1034,14 +1032,14 @@ if triton is not None:
                 lane = tl.arange(0, BLOCK).to(tl.int64)
                 for p0 in range(start, stop, BLOCK):
                     offs_i = p0 + lane
-                    gid, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, False, offs_i, stop, pix)
-                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, 3, gid, vis_i, lvl, LEVELS)
+                    gid, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, offs_i, stop, pix)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid, vis_i, lvl, LEVELS)
                     s = tl.zeros([BLOCK, LP], dtype=denominator.dtype)
                     if DIST != 0 and (HAS_DIST or HAS_TOTAL):
                         if DIST == 2:
                             s = z_i - mean_z[None, :]
                         if DIST == 1:
-                            s = _run_signs(z_i, runs, lvl, LEVELS, False, PROJECT, 3, BLOCK)
+                            s = _run_signs(z_i, runs, lvl, LEVELS, PROJECT, BLOCK)
                     _scatter_vote_grads(
                         g_votes_ptr, gid, vis_i, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
                     )

@@ -159,27 +159,23 @@ if triton is not None:
         return pid, pix, (tl.load(consts_ptr), tl.load(consts_ptr + 2), tl.load(consts_ptr + 4))
 
     @triton.jit
-    def _entry_alpha(geo, PACKED: tl.constexpr, offs, stop, pix):
+    def _entry_alpha(geo, offs, stop, pix):
         """gsplat's alpha at the pixel ``pix`` for run entries ``offs`` (those >= stop are out), and visibility.
 
-        ``geo`` = (means2d, conics, opacities, flatten_ids, N) pointers and N, ids clamped into [0, N): with
-        PACKED the three point into the geometry table [N, 6] (mx, my, a, b, c, opacity) at columns 0, 2 and 5,
-        else to separate [N, 2], [N, 3], [N] tensors. Returns gid, alpha, visible and, for the geometry's
-        gradient, dx, dy, the conic (a, b, c), exp(-sigma) and the unclamped alpha."""
+        ``geo`` = (means2d [N, 2], conics [N, 3], opacities [N], flatten_ids) pointers and N, ids clamped into
+        [0, N). Returns gid, alpha, visible and, for the geometry's gradient, dx, dy, the conic (a, b, c),
+        exp(-sigma) and the unclamped alpha."""
         means_ptr, conics_ptr, opac_ptr, ids_ptr, n_gauss = geo
         px, py, alpha_max, alpha_min = pix
-        M_STRIDE: tl.constexpr = 6 if PACKED else 2
-        C_STRIDE: tl.constexpr = 6 if PACKED else 3
-        O_STRIDE: tl.constexpr = 6 if PACKED else 1
         inside = offs < stop
         gid = tl.load(ids_ptr + offs, mask=inside, other=0).to(tl.int64)
         gid = tl.minimum(tl.maximum(gid, 0), n_gauss - 1)
-        mx = tl.load(means_ptr + M_STRIDE * gid, mask=inside, other=0.0)
-        my = tl.load(means_ptr + M_STRIDE * gid + 1, mask=inside, other=0.0)
-        ca = tl.load(conics_ptr + C_STRIDE * gid, mask=inside, other=0.0)
-        cb = tl.load(conics_ptr + C_STRIDE * gid + 1, mask=inside, other=0.0)
-        cc = tl.load(conics_ptr + C_STRIDE * gid + 2, mask=inside, other=0.0)
-        opacity = tl.load(opac_ptr + O_STRIDE * gid, mask=inside, other=0.0)
+        mx = tl.load(means_ptr + 2 * gid, mask=inside, other=0.0)
+        my = tl.load(means_ptr + 2 * gid + 1, mask=inside, other=0.0)
+        ca = tl.load(conics_ptr + 3 * gid, mask=inside, other=0.0)
+        cb = tl.load(conics_ptr + 3 * gid + 1, mask=inside, other=0.0)
+        cc = tl.load(conics_ptr + 3 * gid + 2, mask=inside, other=0.0)
+        opacity = tl.load(opac_ptr + gid, mask=inside, other=0.0)
         dx = mx - px
         dy = my - py
         # the operation order of vote_render._alpha, with explicit fmas (as _entry_depths): every copy of this
@@ -202,7 +198,7 @@ if triton is not None:
         return keep, t_after, t_after / keep
 
     @triton.jit
-    def _walk_block(geo, PACKED: tl.constexpr, pos, end, pix, walk, t, last, BLOCK: tl.constexpr):
+    def _walk_block(geo, pos, end, pix, walk, t, last, BLOCK: tl.constexpr):
         """The block of the front-to-back walk at run position ``pos`` (``walk`` from ``_program_pixel``;
         ``t``: the transmittance in front of the block, ``last``: the last member's position before it): the
         entries' gid, alpha, membership in M and transmittance in front of them; the transmittance behind the
@@ -210,7 +206,7 @@ if triton is not None:
         and a later entry can still join M)."""
         threshold, open_above, colour_stop = walk
         offs = pos + tl.arange(0, BLOCK).to(tl.int64)
-        gid, alpha, visible, _dx, _dy, _a, _b, _c, _f, _r = _entry_alpha(geo, PACKED, offs, end, pix)
+        gid, alpha, visible, _dx, _dy, _a, _b, _c, _f, _r = _entry_alpha(geo, offs, end, pix)
         _keep, t_after, t_before = _transmittance(t, alpha, visible)
         member = visible & (t_after > colour_stop) & (t_before > threshold)
         last = tl.maximum(last, tl.max(tl.where(member, offs, -1), axis=0))
@@ -219,36 +215,29 @@ if triton is not None:
         return gid, alpha, member, t_before, t, last, pos, (pos < end) & (t > open_above)
 
     @triton.jit
-    def _entry_depths(zsrc, PROJECT: tl.constexpr, D1: tl.constexpr, gid, ok, lvl, LEVELS: tl.constexpr):
+    def _entry_depths(zsrc, PROJECT: tl.constexpr, gid, ok, lvl, LEVELS: tl.constexpr):
         """[B, LP] camera depths of every level's vote of Gaussians ``gid`` (0 where not ``ok``), and its x, y, z.
 
-        ``zsrc`` = (vote table [N, LEVELS, D1],): the depth is a row's last column (x, y, z: the depth too);
-        with PROJECT, (world votes [N, LEVELS, 3], r0, r1, r2, t2): viewmat's row 2 takes them to the camera;
-        PROJECT 2: (offsets [N, LEVELS, 3], r0, r1, r2, t2, means [N, 3]), the votes are means + offsets (the
-        float32 sum torch's ``means[:, None] + offsets`` makes, so the same bits)."""
+        ``zsrc``: PROJECT 1, (world votes [N, LEVELS, 3], r0, r1, r2, t2): viewmat's row 2 takes them to the
+        camera; PROJECT 2, (offsets [N, LEVELS, 3], r0, r1, r2, t2, means [N, 3]), the votes are means + offsets
+        (the float32 sum torch's ``means[:, None] + offsets`` makes, so the same bits)."""
         mask = ok[:, None] & (lvl < LEVELS)[None, :]
-        at = zsrc[0] + gid[:, None] * (LEVELS * D1) + lvl[None, :] * D1
-        if PROJECT:
-            x = tl.load(at, mask=mask, other=0.0)
-            y = tl.load(at + 1, mask=mask, other=0.0)
-            z = tl.load(at + 2, mask=mask, other=0.0)
-            if PROJECT == 2:
-                mean_at = zsrc[5] + gid * 3
-                x = tl.where(mask, x + tl.load(mean_at, mask=ok, other=0.0)[:, None], 0.0)
-                y = tl.where(mask, y + tl.load(mean_at + 1, mask=ok, other=0.0)[:, None], 0.0)
-                z = tl.where(mask, z + tl.load(mean_at + 2, mask=ok, other=0.0)[:, None], 0.0)
-            # Explicit fmas, no mul + add left for the compiler to contract: it contracts per element, and on
-            # sm_90 it fused y * r1 in some lanes of a block and x * r0 in others (the lanes of one layout), so
-            # two computations of one depth differed in the last bit and the sign sums past CAP got
-            # sign(z_i - z_i) = +-1 for a member against itself and split tied votes. This is the order the
-            # compiler chose everywhere in the kernels before these helpers were shared: y * r1 rounded, then
-            # x * r0 and z * r2 fused. The interpreter rounds each step: x * r0 + y * r1 + z * r2 + t2, as before.
-            depth = tl.where(mask, tl.fma(z, zsrc[3], tl.fma(x, zsrc[1], y * zsrc[2])) + zsrc[4], 0.0)
-        else:
-            depth = tl.load(at + (D1 - 1), mask=mask, other=0.0)
-            x = depth
-            y = depth
-            z = depth
+        at = zsrc[0] + gid[:, None] * (LEVELS * 3) + lvl[None, :] * 3
+        x = tl.load(at, mask=mask, other=0.0)
+        y = tl.load(at + 1, mask=mask, other=0.0)
+        z = tl.load(at + 2, mask=mask, other=0.0)
+        if PROJECT == 2:
+            mean_at = zsrc[5] + gid * 3
+            x = tl.where(mask, x + tl.load(mean_at, mask=ok, other=0.0)[:, None], 0.0)
+            y = tl.where(mask, y + tl.load(mean_at + 1, mask=ok, other=0.0)[:, None], 0.0)
+            z = tl.where(mask, z + tl.load(mean_at + 2, mask=ok, other=0.0)[:, None], 0.0)
+        # Explicit fmas, no mul + add left for the compiler to contract: it contracts per element, and on
+        # sm_90 it fused y * r1 in some lanes of a block and x * r0 in others (the lanes of one layout), so
+        # two computations of one depth differed in the last bit and the sign sums past CAP got
+        # sign(z_i - z_i) = +-1 for a member against itself and split tied votes. This is the order the
+        # compiler chose everywhere in the kernels before these helpers were shared: y * r1 rounded, then
+        # x * r0 and z * r2 fused. The interpreter rounds each step: x * r0 + y * r1 + z * r2 + t2, as before.
+        depth = tl.where(mask, tl.fma(z, zsrc[3], tl.fma(x, zsrc[1], y * zsrc[2])) + zsrc[4], 0.0)
         return depth, x, y, z
 
     @triton.jit
@@ -272,9 +261,7 @@ if triton is not None:
         runs,
         lvl,
         LEVELS: tl.constexpr,
-        PACKED: tl.constexpr,
         PROJECT: tl.constexpr,
-        D1: tl.constexpr,
         DIST: tl.constexpr,
         BLOCK: tl.constexpr,
         CAP: tl.constexpr,
@@ -299,7 +286,7 @@ if triton is not None:
                     ri = i0 + r
                     ok_i = ri < m
                     gid_i = tl.load(member_row_ptr + ri, mask=ok_i, other=0).to(tl.int64)
-                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_i, ok_i, lvl, LEVELS)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid_i, ok_i, lvl, LEVELS)
                     if DIST == 2:
                         deviation = tl.where(ok_i[:, None] & lvl_ok[None, :], z_i - mean[None, :], 0.0)
                         spread += tl.sum(deviation * deviation, axis=0)
@@ -310,7 +297,7 @@ if triton is not None:
                             rj = j0 + r
                             ok_j = rj < m
                             gid_j = tl.load(member_row_ptr + rj, mask=ok_j, other=0).to(tl.int64)
-                            z_j, _x2, _y2, _z2 = _entry_depths(zsrc, PROJECT, D1, gid_j, ok_j, lvl, LEVELS)
+                            z_j, _x2, _y2, _z2 = _entry_depths(zsrc, PROJECT, gid_j, ok_j, lvl, LEVELS)
                             pair = ok_j[None, :] & (ri[:, None] < rj[None, :])
                             for level in range(LEVELS):
                                 zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
@@ -322,8 +309,8 @@ if triton is not None:
                 lane = tl.arange(0, BLOCK).to(tl.int64)
                 for p0 in range(start, stop, BLOCK):
                     offs_i = p0 + lane
-                    gid_i, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, PACKED, offs_i, stop, pix)
-                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_i, vis_i, lvl, LEVELS)
+                    gid_i, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, offs_i, stop, pix)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid_i, vis_i, lvl, LEVELS)
                     if DIST == 2:
                         deviation = tl.where(vis_i[:, None] & lvl_ok[None, :], z_i - mean[None, :], 0.0)
                         spread += tl.sum(deviation * deviation, axis=0)
@@ -331,9 +318,9 @@ if triton is not None:
                         for q0 in range(p0, stop, BLOCK):
                             offs_j = q0 + lane
                             gid_j, _a2, vis_j, _dx2, _dy2, _ca2, _cb2, _cc2, _f2, _r2 = _entry_alpha(
-                                geo, PACKED, offs_j, stop, pix
+                                geo, offs_j, stop, pix
                             )
-                            z_j, _x2, _y2, _z2 = _entry_depths(zsrc, PROJECT, D1, gid_j, vis_j, lvl, LEVELS)
+                            z_j, _x2, _y2, _z2 = _entry_depths(zsrc, PROJECT, gid_j, vis_j, lvl, LEVELS)
                             pair = vis_i[:, None] & vis_j[None, :] & (offs_i[:, None] < offs_j[None, :])
                             for level in range(LEVELS):
                                 zi = tl.sum(tl.where(lvl[None, :] == level, z_i, 0.0), axis=1)
@@ -364,7 +351,6 @@ if triton is not None:
         lvl,
         LEVELS: tl.constexpr,
         PROJECT: tl.constexpr,
-        D1: tl.constexpr,
         PB: tl.constexpr,
     ):
         """[B, LP]: sum_j sign(z_i - z_j) over the m (<= CAP) compacted members, for entries of depths ``z_i``
@@ -377,7 +363,7 @@ if triton is not None:
             rj = j0 + r
             ok_j = rj < m
             gid_j = tl.load(member_row_ptr + rj, mask=ok_j, other=0).to(tl.int64)
-            z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_j, ok_j, lvl, LEVELS)
+            z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid_j, ok_j, lvl, LEVELS)
             signs = _add_tile_signs(signs, z_i, z_j, ok_j, lvl, LEVELS)
         return signs
 
@@ -387,9 +373,7 @@ if triton is not None:
         runs,
         lvl,
         LEVELS: tl.constexpr,
-        PACKED: tl.constexpr,
         PROJECT: tl.constexpr,
-        D1: tl.constexpr,
         BLOCK: tl.constexpr,
     ):
         """``_compact_signs`` past CAP members, for entries of depths ``z_i`` [B, LP]: the members are the visible
@@ -404,7 +388,7 @@ if triton is not None:
         lane = tl.arange(0, BLOCK).to(tl.int64)
         for q0 in range(start, stop, BLOCK):
             offs_j = q0 + lane
-            gid_j, _a, vis_j, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, PACKED, offs_j, stop, pix)
-            z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, D1, gid_j, vis_j, lvl, LEVELS)
+            gid_j, _a, vis_j, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, offs_j, stop, pix)
+            z_j, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid_j, vis_j, lvl, LEVELS)
             signs = _add_tile_signs(signs, z_i, z_j, vis_j, lvl, LEVELS)
         return signs
