@@ -8,13 +8,12 @@ Times, on random Gaussians seen by one camera:
     (as the model does: geometry comes from the RGB pass's info), for L mask
     levels: L = 1 with [N, 3] votes, L > 1 with [N, L, 3] votes in one call
     (one walk, every level blended over it) and, for comparison, as L
-    separate single-level calls; with each backend of ``--backends``: the
-    torch code and the fused Triton kernels (``votesplat_ns.core.vote_kernel``),
-    the latter once per ``--kernel-configs`` block width x warps; and "triton-fused":
-    ``votesplat_ns.core.vote_fused.vote_losses_tiled``, the render and the losses in three Triton
-    launches; "triton-sampled": ``vote_fused.vote_losses_sampled``, what a training step runs on
-    CUDA with the default switches: the pixels drawn (one ``randint``) among the voting pixels of
-    block-shaped vote maps and looked up in the forward kernel ([N, L, 3] votes at every L).
+    separate single-level calls; with each backend of ``--backends``: "torch", the torch code;
+    "triton-fused": ``votesplat_ns.core.vote_fused.vote_losses_tiled``, the render and the losses
+    in three Triton launches; "triton-sampled": ``vote_fused.vote_losses_sampled``, what a
+    training step runs on CUDA with the default switches: the pixels drawn (one ``randint``) among
+    the voting pixels of block-shaped vote maps and looked up in the forward kernel ([N, L, 3]
+    votes at every L). The Triton ones once per ``--kernel-configs`` block width x warps.
 Prints a markdown table of median milliseconds, peak extra GPU memory, both
 also as a ratio to the RGB pass, and per step the host reads
 (device-to-host syncs) and torch calls made from Python in the forward pass
@@ -47,7 +46,7 @@ from torch.overrides import TorchFunctionMode
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-TRITON_BACKENDS = ("triton", "triton-fused", "triton-sampled")
+TRITON_BACKENDS = ("triton-fused", "triton-sampled")
 
 
 def chunk_arg(value: str) -> Optional[int]:
@@ -75,9 +74,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         nargs="+",
         choices=["torch", *TRITON_BACKENDS],
         default=["torch", *TRITON_BACKENDS],
-        help="vote pass implementations to time (VoteRenderOptions.backend; triton-fused: vote_fused."
-        "vote_losses_tiled, render and losses fused; triton-sampled: vote_fused.vote_losses_sampled, the "
-        "training step's path); the triton ones need CUDA",
+        help="vote pass implementations to time (torch: render_votes_tiled + vote_losses; triton-fused: "
+        "vote_fused.vote_losses_tiled, render and losses fused; triton-sampled: vote_fused.vote_losses_sampled, "
+        "the training step's path); the triton ones need CUDA",
     )
     parser.add_argument(
         "--kernel-configs",
@@ -285,8 +284,8 @@ def _run(args: argparse.Namespace) -> int:
             for chunk in (args.chunks if backend == "torch" else ["-"])
         ]
         for backend, config, chunk in runs:
-            fused = backend in ("triton-fused", "triton-sampled")
-            options = VoteRenderOptions(distortion=args.distortion, backend="triton" if fused else backend)
+            fused = backend in TRITON_BACKENDS
+            options = VoteRenderOptions(distortion=args.distortion, backend="triton" if fused else "torch")
             if config is not None:
                 vote_kernel.BLOCK, vote_kernel.NUM_WARPS = config
             backend_label = backend if config is None else f"{backend} {config[0]}x{config[1]}"

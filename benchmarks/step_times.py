@@ -1,15 +1,18 @@
-"""Compares the step timings of two ``ns-train`` runs (``VOTESPLAT_STEP_TIMES=1``, run.sh).
+"""Every step's wall time of ``ns-train`` runs: recorded in the run, compared afterwards.
 
-For each run: the set-up before step 0, the sum of the step walls over step ranges, the tail after
-the last step, and per phase the mean host time per step over each range; then the steps whose wall
-exceeds ``--slow-ms``, grouped (first visits of views, JIT compiles and refinements show there).
+Recording: ``scripts/gpu/run.sh``'s launcher calls ``install_step_times`` before nerfstudio's trainer starts when
+``VOTESPLAT_STEP_TIMES`` is set (for either method, so splatfacto and votesplat are timed alike). For every step
+it writes its wall time (from one step's start to the next one's), the set-up before step 0 and the tail after
+the last step's iteration (the final callbacks, e.g. votesplat's foreground pass, and the checkpoint); with
+``VOTESPLAT_STEP_TIMES=1`` also the host time of each phase of ``PHASES`` (``walls``: not the phases, whose
+wrappers would charge votesplat's more numerous calls). The host and the GPU run in lock step in these
+trainings (splatfacto reads the GPU ~15 times a step), so a phase's host time includes the GPU work it waits for.
+
+Comparing two runs' files: for each, the set-up, the sum of the step walls over step ranges, the tail and per
+phase the mean host time per step over each range; then the steps whose wall exceeds ``--slow-ms``, grouped
+(first visits of views, JIT compiles and refinements show there):
 
     python benchmarks/step_times.py steps_fox_splatfacto.json steps_fox_votesplat.json --ranges 0:500 500:3000
-
-``--vote-every N --vote-start S`` (a votesplat run with ``--pipeline.model.vote-every-n-steps N``) splits each
-range into the steps that vote and those that do not, and prints per phase the difference of their means: with
-N = 2 the two kinds alternate within one run, so their difference is a vote step's cost without the ±1 ms
-that separate runs differ by (work a vote step leaves to the next step is counted in the other kind).
 
 ``--table DIR ...`` reads the run folders of ``run.sh train-balanced`` (each: one ``steps_*.json`` and its
 ``train_*.json``) and prints one row per run and the ratios of votesplat's means to splatfacto's over the runs
@@ -21,11 +24,125 @@ that finished (the stage alternates the methods, so a drift of the machine falls
 from __future__ import annotations
 
 import argparse
+import atexit
+import collections
+import importlib
 import json
 import math
 import statistics
+import time
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
+
+# ---------------------------------------------------------------------------- recording, in ns-train
+
+# (module, class, method): the phases of a step, as nerfstudio 1.1.5 calls them
+PHASES = (
+    ("nerfstudio.engine.trainer", "Trainer", "train_iteration"),
+    ("nerfstudio.pipelines.base_pipeline", "VanillaPipeline", "get_train_loss_dict"),
+    ("nerfstudio.data.datamanagers.full_images_datamanager", "FullImageDatamanager", "next_train"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_outputs"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_loss_dict"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "get_metrics_dict"),
+    ("nerfstudio.models.splatfacto", "SplatfactoModel", "step_post_backward"),
+    ("nerfstudio.engine.optimizers", "Optimizers", "optimizer_scaler_step_some"),
+    ("nerfstudio.engine.optimizers", "Optimizers", "zero_grad_some"),
+    ("torch.autograd", None, "backward"),
+    ("nerfstudio.engine.optimizers", "Optimizers", "scheduler_step_all"),
+    ("votesplat_ns.ns.datamanager", "VoteDataManager", "kept_vote_batch"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "get_outputs"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "get_metrics_dict"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "get_loss_dict"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "step_post_backward"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "vote_loss_terms"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "record_vote_support"),
+    ("votesplat_ns.core.vote_fused", None, "vote_losses_tiled"),
+    # the parts of a fused vote step (vote_loss_terms' remainder is the draw and the model's own code)
+    ("votesplat_ns.ns.model", "VoteSplatModel", "_vote_maps"),
+    ("votesplat_ns.ns.model", "VoteSplatModel", "_support_in_backward"),
+    ("votesplat_ns.core.vote_fused", None, "vote_losses_sampled"),
+    ("votesplat_ns.core.vote_fused", "_FusedVoteLosses", "forward"),
+    ("votesplat_ns.core.vote_fused", "_FusedVoteLosses", "backward"),
+    ("votesplat_ns.core.vote_kernel", None, "_launch"),
+)
+
+
+def _timed(function: Callable, label: str, totals: Dict[str, float]) -> Callable:
+    def wrapped(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            totals[label] = totals.get(label, 0.0) + time.perf_counter() - start
+
+    wrapped.__wrapped__ = function  # type: ignore[attr-defined]
+    return wrapped
+
+
+def _install_phases(wrap: Callable[[Callable, str], Callable]) -> None:
+    for module_name, class_name, name in PHASES:
+        module = importlib.import_module(module_name)
+        owner = getattr(module, class_name) if class_name else module
+        label = f"{class_name or module_name.rsplit('.', 1)[-1]}.{name}"
+        wrapped = wrap(getattr(owner, name), label)
+        # an autograd Function's forward and backward are static methods: kept static
+        static = class_name is not None and isinstance(vars(owner).get(name), staticmethod)
+        setattr(owner, name, staticmethod(wrapped) if static else wrapped)
+        if class_name is None:  # a module function: rebind it where the model imported it
+            model = importlib.import_module("votesplat_ns.ns.model")
+            if hasattr(model, name):
+                setattr(model, name, getattr(owner, name))
+
+
+def install_step_times(out_path: str, phases: bool = True) -> None:
+    """Time every step of ns-train and its phases (host time, no profiler) into ``out_path`` (JSON). Without
+    ``phases`` only the steps: the phases' wrappers cost each call a few microseconds, and votesplat has more of
+    them (its vote losses' parts), which would charge a comparison of the methods' walls to votesplat."""
+    from nerfstudio.engine.trainer import Trainer
+
+    process_start = time.perf_counter()
+    phase_totals: Dict[str, float] = {}
+    if phases:
+        _install_phases(lambda function, label: _timed(function, label, phase_totals))
+    original = Trainer.train_iteration
+    record: Dict = {"steps": [], "wall_ms": [], "phases_ms": collections.defaultdict(list)}
+    state: Dict = {}
+
+    def close_step(now: float) -> None:
+        if "step" in state:
+            record["steps"].append(state["step"])
+            record["wall_ms"].append(round((now - state["start"]) * 1e3, 3))
+            for label in phase_totals.keys() | record["phases_ms"].keys():
+                values = record["phases_ms"][label]
+                values.extend([0.0] * (len(record["steps"]) - 1 - len(values)))
+                values.append(round(phase_totals.get(label, 0.0) * 1e3, 3))
+        phase_totals.clear()
+
+    def train_iteration(self, step):
+        now = time.perf_counter()
+        if "step" not in state:
+            record["setup_s"] = round(now - process_start, 3)
+        close_step(now)
+        state.update(step=step, start=now)
+        result = original(self, step)
+        state["end"] = time.perf_counter()
+        return result
+
+    def write() -> None:
+        now = time.perf_counter()
+        if "end" in state:  # the last step ends with its iteration; what follows is the tail
+            close_step(state["end"])
+            record["tail_s"] = round(now - state["end"], 3)
+        record["total_s"] = round(now - process_start, 3)
+        record["phases_ms"] = dict(record["phases_ms"])
+        with open(out_path, "w") as handle:
+            json.dump(record, handle)
+
+    Trainer.train_iteration = train_iteration
+    atexit.register(write)
+
+
+# ---------------------------------------------------------------------------- comparing
 
 
 def _ranges(text: List[str]) -> List[Tuple[int, int]]:
@@ -56,41 +173,6 @@ def summarize(record: Dict, ranges: List[Tuple[int, int]], slow_ms: float) -> Li
         f"  steps over {slow_ms:g} ms: {len(slow)}, {sum(w for _, w in slow) / 1e3:.2f} s in all; "
         + ", ".join(f"{s}:{w:.0f}" for s, w in sorted(slow, key=lambda item: -item[1])[:25])
     )
-    return lines
-
-
-def vote_step_cost(
-    record: Dict, ranges: List[Tuple[int, int]], every: int, start: int, skip_refinement: bool = False
-) -> List[str]:
-    """Per range: the mean and median wall of the vote steps and of the others, and per phase the difference of
-    their means (vote steps minus the others). ``skip_refinement`` leaves out every 100th step and the one after
-    it (densification and the eval image, ~100 ms, land there: with an even ``every`` and ``start`` all on vote
-    steps, which moves the means by a few tenths of a ms)."""
-    steps, walls = record["steps"], record["wall_ms"]
-    lines = []
-    for lo, hi in ranges:
-        picked = [i for i, step in enumerate(steps) if lo <= step < hi]
-        if skip_refinement:
-            picked = [i for i in picked if steps[i] % 100 not in (0, 1)]
-        voting = [i for i in picked if steps[i] >= start and (steps[i] - start) % every == 0]
-        vote_rows = set(voting)
-        other = [i for i in picked if i not in vote_rows]
-        if not voting or not other:
-            continue
-
-        def stats(rows: List[int], values: List[float]) -> Tuple[float, float]:
-            return statistics.mean(values[i] for i in rows), statistics.median(values[i] for i in rows)
-
-        (vote_mean, vote_median), (other_mean, other_median) = stats(voting, walls), stats(other, walls)
-        lines.append(
-            f"  steps [{lo}, {hi}): {len(voting)} vote steps, mean {vote_mean:.2f} / median {vote_median:.2f} ms; "
-            f"{len(other)} others, mean {other_mean:.2f} / median {other_median:.2f} ms; "
-            f"difference mean {vote_mean - other_mean:+.2f} / median {vote_median - other_median:+.2f} ms"
-        )
-        for label, values in sorted(record["phases_ms"].items()):
-            difference = stats(voting, values)[0] - stats(other, values)[0]
-            if abs(difference) >= 0.01:
-                lines.append(f"      {label:<45} {difference:+7.3f} ms")
     return lines
 
 
@@ -174,11 +256,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     parser.add_argument("--table", action="store_true", help="the runs are run.sh train-balanced's run folders")
     parser.add_argument("--ranges", nargs="+", default=["0:500", "500:100000"], help="step ranges A:B")
     parser.add_argument("--slow-ms", type=float, default=60.0, help="list the steps slower than this")
-    parser.add_argument("--vote-every", type=int, help="the run's vote_every_n_steps: split vote steps from others")
-    parser.add_argument("--vote-start", type=int, default=500, help="the runs' vote_start_step (--vote-every, --table)")
-    parser.add_argument(
-        "--skip-refinement", action="store_true", help="--vote-every: leave out every 100th step and the one after"
-    )
+    parser.add_argument("--vote-start", type=int, default=500, help="--table: the runs' vote_start_step")
     args = parser.parse_args(argv)
     if args.table:
         print("\n".join(balanced_table([Path(run) for run in args.runs], args.vote_start)))
@@ -188,9 +266,6 @@ def main(argv: Optional[List[str]] = None) -> None:
             record = json.load(handle)
         print(path)
         print("\n".join(summarize(record, _ranges(args.ranges), args.slow_ms)))
-        if args.vote_every:
-            cost = vote_step_cost(record, _ranges(args.ranges), args.vote_every, args.vote_start, args.skip_refinement)
-            print("\n".join(cost))
 
 
 if __name__ == "__main__":

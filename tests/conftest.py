@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
+import subprocess
 import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
@@ -25,15 +24,22 @@ def pytest_collection_modifyitems(config, items) -> None:
             item.add_marker(pytest.mark.slow)
 
 
-def load_benchmark(script: str, module_name: str) -> ModuleType:
-    """Import benchmarks/``script`` (not a package) as ``module_name``, registered in sys.modules so that its
-    dataclasses resolve and tests can look it up by that name."""
-    spec = importlib.util.spec_from_file_location(module_name, BENCHMARKS / script)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module
-    spec.loader.exec_module(module)
-    return module
+def run_benchmark(script: str, *args: str, expect_ok: bool = True) -> subprocess.CompletedProcess:
+    """``python benchmarks/<script> args...`` in a process of its own (benchmarks/ is no package the tests
+    import); with ``expect_ok`` its exit status must be 0."""
+    root = str(BENCHMARKS.parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run(
+        [sys.executable, str(BENCHMARKS / script), *args],
+        check=False,
+        capture_output=True,
+        text=True,
+        cwd=root,
+        env=env,
+    )
+    if expect_ok:
+        assert done.returncode == 0, done.stderr[-2000:]
+    return done
 
 
 def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, **model_overrides) -> Path:

@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_vote_fused import CUDA_ONLY, fused_losses, targets
-from test_vote_kernel import scene_of_size, to_device
+from test_vote_fused import CUDA_ONLY, fused_losses, scene_of_size, targets, to_device
 
 from votesplat_ns.core import triton_launch
 from votesplat_ns.core.vote_render import VoteRenderOptions

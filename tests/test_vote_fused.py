@@ -1,4 +1,4 @@
-"""The fused vote losses (votesplat_ns.core.vote_fused.vote_losses_tiled) held to the separate path.
+"""The fused vote losses (votesplat_ns.core.vote_fused.vote_losses_tiled) held to the torch path.
 
 Each case computes ``vote_losses(render_votes_tiled(..., backend="torch"), target, valid)`` (itself
 held to the dense reference in test_vote_render.py) and ``vote_losses_tiled`` on the same inputs,
@@ -8,21 +8,12 @@ and on CPU tensors under Triton's interpreter (``TRITON_INTERPRET=1``, slow: sma
 
 from __future__ import annotations
 
+import functools
+
 import pytest
 import torch
-from conftest import load_benchmark
-from test_vote_kernel import (
-    DEVICES,
-    HEIGHT,
-    TIE_GROUPS,
-    TILE,
-    WIDTH,
-    assert_same_up_to_ties,
-    scene_of_size,
-    tied_votes,
-    to_device,
-)
-from test_vote_render import call, random_scene, tile_lists_gsplat
+from op_counter import OpCounter, count_step, launch_names, launches, model_step
+from test_vote_render import call, random_scene, sample_pixels, tile_lists_everything, tile_lists_gsplat
 
 from votesplat_ns.core import vote_fused, vote_kernel
 from votesplat_ns.core.vote_maps import label_tensor, pixels_and_targets, voting_pixels
@@ -37,6 +28,60 @@ from votesplat_ns.core.vote_render import (
 )
 
 DISTORTIONS = ["l1", "l1_pixels", "squared", "none"]
+
+
+def _skip_reason(device: str):
+    if device == "cuda" and not torch.cuda.is_available():
+        return "no CUDA device"
+    return vote_kernel.unavailable_reason(torch.device(device))
+
+
+DEVICES = [
+    pytest.param(d, marks=pytest.mark.skipif(_skip_reason(d) is not None, reason=f"{d}: {_skip_reason(d)}"))
+    for d in ("cpu", "cuda")
+]
+WIDTH, HEIGHT, TILE = 24, 16, 8
+
+
+def to_device(scene, device, dtype=None):
+    return {k: v.to(device=device, dtype=dtype or v.dtype) for k, v in scene.items()}
+
+
+@functools.cache
+def scene_of_size(n):
+    """n overlapping Gaussians over the 24 x 16 image: every tile's run holds most of them."""
+    scene = random_scene(n, WIDTH, HEIGHT, seed=21)
+    outside = torch.tensor([[-1.5, 3.5], [WIDTH + 2.5, 5.5], [4.5, HEIGHT + 0.5]], dtype=torch.float64)
+    pixel_xy = torch.cat([outside, sample_pixels(WIDTH, HEIGHT, seed=22, extra=12)])
+    lists = {
+        "gsplat": tile_lists_gsplat(scene, WIDTH, HEIGHT, TILE),
+        "everything": tile_lists_everything(scene, WIDTH, HEIGHT, TILE),
+    }
+    g = torch.Generator().manual_seed(23)
+    level_votes = scene["votes"][:, None, :] + 0.3 * torch.randn(n, 4, 3, generator=g, dtype=torch.float64)
+    return scene, level_votes, pixel_xy, lists
+
+
+def tied_votes(votes, groups):
+    """Votes [N, L, 3] where each group of Gaussians shares its first member's vote: ties in z."""
+    votes = votes.clone()
+    for group in groups:
+        votes[group[1:]] = votes[group[0]].clone()
+    return votes
+
+
+def assert_same_up_to_ties(actual, expected, groups):
+    """Gradients [N, ...] that agree everywhere but within tie groups, where only their sum is defined:
+    the torch path's sort splits a tie's subgradient unevenly, the kernels' sign sum evenly."""
+    actual, expected = actual.cpu(), expected.cpu()
+    tied = torch.zeros(actual.shape[0], dtype=torch.bool)
+    for group in groups:
+        tied[group] = True
+        torch.testing.assert_close(actual[group].sum(0), expected[group].sum(0), rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(actual[~tied], expected[~tied], rtol=1e-9, atol=1e-9)
+
+
+TIE_GROUPS = [[0, 5, 9, 13], [2, 7], [20, 21, 22]]
 
 
 @pytest.fixture(autouse=True)
@@ -287,15 +332,50 @@ def test_fused_float32(device, monkeypatch):
 
 
 def test_use_fused_only_for_its_options(monkeypatch):
+    """Backend "triton" takes the fused losses where the switches allow (the others take the torch path) and
+    refuses tensors the kernels cannot take; "auto" takes them on CUDA only, "torch" never;
+    VOTESPLAT_VOTE_BACKEND stands for "auto" and must name a backend."""
     votes, pixel_xy = torch.zeros(3, 2, 3), torch.zeros(4, 2)
     runs = vote_kernel.unavailable_reason(votes.device) is None
-    assert vote_fused.use_fused(VoteRenderOptions(backend="triton", distortion="squared"), votes, pixel_xy) == runs
-    assert not vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy)  # auto: the torch path
+    triton = VoteRenderOptions(backend="triton", distortion="squared")
+    if runs:
+        assert vote_fused.use_fused(triton, votes, pixel_xy)
+    else:
+        with pytest.raises(ValueError, match="backend='triton' cannot run"):
+            vote_fused.use_fused(triton, votes, pixel_xy)
+    assert not vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy)  # auto on CPU: the torch path
     assert not vote_fused.use_fused(VoteRenderOptions(backend="torch"), votes, pixel_xy)
     for switch in ({"weighting": "alpha_t"}, {"blend_space": "2d"}, {"detach_geometry": False}):
         assert not vote_fused.use_fused(VoteRenderOptions(backend="triton", **switch), votes, pixel_xy)
+    if runs:  # the kernels give pixel_xy no gradient
+        with pytest.raises(ValueError, match="pixel_xy"):
+            vote_fused.use_fused(triton, votes, pixel_xy.clone().requires_grad_())
+        with pytest.raises(ValueError, match="float32 or float64"):
+            vote_fused.use_fused(triton, votes.half(), pixel_xy)
     monkeypatch.setenv(BACKEND_ENV, "triton")
-    assert vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy) == runs
+    if runs:
+        assert vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy)
+    else:
+        with pytest.raises(ValueError, match="backend='triton' cannot run"):
+            vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy)
+    monkeypatch.setenv(BACKEND_ENV, "fast")
+    with pytest.raises(ValueError, match=BACKEND_ENV):
+        vote_fused.use_fused(VoteRenderOptions(), votes, pixel_xy)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        VoteRenderOptions(backend="cuda")
+
+
+def test_model_flag_selects_the_backend():
+    import tyro
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    from votesplat_ns.ns.method import votesplat_trainer_config
+
+    config = tyro.cli(
+        TrainerConfig, default=votesplat_trainer_config(), args=["--pipeline.model.vote-backend", "torch"]
+    )
+    assert config.pipeline.model.vote_render_options().backend == "torch"
+    assert votesplat_trainer_config().pipeline.model.vote_render_options().backend == "auto"
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -340,14 +420,9 @@ def test_fused_errors(device):
 # Launches and host reads of a step
 
 
-@pytest.fixture(scope="module")
-def count_ops():
-    return load_benchmark("count_vote_ops.py", "votesplat_count_vote_ops_fused")
-
-
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("distortion", ["l1_pixels", "none"])
-def test_fused_launches_and_host_reads(count_ops, distortion, device):
+def test_fused_launches_and_host_reads(distortion, device):
     """Forward + backward of the fused losses, as the model combines them: at most 15 launches (torch
     kernels and Triton kernels), no host read."""
     scene, level_votes, pixel_xy, lists = scene_of_size(50)
@@ -366,10 +441,10 @@ def test_fused_launches_and_host_reads(count_ops, distortion, device):
 
     step().backward()  # warm-up: first-call caches out of the count
     offsets_param.grad = None
-    counter = count_ops.count_step(step)
+    counter = count_step(step)
     assert counter.total_syncs == 0, dict(counter.syncs)
     # 3 Triton kernels and the zeroed vote gradient; the rest is the test's own loss and its backward
-    assert count_ops.launches(counter) <= 15, count_ops.launch_names(counter)
+    assert launches(counter) <= 15, launch_names(counter)
     assert counter.triton_launches == 3
     assert offsets_param.grad is not None and offsets_param.grad.abs().sum() > 0
 
@@ -547,10 +622,10 @@ def test_warm_up_fills_tritons_cache_with_what_a_training_step_launches(distorti
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
-def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
+def test_model_vote_step_takes_the_fused_losses(device, monkeypatch):
     """VoteSplatModel.vote_loss_terms with the Triton backend and the default switches: the fused losses,
-    equal to the torch path's, with no host read; other switches keep the separate path."""
-    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    equal to the torch path's, with no host read; other switches keep the torch path."""
+    model, step = model_step(levels=2, n=200, width=32, height=24, pixels=24)
     results = {}
     support = model.gauss_params["vote_support"]
     for backend in ("torch", "triton"):
@@ -560,7 +635,7 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
         with torch.no_grad():
             support.zero_()
         model.vote_step.support_stamps = None  # the warm-up's step counted with this step's stamp
-        counter = count_ops.OpCounter()
+        counter = OpCounter()
         with counter:
             loss = step(seed=0)
             with counter.phase("backward"):
@@ -580,15 +655,15 @@ def test_model_vote_step_takes_the_fused_losses(count_ops, device, monkeypatch):
     assert grad.abs().sum() > 0
     assert dict(counter.triton_names) == {"_fused_fwd_kernel": 1, "_fused_reduce_kernel": 1, "_fused_bwd_kernel": 1}
     assert counter.total_syncs == 0, dict(counter.syncs)
-    # alpha*T weights: the separate kernels, not the fused ones
+    # alpha*T weights: the torch path, no Triton kernel
     monkeypatch.setattr(model, "vote_options", VoteRenderOptions(weighting="alpha_t", distortion="l1_pixels"))
-    with count_ops.OpCounter() as counter:
+    with OpCounter() as counter:
         step().backward()
-    assert set(counter.triton_names) == {"_vote_fwd_kernel", "_vote_bwd_kernel"}
+    assert counter.triton_launches == 0
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
-def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, monkeypatch):
+def test_training_step_takes_the_offsets_gradient_at_once(device, monkeypatch):
     """The trainer's path (_vote_losses, then the backward of the loss dict's sum with the colour losses) runs
     the fused backward at once, outside autograd: the offsets' gradient and support counts of the autograd path,
     bitwise, added to a gradient already there (accumulation); a retrofit (a loss dict of the vote loss alone),
@@ -596,7 +671,7 @@ def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, mon
     import functools
 
     monkeypatch.setenv(BACKEND_ENV, "triton")
-    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    model, step = model_step(levels=2, n=200, width=32, height=24, pixels=24)
     offsets, support = model.gauss_params["vote_offsets"], model.gauss_params["vote_support"]
     colour = torch.zeros((), requires_grad=True)  # splatfacto's losses' stand-in
 
@@ -636,14 +711,14 @@ def test_training_step_takes_the_offsets_gradient_at_once(count_ops, device, mon
 
 
 @pytest.mark.parametrize("device", DEVICES[:1])  # the model is built on CPU
-def test_model_stops_on_diverged_votes_with_the_fused_losses(count_ops, device, monkeypatch):
+def test_model_stops_on_diverged_votes_with_the_fused_losses(device, monkeypatch):
     """The fused losses read nothing on the host, so a NaN vote gives a NaN loss; the model reads the loss's
     finiteness on every FUSED_FINITE_CHECK_EVERY-th fused vote step and stops with the same one-line error as
     the torch path, whatever the trainer steps are (votes every 4th step from 500 never land on a step ending
     in 99, where a check on the step count once looked: diverged votes then trained on to the end)."""
     from votesplat_ns.ns.model import FUSED_FINITE_CHECK_EVERY
 
-    model, step = count_ops.model_step(levels=2, n=200, width=32, height=24, pixels=24)
+    model, step = model_step(levels=2, n=200, width=32, height=24, pixels=24)
     monkeypatch.setenv(BACKEND_ENV, "triton")
     with torch.no_grad():
         model.gauss_params["vote_offsets"][:5] = float("nan")

@@ -1,7 +1,7 @@
 """Host synchronisations of a vote step, counted at the dispatcher (forward and backward).
 
 On a GPU every host read stalls the training step until the queue drains; on CPU the same
-reads are counted with benchmarks/count_vote_ops.py's OpCounter (a TorchDispatchMode, so
+reads are counted with tests/op_counter.py's OpCounter (a TorchDispatchMode, so
 autograd's backward ops are seen too, plus Tensor.tolist).
 """
 
@@ -9,17 +9,12 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import load_benchmark
+from op_counter import OpCounter, model_step
 from test_vote_render import call, random_scene, sample_pixels, tile_lists_gsplat, with_level_votes
 
 from votesplat_ns.core import vote_render
 from votesplat_ns.core.vote_maps import voting_pixels
 from votesplat_ns.core.vote_render import VoteRenderOptions, render_votes_tiled, vote_losses
-
-
-@pytest.fixture(scope="module")
-def count_ops():
-    return load_benchmark("count_vote_ops.py", "votesplat_count_vote_ops")
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +28,7 @@ def scene():
 @pytest.mark.parametrize("levels", [1, 4])
 @pytest.mark.parametrize("distortion", ["l1", "l1_pixels"])
 @pytest.mark.parametrize("check_inputs", [False, True])
-def test_one_host_read_per_vote_pass(count_ops, scene, levels, distortion, check_inputs):
+def test_one_host_read_per_vote_pass(scene, levels, distortion, check_inputs):
     """A one-step walk (the GPU's default width), all levels, forward and backward: the walk's one read
     (it sizes the member table and carries the input checks), plus one for vote_losses' own checks."""
     base, pixel_xy, tile_size, (offsets, flatten_ids) = scene
@@ -60,7 +55,7 @@ def test_one_host_read_per_vote_pass(count_ops, scene, levels, distortion, check
         losses = vote_losses(out, target, valid, options, check_inputs=check_inputs)
         return losses["vote"].sum() + losses["distortion"].sum()
 
-    with count_ops.OpCounter() as counter:
+    with OpCounter() as counter:
         loss = step()
         with counter.phase("backward"):
             loss.backward()
@@ -97,15 +92,15 @@ def test_bad_inputs_still_raise_from_the_walks_read(scene):
 
 
 @pytest.fixture(scope="module")
-def vote_model(count_ops):
-    return count_ops.model_step(levels=2, n=600, width=64, height=48, pixels=256)
+def vote_model():
+    return model_step(levels=2, n=600, width=64, height=48, pixels=256)
 
 
-def test_model_vote_step_reads_the_host_once(count_ops, vote_model, monkeypatch):
+def test_model_vote_step_reads_the_host_once(vote_model, monkeypatch):
     """VoteSplatModel.vote_loss_terms, forward and backward, at the GPU's walk width: only the walk's read."""
     model, step = vote_model
     monkeypatch.setattr(vote_render, "AUTO_PAIRS_PER_STEP_CPU", vote_render.AUTO_PAIRS_PER_STEP)
-    with count_ops.OpCounter() as counter:
+    with OpCounter() as counter:
         loss = step(seed=0)
         with counter.phase("backward"):
             loss.backward()
@@ -115,7 +110,7 @@ def test_model_vote_step_reads_the_host_once(count_ops, vote_model, monkeypatch)
     assert model.gauss_params["vote_offsets"].grad.abs().sum() > 0
 
 
-def test_model_view_without_masks_gives_zero_connected_losses(count_ops, vote_model):
+def test_model_view_without_masks_gives_zero_connected_losses(vote_model):
     """No mask in the view: both losses are 0, part of the graph, and give the offsets a zero gradient
     (no host read decides it)."""
     model, _ = vote_model
@@ -131,12 +126,12 @@ def test_model_view_without_masks_gives_zero_connected_losses(count_ops, vote_mo
     assert grad is not None and not grad.any()
 
 
-def test_vote_losses_computed_with_the_metrics_are_the_loss_dicts(count_ops, monkeypatch):
+def test_vote_losses_computed_with_the_metrics_are_the_loss_dicts(monkeypatch):
     """get_metrics_dict computes the step's vote losses once and get_loss_dict of the same batch returns
     them; a batch that did not go through get_metrics_dict gets its own."""
     from nerfstudio.models.splatfacto import SplatfactoModel
 
-    model, _ = count_ops.model_step(levels=2, n=300, width=32, height=24, pixels=64)
+    model, _ = model_step(levels=2, n=300, width=32, height=24, pixels=64)
     monkeypatch.setattr(SplatfactoModel, "get_metrics_dict", lambda self, outputs, batch: {})
     monkeypatch.setattr(SplatfactoModel, "get_loss_dict", lambda self, outputs, batch, metrics_dict=None: {})
     calls = []

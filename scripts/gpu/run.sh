@@ -7,17 +7,15 @@
 # machine has not been set up, so each call can stand alone on a fresh machine):
 #   setup             ~30 s with .gpu/gsplat_build.tar.gz carried, ~240 s without (gsplat's
 #                     CUDA JIT build, ~200 s; the fresh build comes back as $OUT/gsplat_build.tar.gz)
-#   tests             ~60 s + ~2-4 min of Triton JIT builds for test_vote_kernel.py: pytest of $GPU_TESTS
+#   tests             ~60 s + ~1-2 min of Triton JIT builds for test_vote_fused.py: pytest of $GPU_TESTS
 #                     (CUDA-only tests run here, skipped on CPU)
 #   bench-vote        ~100-200 s  benchmarks/bench_vote_render.py at 500k@1440x1080 and 100k@720x540:
 #                     RGB pass, torch vote pass and the Triton kernels ($KERNEL_CONFIGS), first-call
 #                     JIT time from an empty Triton cache, peak memory, ratios to the RGB pass
-#   train-fox         per method at STEPS=7000: splatfacto ~215 s (measured 214 s), votesplat
-#                     ~250-400 s (not measured yet), + ~30 s ns-eval each. BOTH in one call may
-#                     pass the 600 s limit: run METHODS=splatfacto and METHODS=votesplat as two
-#                     calls and merge them with `compare` (here, no GPU). STEPS=100 smoke: ~90 s.
-#   train-synthetic [DATA]  the same comparison on a synthetic scene (default .gpu/synthetic,
-#                     masks from its transforms.json); time depends on the scene
+#   train-fox         one training per method of $METHODS on the fox, with ns-eval after it: what train-balanced
+#                     and scripts/gpu/train_side_by_side.sh run for each of their trainings (STEPS=7000:
+#                     splatfacto ~215 s; run the methods as separate calls to stay under the 600 s limit)
+#   train-synthetic [DATA]  the same on a synthetic scene (default .gpu/synthetic, masks from its transforms.json)
 #   bench-sam         ~300-600 s  benchmarks/bench_sam.py: SAM vit_h masks at 1920x1080, three levels,
 #                     LangSplat's settings, random weights (no checkpoint here): the old path
 #                     (segment_anything's generator once per level) and the one-pass path on the
@@ -42,15 +40,6 @@
 #                     among the runs left. After each run $OUT/balanced_<experiment>.md (benchmarks/step_times.py
 #                     --table: a row per run, votesplat's means over splatfacto's) and .tar.gz (the runs' files)
 #                     are written again, so a call cut short keeps the runs it finished. 4 runs: ~300-450 s
-#   vote-step-ab [fox|DATA]  a vote step's in-run cost, this tree against "other": AB_TREE (another commit's
-#                     files: `git archive C | tar -x -C build/ab_tree`, carried), or without AB_TREE this tree with
-#                     AB_OTHER_ARGS added to votesplat's flags (e.g. "--pipeline.datamanager.cache-vote-maps gpu"):
-#                     votesplat with a vote every 2nd step (vote steps and the others alternate within a run, so
-#                     the machine's drift falls on both), in the order AB_ORDER ("this other other this"), on the
-#                     synthetic DATA (default .gpu/synthetic) or the fox; vote_step_ab.md (per run: vote steps' and
-#                     others' means and medians, refinement steps left out) and .tar.gz. ~400 s (4 synthetic runs)
-#   compare FILE...   (no GPU) merge train_*.json files of separate calls into one summary
-#                     with votesplat/splatfacto ratios; prints it
 #
 # A call never runs past CALL_BUDGET_S (default 570 s from its start): a training run gets the
 # time left minus an eval reserve, and one cut short is reported as "timeout" (what it wrote
@@ -61,10 +50,6 @@
 # Environment: STEPS (7000), METHODS ("splatfacto votesplat"), CALL_BUDGET_S (570),
 # GPU_TESTS, KERNEL_CONFIGS, SYNTH_DOWNSCALE (1), FOX (.gpu/fox), PY (python3), EXTRA_TRAIN_ARGS (both methods),
 # EVAL (1; 0 skips the ns-eval after each training, for runs that only time the training).
-# VOTESPLAT_PROFILE_STEPS=A:B profiles each ns-train's steps [A, B) into $OUT/profile_<experiment>_<method>.txt
-# (benchmarks/train_profile.py: wall per step, phases, torch ops, host syncs by call site).
-# VOTESPLAT_CAPTURE_VOTE_STEP=N saves votesplat's first fused vote step at step >= N into
-# $OUT/capture_<experiment>_<method>.pt (benchmarks/bench_captured_step.py replays it).
 # VOTESPLAT_STEP_TIMES=1 writes every step's wall and phase host times of each ns-train, no profiler,
 # into $OUT/steps_<experiment>_<method>.json (set-up and tail too; compare with benchmarks/step_times.py);
 # VOTESPLAT_STEP_TIMES=walls the steps' walls only (no wrapper around the phases: what train-balanced times).
@@ -85,7 +70,7 @@ STEPS=${STEPS:-7000}
 METHODS=${METHODS:-"splatfacto votesplat"}
 CALL_BUDGET_S=${CALL_BUDGET_S:-570}
 EVAL_RESERVE_S=${EVAL_RESERVE_S:-45}
-GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_vote_kernel.py tests/test_rasterize_torch.py tests/test_viewer.py"}
+GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_vote_fused.py tests/test_triton_launch.py tests/test_rasterize_torch.py tests/test_viewer.py"}
 # Triton kernel variants (walk block width x warps per program) that bench-vote times next to the torch vote pass
 KERNEL_CONFIGS=${KERNEL_CONFIGS:-"32x2 32x4 16x1 64x4"}
 # the vote pass implementations bench-vote times: the training step's path (triton-sampled) by default
@@ -156,23 +141,11 @@ command = sys.argv[1]
 sys.argv = [f"ns-{command}"] + sys.argv[2:]
 from votesplat_ns.ns.patches import offline_lpips
 
-profile = os.environ.get("VOTESPLAT_PROFILE_STEPS")  # "A:B": profile ns-train's steps [A, B)
-if profile and command == "train":
-    from benchmarks.train_profile import install
-
-    first, stop = (int(value) for value in profile.split(":"))
-    install(first, stop, os.environ.get("VOTESPLAT_PROFILE_OUT", "train_profile.txt"))
-elif os.environ.get("VOTESPLAT_STEP_TIMES") and command == "train":  # every step's wall (and phases), no profiler
-    from benchmarks.train_profile import install_step_times
+if os.environ.get("VOTESPLAT_STEP_TIMES") and command == "train":  # every step's wall (and phases), no profiler
+    from benchmarks.step_times import install_step_times
 
     phases = os.environ["VOTESPLAT_STEP_TIMES"] != "walls"
     install_step_times(os.environ.get("VOTESPLAT_STEP_TIMES_OUT", "step_times.json"), phases)
-
-capture = os.environ.get("VOTESPLAT_CAPTURE_VOTE_STEP")  # N: save the first fused vote step's inputs at step >= N
-if capture and command == "train":
-    from benchmarks.train_profile import install_capture
-
-    install_capture(int(capture), os.environ.get("VOTESPLAT_CAPTURE_OUT", "vote_step.pt"))
 
 if command == "train":
     from nerfstudio.scripts.train import entrypoint
@@ -452,7 +425,7 @@ train_one() {
     log "ns-train $method on $data: $STEPS steps, time limit ${train_limit} s" | tee -a "$log_file"
     local t0; t0=$(date +%s.%N)
     # shellcheck disable=SC2086
-    VOTESPLAT_RUN_STATS=$stats VOTESPLAT_PROFILE_OUT=$OUT/profile_${experiment}_${method}.txt VOTESPLAT_STEP_TIMES_OUT=$OUT/steps_${experiment}_${method}.json VOTESPLAT_CAPTURE_OUT=$OUT/capture_${experiment}_${method}.pt timeout --signal=INT --kill-after=20 "$train_limit" \
+    VOTESPLAT_RUN_STATS=$stats VOTESPLAT_STEP_TIMES_OUT=$OUT/steps_${experiment}_${method}.json timeout --signal=INT --kill-after=20 "$train_limit" \
       "$PY" /tmp/ns_launch.py train "$method" --data "$data" --max-num-iterations "$STEPS" \
       --vis tensorboard --viewer.quit-on-train-completion True \
       --output-dir "$RUNS" --experiment-name "$experiment" --timestamp run \
@@ -511,58 +484,22 @@ os.replace(tmp, result)
 PY
 }
 
-# summarize OUT_JSON RESULT_JSON...: one JSON with each method and votesplat/splatfacto ratios.
+# summarize OUT_JSON RESULT_JSON...: the methods' results in one JSON ({"gpu": [...], "methods": {method: result}}),
+# what benchmarks/step_times.py --table and benchmarks/psnr_seeds.py read.
 summarize() {
   "$PY" - "$@" <<'PY'
-import json, math, os, sys
+import json, os, sys
 out, inputs = sys.argv[1], sys.argv[2:]
 methods = {}
-header = {}
 for path in inputs:
     data = json.load(open(path))
-    if "methods" in data:  # a summary from an earlier call
-        methods.update(data["methods"])
-        header.setdefault("runs", []).append({k: v for k, v in data.items() if k not in ("methods", "ratios_votesplat_over_splatfacto")})
-    else:
-        methods[data["method"]] = data
-summary = dict(header)
-summary["gpu"] = sorted({m.get("gpu") for m in methods.values() if m.get("gpu")})
-if len(summary["gpu"]) > 1:
-    print("warning: the methods ran on different GPUs; their ratios compare unlike machines", file=sys.stderr)
-summary["methods"] = methods
-
-
-def pick(entry, key):
-    value = entry.get(key)
-    if key in ("psnr", "ssim", "lpips"):
-        value = (entry.get("eval") or {}).get(key)
-    if key == "torch_max_allocated_mib":
-        value = (entry.get("process") or {}).get(key)
-    return value
-
-
-both_ok = all(methods.get(m, {}).get("status") == "ok" for m in ("splatfacto", "votesplat"))
-if "splatfacto" in methods and "votesplat" in methods and not both_ok:
-    summary["ratios_votesplat_over_splatfacto"] = None
-    summary["ratios_note"] = "not computed: a method did not finish (see its status)"
-elif both_ok:
-    ratios = {}
-    for key in ("wall_s", "gpu_peak_memory_used_mib", "torch_max_allocated_mib", "num_gaussians", "psnr", "ssim", "lpips"):
-        a, b = pick(methods["votesplat"], key), pick(methods["splatfacto"], key)
-        try:
-            ratio = float(a) / float(b)
-        except (TypeError, ValueError, ZeroDivisionError):
-            ratio = float("nan")
-        ratios[key] = round(ratio, 3) if math.isfinite(ratio) else None
-    summary["ratios_votesplat_over_splatfacto"] = ratios
+    methods[data["method"]] = data
+summary = {"gpu": sorted({m.get("gpu") for m in methods.values() if m.get("gpu")}), "methods": methods}
 text = json.dumps(summary, indent=2)
-if out == "-":
-    print(text)
-else:
-    with open(out + ".tmp", "w") as handle:
-        handle.write(text + "\n")
-    os.replace(out + ".tmp", out)
-    print(text)
+with open(out + ".tmp", "w") as handle:
+    handle.write(text + "\n")
+os.replace(out + ".tmp", out)
+print(text)
 PY
 }
 
@@ -655,67 +592,6 @@ stage_train_balanced() {  # EXPERIMENT [DATA]
   cat "$OUT/balanced_$experiment.md"
 }
 
-# ------------------------------------------------------------------------------------ vote-step-ab
-stage_vote_step_ab() {  # fox|DATA
-  # A vote step's in-run cost, this tree against another ($AB_TREE) or against this tree with $AB_OTHER_ARGS:
-  # votesplat voting every 2nd step, so that vote steps and the others alternate within one run and the machine's
-  # drift (a whole run up to 25% faster) falls on both.
-  local data=$1 tree=${AB_TREE:-} other_args=${AB_OTHER_ARGS:-} order=(${AB_ORDER:-this other other this})
-  local n=0 vote_start runs=$RUNS/vote_step_ab experiment=synthetic label dir folder args train
-  vote_start=$(vote_start_step)
-  if [ -n "$tree" ] && [ -n "$other_args" ]; then
-    log "vote-step-ab: give AB_TREE (another commit's files) or AB_OTHER_ARGS (this tree with other flags), not both"
-    return 1
-  fi
-  [ -n "$tree$other_args" ] || { log "vote-step-ab: nothing to compare with: set AB_TREE or AB_OTHER_ARGS"; return 1; }
-  if [ -n "$tree" ] && [ ! -d "$tree/votesplat_ns" ]; then
-    log "vote-step-ab: AB_TREE='$tree' holds no votesplat_ns (another commit's files)"
-    return 1
-  fi
-  [ "$data" = fox ] && experiment=fox
-  ensure_setup || return 1
-  train=("train-$experiment")  # the fox's stage takes no DATA
-  if [ "$experiment" = synthetic ]; then data=$(cd "$data" && pwd) && train+=("$data") || return 1; fi
-  if [ -n "$tree" ]; then
-    tree=$(cd "$tree" && pwd) || return 1
-    # its setup check finds this tree's wheelhouse (real files: the check's find does not follow a link)
-    [ -e "$tree/.whl" ] || cp -rl .whl "$tree/" 2>/dev/null || cp -r .whl "$tree/" || return 1
-    # the same launcher and timing in both trees: only the product code differs
-    cp scripts/gpu/run.sh "$tree/scripts/gpu/run.sh" && cp benchmarks/train_profile.py "$tree/benchmarks/" || return 1
-    # the fox's prepared capture, as this tree has it
-    if [ "$experiment" = fox ] && [ ! -e "$tree/$FOX" ]; then
-      mkdir -p "$(dirname "$tree/$FOX")" && cp -r "$FOX" "$tree/$FOX" || return 1
-    fi
-  fi
-  rm -rf "$runs" && mkdir -p "$runs"
-  warm_up_run "$runs" "$experiment" "${train[@]:1}"
-  : >"$OUT/vote_step_ab.md"
-  for label in "${order[@]}"; do
-    n=$((n + 1))
-    dir=$runs/$n-$label
-    folder=$PWD
-    args="$VOTESPLAT_TRAIN_ARGS --pipeline.model.vote-every-n-steps 2"
-    if [ "$label" = other ]; then
-      [ -n "$tree" ] && folder=$tree
-      args="$args $other_args"
-    fi
-    log "vote-step-ab: run $n of ${#order[@]}, $label"
-    (cd "$folder" && OUT=$dir RUNS=$dir/runs TRITON_CACHE_DIR=$dir/triton METHODS=votesplat EVAL=0 EVAL_RESERVE_S=5 \
-      VOTESPLAT_STEP_TIMES=walls CALL_BUDGET_S=$(($(seconds_left) / (${#order[@]} - n + 1))) \
-      VOTESPLAT_TRAIN_ARGS="$args" \
-      bash scripts/gpu/run.sh "${train[@]}") >"$dir.log" 2>&1 \
-      || log "vote-step-ab: run $n did not finish"
-    rm -rf "$dir/runs" "$dir/triton"
-    tar czf "$OUT/vote_step_ab.tar.gz" -C "$runs" --exclude='warm_up*' . || return 1
-    for f in "$dir"/steps_*.json; do
-      [ -f "$f" ] || continue
-      echo "$n-$label: $("$PY" benchmarks/step_times.py "$f" --vote-every 2 --vote-start "$vote_start" \
-        --ranges "$vote_start:100000" --skip-refinement | grep 'vote steps')" >>"$OUT/vote_step_ab.md"
-    done
-  done
-  cat "$OUT/vote_step_ab.md"
-}
-
 # ------------------------------------------------------------------------------------- main
 [ "$#" -gt 0 ] || { sed -n '2,/^set -uo/p' "$0" | sed '$d'; exit 2; }
 rc=0
@@ -739,12 +615,7 @@ while [ "$#" -gt 0 ]; do
       experiment=$1; shift; data=
       if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
       stage_train_balanced "$experiment" "$data" || rc=1 ;;
-    vote-step-ab)
-      data=.gpu/synthetic
-      if [ "$#" -gt 0 ] && { [ "$1" = fox ] || [ -d "$1" ]; }; then data=$1; shift; fi
-      stage_vote_step_ab "$data" || rc=1 ;;
-    compare) summarize - "$@" || rc=1; shift "$#" ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA], vote-step-ab [fox|DATA], compare FILE...)" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA])" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2

@@ -71,7 +71,8 @@ def main(args: Optional[Sequence[str]] = None) -> Any:
         cls, flags_take_values = COMMANDS[name]
         command = tyro.cli(_annotated(cls, flags_take_values), args=args[1:], prog=prog)
     else:  # no or an unknown subcommand: tyro lists the subcommands
-        subcommands = Union[
+        # a Union built at run time from COMMANDS: no static type describes it
+        subcommands: Any = Union[
             tuple(  # type: ignore[misc]
                 Annotated[_annotated(cls, flags), tyro.conf.subcommand(name=key)]
                 for key, (cls, flags) in COMMANDS.items()

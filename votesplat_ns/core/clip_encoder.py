@@ -38,7 +38,8 @@ class EncoderProtocol(Protocol):
     with instance features and checked when they are loaded or queried.
     """
 
-    config: Mapping[str, Any]
+    @property
+    def config(self) -> Mapping[str, Any]: ...
 
     def encode_images(self, crops: Sequence[np.ndarray]) -> torch.Tensor:
         """HxWx3 uint8 crops -> [n, D] float32, rows of unit norm."""

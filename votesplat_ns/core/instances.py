@@ -23,7 +23,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -199,8 +199,8 @@ class LevelInstances:
         self.parent_overlap = best_count / self.counts
 
     def to_manifest(
-        self, parent_level: Optional[str] = None, extra: Optional[Dict[int, Dict[str, object]]] = None
-    ) -> Dict[str, object]:
+        self, parent_level: Optional[str] = None, extra: Optional[Mapping[int, Mapping[str, object]]] = None
+    ) -> Dict[str, Any]:
         """JSON-ready description; ``extra`` adds fields to instance entries (e.g. exported file)."""
         colors = instance_colors(np.arange(self.num_instances))
         instances = []
@@ -300,12 +300,12 @@ class InstanceSet:
 
     def to_manifest(
         self,
-        instance_extra: Optional[Dict[str, Dict[int, Dict[str, object]]]] = None,
-        extra: Optional[Dict[str, object]] = None,
-    ) -> Dict[str, object]:
+        instance_extra: Optional[Mapping[str, Mapping[int, Mapping[str, object]]]] = None,
+        extra: Optional[Mapping[str, object]] = None,
+    ) -> Dict[str, Any]:
         """The instances.json content; ``instance_extra[level][id]`` adds per-instance fields,
         ``extra`` adds top-level keys."""
-        manifest: Dict[str, object] = {
+        manifest: Dict[str, Any] = {
             "format": MANIFEST_FORMAT,
             "version": MANIFEST_VERSION,
             "num_gaussians": int(self.num_gaussians),
@@ -323,9 +323,9 @@ class InstanceSet:
     def save(
         self,
         folder: Union[str, os.PathLike],
-        instance_extra: Optional[Dict[str, Dict[int, Dict[str, object]]]] = None,
-        extra: Optional[Dict[str, object]] = None,
-    ) -> Dict[str, object]:
+        instance_extra: Optional[Mapping[str, Mapping[int, Mapping[str, object]]]] = None,
+        extra: Optional[Mapping[str, object]] = None,
+    ) -> Dict[str, Any]:
         """Write instances.json and instance_ids.npz into ``folder`` (atomically); returns the manifest."""
         folder = Path(folder)
         manifest = self.to_manifest(instance_extra, extra)

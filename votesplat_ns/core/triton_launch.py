@@ -3,9 +3,9 @@
 ``kernel[grid](*args)`` binds and specialises every argument, builds the cache key, looks the compiled kernel
 up, builds launch metadata for the launch hooks and only then calls the compiled kernel's launcher. On the
 H100's host that is 54 us for the fused forward (31 arguments), 27 us for the reduction and 50 us for the
-backward, of which calling the launcher directly takes 16, 10 and 15 us (``benchmarks/vote_launch_cost.py``,
-BENCHMARKS.md, "Fused vote kernels"); a training vote step makes three such launches, and inside a training step every
-host call costs two to three times what it does in a loop.
+backward, of which calling the launcher directly takes 16, 10 and 15 us (BENCHMARKS.md, "Fused vote kernels");
+a training vote step makes three such launches, and inside a training step every host call costs two to three
+times what it does in a loop.
 
 ``launch`` remembers, per kernel, the compiled kernels the JIT returned, under a key of its own that
 separates at least what Triton's specialisation separates: the keyword arguments (the constexprs and

@@ -6,9 +6,9 @@ gradient with respect to the votes (the only input that gets one with these opti
 membership rule, levels and distortions as :mod:`votesplat_ns.core.vote_render` (read its module
 docstring); the walk is that of :mod:`votesplat_ns.core.vote_kernel`.
 
-Why: on an H100 the separate path is bound by its ~115-130 launches (torch ops around the two
-kernels: tile lookup, vote table, normalisation, projection, losses, their backward), not by the
-kernels. Here everything per pixel happens in the kernels:
+Why: on a GPU the torch path is bound by its launches (the walk, vote table, normalisation, projection,
+losses and their backward are each a few torch ops), not by arithmetic. Here everything per pixel happens in
+the kernels:
 
 * forward, one program per pixel: the pixel's tile run from ``pixel_xy`` and ``isect_offsets``
   (positions outside the tile grid have an empty run); the walk, summing the members' votes of
@@ -16,7 +16,7 @@ kernels. Here everything per pixel happens in the kernels:
   scratch row of ``vote_kernel.member_slots`` slots; the mean vote, its projection with ``K``, the L1
   distance to the target where ``valid``, the distortion (over the compacted members, their depths
   computed again from the ids as the walk computed them; pixels with more members than the row holds
-  take the exact slow path of the vote kernels) and its scaling; per pixel and level it writes the loss
+  take the exact slow path of ``vote_kernel``'s helpers) and its scaling; per pixel and level it writes the loss
   terms and the gradient of each term with respect to the mean vote and to a member depth.
 * a one-program reduction: the per-level means over the used pixels (valid and |M| > 0), in a
   fixed order (no atomics: the losses are deterministic).
@@ -50,7 +50,6 @@ from votesplat_ns.core.vote_render import (
     COLOUR_STOP_T,
     VoteRenderOptions,
     _check_shapes,
-    _kernel_unavailable_reason,
     _requested_backend,
     _validate_tiles,
     _vote_threshold,
@@ -73,23 +72,41 @@ LABEL_DTYPES = (torch.int16, torch.int32)
 INDEX_DTYPES = (torch.int32, torch.int64)
 
 
+def _switches_served(options: VoteRenderOptions) -> bool:
+    return options.weighting == "uniform" and options.blend_space == "3d" and options.detach_geometry
+
+
+def _tensors_unavailable_reason(votes: Tensor, pixel_xy: Tensor) -> Optional[str]:
+    """None when the kernels can take these tensors, else why not (one line)."""
+    reason = vote_kernel.unavailable_reason(votes.device)
+    if reason is None and votes.dtype not in (torch.float32, torch.float64):
+        reason = f"the Triton vote kernels take float32 or float64 tensors, got {votes.dtype}"
+    if reason is None and pixel_xy.requires_grad:
+        reason = "the fused vote losses give pixel_xy no gradient; pass pixel_xy without requires_grad"
+    return reason
+
+
 def fused_unavailable_reason(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> Optional[str]:
     """None when ``vote_losses_tiled`` can serve these options and tensors, else why not (one line)."""
-    if options.weighting != "uniform" or options.blend_space != "3d" or not options.detach_geometry:
+    if not _switches_served(options):
         return "the fused vote losses serve uniform weights, blending in 3D and detach_geometry=True only"
-    return _kernel_unavailable_reason(votes, pixel_xy, "the fused vote losses")
+    return _tensors_unavailable_reason(votes, pixel_xy)
 
 
 def use_fused(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
-    """Whether a training step should call ``vote_losses_tiled``: it can serve the options and tensors,
-    and the backend (``VoteRenderOptions.backend`` or VOTESPLAT_VOTE_BACKEND) is "triton", or "auto"
-    with CUDA tensors (on an H100 the fused losses take 1.1-1.7 ms against the torch path's 4.5-7 ms:
-    BENCHMARKS.md, "Fused vote losses"). Where it cannot, the caller's separate path runs (and raises its
-    own error if "triton" was asked for and the kernels cannot run)."""
+    """Whether a training step should call ``vote_losses_tiled`` rather than the torch path
+    (``render_votes_tiled`` + ``vote_losses``): the backend (``VoteRenderOptions.backend`` or
+    VOTESPLAT_VOTE_BACKEND) is "triton", or "auto" with CUDA tensors (on an H100 the fused losses take
+    1.1-1.7 ms against the torch path's 4.5-7 ms: BENCHMARKS.md, "Fused vote losses"), and the switches are
+    the ones it serves (the others take the torch path). Raises where "triton" was asked for and the kernels
+    cannot take the tensors."""
     backend = _requested_backend(options)
-    if backend == "torch" or (backend == "auto" and votes.device.type != "cuda"):
+    if backend == "torch" or (backend == "auto" and votes.device.type != "cuda") or not _switches_served(options):
         return False
-    return fused_unavailable_reason(options, votes, pixel_xy) is None
+    reason = _tensors_unavailable_reason(votes, pixel_xy)
+    if backend == "triton" and reason is not None:
+        raise ValueError(f"VoteRenderOptions.backend='triton' cannot run: {reason}; use backend='auto' or 'torch'")
+    return reason is None
 
 
 def start_warm_up(levels: int, options: VoteRenderOptions, device: torch.device) -> "KernelWarmUp":
@@ -765,9 +782,9 @@ if triton is not None:
         walking = pos < end
         while walking:
             gid, _alpha, member, _t_before, t, last, pos, walking = _walk_block(
-                geo, False, pos, end, pix, walk, t, last, BLOCK
+                geo, pos, end, pix, walk, t, last, BLOCK
             )
-            depth, x, y, z = _entry_depths(zsrc, PROJECT, 3, gid, member, lvl, LEVELS)
+            depth, x, y, z = _entry_depths(zsrc, PROJECT, gid, member, lvl, LEVELS)
             sx += tl.sum(x, axis=0)
             sy += tl.sum(y, axis=0)
             sz += tl.sum(z, axis=0)
@@ -831,9 +848,7 @@ if triton is not None:
         factor = tl.zeros([LP], dtype=px.dtype)
         if DIST != 0:
             runs = (geo, pix, zsrc, start, last + 1)
-            spread = _member_spread(
-                member_row, count, mean_z, runs, lvl, LEVELS, False, PROJECT, 3, DIST, BLOCK, CAP, PB
-            )
+            spread = _member_spread(member_row, count, mean_z, runs, lvl, LEVELS, PROJECT, DIST, BLOCK, CAP, PB)
             if DIST == 1:
                 distortion = spread
                 factor = spread * 0.0 + 1.0
@@ -997,9 +1012,9 @@ if triton is not None:
                     s = tl.zeros([PB, LP], dtype=denominator.dtype)
                     if DIST != 0 and (HAS_DIST or HAS_TOTAL):
                         # the members' depths as the walk computed them (the same bits)
-                        z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, 3, gid, ok, lvl, LEVELS)
+                        z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid, ok, lvl, LEVELS)
                         if DIST == 1:
-                            s = _compact_signs(z_i, member_row, count, zsrc, lvl, LEVELS, PROJECT, 3, PB)
+                            s = _compact_signs(z_i, member_row, count, zsrc, lvl, LEVELS, PROJECT, PB)
                         if DIST == 2:
                             s = z_i - mean_z[None, :]
                     _scatter_vote_grads(
@@ -1017,14 +1032,14 @@ if triton is not None:
                 lane = tl.arange(0, BLOCK).to(tl.int64)
                 for p0 in range(start, stop, BLOCK):
                     offs_i = p0 + lane
-                    gid, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, False, offs_i, stop, pix)
-                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, 3, gid, vis_i, lvl, LEVELS)
+                    gid, _a, vis_i, _dx, _dy, _ca, _cb, _cc, _f, _r = _entry_alpha(geo, offs_i, stop, pix)
+                    z_i, _x, _y, _z = _entry_depths(zsrc, PROJECT, gid, vis_i, lvl, LEVELS)
                     s = tl.zeros([BLOCK, LP], dtype=denominator.dtype)
                     if DIST != 0 and (HAS_DIST or HAS_TOTAL):
                         if DIST == 2:
                             s = z_i - mean_z[None, :]
                         if DIST == 1:
-                            s = _run_signs(z_i, runs, lvl, LEVELS, False, PROJECT, 3, BLOCK)
+                            s = _run_signs(z_i, runs, lvl, LEVELS, PROJECT, BLOCK)
                     _scatter_vote_grads(
                         g_votes_ptr, gid, vis_i, lvl, LEVELS, g_mean_x, g_mean_y, g_mean_z, g_depth, s, r20, r21, r22
                     )

@@ -43,9 +43,10 @@ Two implementations share the alpha, walk and reduction helpers:
   compact [pixels, max |M|] table. A training step is bound by kernel
   launches and host synchronisations rather than arithmetic, so this path
   reads device values on the host as rarely as it can (see its docstring).
-  On CUDA it hands the walk and the blend sums to the fused Triton kernels
-  of ``votesplat_ns.core.vote_kernel`` (one launch forward, one backward; see
-  ``VoteRenderOptions.backend``); the torch code stays the CPU path.
+  A training step on CUDA computes the same losses in fused Triton kernels
+  instead (``votesplat_ns.core.vote_fused``, chosen by
+  ``VoteRenderOptions.backend``); this torch code stays their reference and
+  the CPU path.
 
 Conventions (shared by the whole project): OpenCV world-to-camera ``viewmat``
 [4,4], intrinsics ``K`` [3,3], continuous pixel frame in which the centre of
@@ -121,18 +122,17 @@ class VoteRenderOptions:
         behind the camera) are projected as if at this depth, so projected
         votes stay finite; in scene units, like gsplat's near_plane. The
         depth regulariser uses the unclamped depth.
-    backend: how ``render_votes_tiled`` walks and blends. "auto": the torch
-        code (the separate Triton kernels of ``votesplat_ns.core.vote_kernel``
-        are not faster on an H100: BENCHMARKS.md, "Fused vote kernels"); the
-        environment variable VOTESPLAT_VOTE_BACKEND=torch|triton overrides
-        "auto". "torch": always the torch code. "triton": always the kernels
-        (an error where they cannot run; on CPU they run only under Triton's
-        interpreter, TRITON_INTERPRET=1, for tests). The dense reference
-        ignores it. Values agree to rounding, gradients too. The model's vote
-        step calls ``votesplat_ns.core.vote_fused.vote_losses_tiled`` instead
-        (render and losses in three launches, no host read) with uniform
-        weights, 3D blending and detach_geometry, when the backend is
-        "triton", or "auto" on CUDA (``vote_fused.use_fused``).
+    backend: how the model's vote step computes its losses
+        (``votesplat_ns.core.vote_fused.use_fused``). "auto": on CUDA the
+        fused Triton losses (``vote_fused``: render and losses in three
+        launches, no host read) where the switches allow (uniform weights, 3D
+        blending, detach_geometry), else this module's torch code. "torch":
+        always the torch code. "triton": the fused losses where the switches
+        allow, also on CPU under Triton's interpreter (TRITON_INTERPRET=1, for
+        tests); an error where the kernels cannot run. The environment variable
+        VOTESPLAT_VOTE_BACKEND=torch|triton overrides "auto". Values agree to
+        rounding, gradients too. ``render_votes_tiled`` and the dense reference
+        ignore it.
     """
 
     weighting: str = "uniform"
@@ -290,7 +290,7 @@ def render_votes_tiled(
             step (``AUTO_PAIRS_PER_STEP_CPU`` on CPU), at least
             ``AUTO_MIN_CHUNK``. Never wider than ``flatten_ids`` (the longest
             run is not known before the walk: reading it would cost a host
-            synchronisation). The Triton kernels (``options.backend``) ignore it.
+            synchronisation).
 
     A pixel at continuous position (x, y) reads tile (floor(x / tile_size),
     floor(y / tile_size)); positions outside the tile grid get count 0.
@@ -323,8 +323,7 @@ def render_votes_tiled(
     returned. With the default ``chunk`` on a GPU a walk usually takes one
     step, so the pass (forward and backward) reads the host once. Until that
     read the walk clamps positions and ids into range, so bad lists cannot
-    make it index out of bounds. (The Triton kernels read once, before their
-    launch: the checks and the longest run.)
+    make it index out of bounds.
     Unused table slots hold real Gaussian ids from the pixel's own run with
     zero weight, so the gathers have fixed shapes (no nonzero) and their
     backward (an atomic index_add) does not pile the padding onto one row.
@@ -344,26 +343,6 @@ def render_votes_tiled(
         return _empty_render(p, votes, viewmat, K, options)
     run_start, run_end = _pixel_runs(pixel_xy.detach(), offsets, tiles_high, tiles_wide, tile_size, n_isects)
 
-    if _requested_backend(options) == "triton":
-        pending["longest"] = (run_end - run_start).max()
-        host = _read_host(pending)
-        _check_render_inputs(host, n, n_isects, votes, pixel_xy)
-        if host["longest"] <= 0:
-            return _empty_render(p, votes, viewmat, K, options)
-        _use_kernel(options, votes, pixel_xy)  # raises where the kernels cannot run
-        return _render_with_kernel(
-            means2d,
-            conics,
-            opacities,
-            votes,
-            viewmat,
-            K,
-            pixel_xy,
-            run_start.long(),
-            run_end.long(),
-            flatten_ids,
-            options,
-        )
     if chunk is None:
         pairs = AUTO_PAIRS_PER_STEP_CPU if votes.device.type == "cpu" else AUTO_PAIRS_PER_STEP
         chunk = max(AUTO_MIN_CHUNK, pairs // p)
@@ -430,84 +409,6 @@ def _requested_backend(options: VoteRenderOptions) -> str:
         if backend not in _BACKENDS:
             raise ValueError(f"{BACKEND_ENV} must be one of {_BACKENDS}, got {backend!r}")
     return backend
-
-
-def _kernel_unavailable_reason(votes: Tensor, pixel_xy: Tensor, kernels: str) -> Optional[str]:
-    """None when the Triton vote kernels can take these tensors, else why not (one line); ``kernels``
-    names them in the pixel_xy line."""
-    from votesplat_ns.core import vote_kernel
-
-    reason = vote_kernel.unavailable_reason(votes.device)
-    if reason is None and votes.dtype not in (torch.float32, torch.float64):
-        reason = f"the Triton vote kernels take float32 or float64 tensors, got {votes.dtype}"
-    if reason is None and pixel_xy.requires_grad:
-        reason = f"{kernels} give pixel_xy no gradient; pass pixel_xy without requires_grad"
-    return reason
-
-
-def _use_kernel(options: VoteRenderOptions, votes: Tensor, pixel_xy: Tensor) -> bool:
-    """Whether render_votes_tiled runs the Triton kernels (see VoteRenderOptions.backend)."""
-    backend = _requested_backend(options)
-    if backend == "torch":
-        return False
-    reason = _kernel_unavailable_reason(votes, pixel_xy, "the Triton vote kernels")
-    if backend == "triton" and reason is not None:
-        raise ValueError(f"VoteRenderOptions.backend='triton' cannot run: {reason}; use backend='auto' or 'torch'")
-    # auto stays on the torch path until the kernels are measured faster (BENCHMARKS.md)
-    return reason is None and backend == "triton"
-
-
-def _render_with_kernel(
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    votes: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    pixel_xy: Tensor,
-    run_start: Tensor,
-    run_end: Tensor,
-    flatten_ids: Tensor,
-    options: VoteRenderOptions,
-) -> VoteRender:
-    """render_votes_tiled's walk and blend sums in the fused Triton kernels; the rest as the torch path."""
-    from votesplat_ns.core import vote_kernel
-
-    n, levels = votes.shape[0], 1 if votes.ndim == 2 else votes.shape[1]
-    geometry = _geometry_table(means2d, conics, opacities, options)
-    viewmat_, K_ = _camera(viewmat, K, options)
-    vote_table = _vote_table(votes.reshape(n, levels, 3), viewmat_, K_, options)
-    threshold = _vote_threshold(options)
-    count, weight_sum, value_sum, depth_sum, spread = vote_kernel.vote_sums(
-        geometry,
-        vote_table,
-        pixel_xy,
-        run_start,
-        run_end,
-        flatten_ids,
-        threshold=threshold,
-        open_above=max(threshold, COLOUR_STOP_T),
-        alpha_min=ALPHA_MIN,
-        colour_stop=COLOUR_STOP_T,
-        alpha_max=options.alpha_max,
-        alpha_t=options.weighting == "alpha_t",
-        distortion=options.distortion,
-    )
-    n_members = count.to(spread.dtype)[:, None]
-    if options.distortion == "l1":
-        distortion = spread
-    elif options.distortion == "l1_pixels":
-        # as _distortion: the mean pairwise gap, in pixels at the members' mean depth (held constant)
-        pairs = (n_members * (n_members - 1.0) / 2.0).clamp_min(1.0)
-        with torch.no_grad():
-            mean_z = depth_sum / n_members.clamp_min(1.0)
-            pixels_per_unit = torch.sqrt(K_[0, 0] * K_[1, 1]) / mean_z.clamp_min(options.vote_near_plane)
-        distortion = spread / pairs * pixels_per_unit
-    elif options.distortion == "squared":
-        distortion = n_members * spread
-    else:
-        distortion = value_sum[..., 0] * 0.0
-    return _finish(count, weight_sum, value_sum, distortion, viewmat_, K_, options, votes.ndim == 2)
 
 
 def _tiled_members(

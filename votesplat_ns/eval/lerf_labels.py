@@ -135,7 +135,7 @@ def rasterise_polygon(polygon: Union[Polygon, np.ndarray], width: int, height: i
     # astype(int32) truncates toward zero, as np.asarray(points, dtype=np.int32) does in LangSplat.
     points = vertices.astype(np.int32)
     canvas = np.zeros((int(height), int(width)), dtype=np.uint8)
-    cv2.fillPoly(canvas, [points], 1)
+    cv2.fillPoly(canvas, [points], (1,))
     return canvas.astype(bool)
 
 
@@ -327,7 +327,7 @@ def frame_from_masks(
         for mask in instances:
             mask = as_bool_mask(mask, f"mask of {category!r}")
             if shape is None:
-                shape = mask.shape
+                shape = (mask.shape[0], mask.shape[1])
             elif mask.shape != shape:
                 raise ValueError(
                     f"mask of {category!r} has shape {mask.shape}, others {shape}; all masks must share the image size"

@@ -249,7 +249,7 @@ def check_frames(
             f"{where}: {len(missing)} of {len(images)} images listed in {name} are missing (first: {missing[0]}); "
             f"{fix}, {remake}"
         )
-    scale = float(downscale_factor) if downscaled else 1.0
+    scale = float(downscale_factor) if downscale_factor is not None and downscaled else 1.0
     for number, (frame, image) in enumerate(zip(frames, images)):
         (actual_w, actual_h), mode, _ = image_file_header(image)
         if mode in ("I", "F") or mode.startswith("I;16"):

@@ -312,7 +312,7 @@ class VoteDataManager(FullImageDatamanager[InputDataset]):
             return resize_vote_maps(stored, height, width)
         loaded_h, loaded_w = int(camera.height.item()), int(camera.width.item())
         labels = resize_label_images(stored.labels, loaded_h, loaded_w)
-        warped = [undistort_label_image(np.asarray(level_labels), camera) for level_labels in labels]
+        warped = [undistort_label_image(np.asarray(level_labels), camera, distortion) for level_labels in labels]
         if warped[0].shape != (height, width):
             raise ValueError(
                 f"undistorted vote labels of {image_path} are {warped[0].shape[1]}x{warped[0].shape[0]} "
@@ -399,7 +399,7 @@ def place_vote_batch(
     return tensors
 
 
-def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
+def undistort_label_image(labels: np.ndarray, camera: Cameras, distortion: torch.Tensor) -> np.ndarray:
     """Warp and crop a label image exactly as nerfstudio 1.1.5 undistorts the image, without blending ids.
 
     Mirrors ``full_images_datamanager._undistort_image`` (same new camera matrix, same crop)
@@ -411,7 +411,7 @@ def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
     source = np.ascontiguousarray(labels.astype(np.uint16))
     height, width = source.shape
     K = camera.get_intrinsics_matrices().numpy().astype(np.float64)
-    params = camera.distortion_params.numpy().astype(np.float64)
+    params = distortion.numpy().astype(np.float64)
     camera_type = camera.camera_type.item()
     if camera_type == CameraType.PERSPECTIVE.value:
         if params[3] != 0:
@@ -423,9 +423,12 @@ def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
         K[1, 2] -= 0.5
         if np.any(opencv_params):
             new_K, roi = cv2.getOptimalNewCameraMatrix(K, opencv_params, (width, height), 0)
-            map_x, map_y = cv2.initUndistortRectifyMap(K, opencv_params, None, new_K, (width, height), cv2.CV_32FC1)
+            # no rectification: the identity, as OpenCV takes an empty R
+            map_x, map_y = cv2.initUndistortRectifyMap(
+                K, opencv_params, np.eye(3), new_K, (width, height), cv2.CV_32FC1
+            )
             warped = cv2.remap(
-                source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+                source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=(0,)
             )
         else:
             warped, roi = source, (0, 0, width, height)
@@ -442,7 +445,7 @@ def undistort_label_image(labels: np.ndarray, camera: Cameras) -> np.ndarray:
             K, fisheye_params, np.eye(3), new_K, (width, height), cv2.CV_32FC1
         )
         warped = cv2.remap(
-            source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            source, map_x, map_y, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=(0,)
         )
         return warped.astype(np.int32)
     raise ValueError(

@@ -320,7 +320,8 @@ def evaluate_run(
     maps: Dict[str, Tuple[List[np.ndarray], List[np.ndarray]]] = {}
     for name, gt in pairs:
         gt_maps = [dataset.labels(v.name, gt) for v in chosen]
-        pred_maps = render_id_maps(scene, predicted[name], chosen, rasterize, [m.shape for m in gt_maps], min_weight)
+        sizes = [(m.shape[0], m.shape[1]) for m in gt_maps]
+        pred_maps = render_id_maps(scene, predicted[name], chosen, rasterize, sizes, min_weight)
         result = score_level(
             gt_maps,
             pred_maps,

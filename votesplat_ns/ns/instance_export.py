@@ -31,7 +31,7 @@ import os
 import shutil
 import warnings
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Union
+from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -184,7 +184,7 @@ def export_instances(
     output_flag: str = "output_dir",
     refine: Optional[Callable[[int, str, np.ndarray], tuple]] = None,
     instances: Optional[InstanceSet] = None,
-) -> Dict[str, object]:
+) -> Dict[str, Any]:
     """Cluster the votes of every level and write the export folder described in the module doc.
 
     model_or_params: a VoteSplat model (reads ``gauss_params``, ``config.vote_levels`` and
@@ -294,7 +294,7 @@ def _write_export(
     task,
     source: Optional[str],
     nonfinite_votes: Dict[str, int],
-) -> Dict[str, object]:
+) -> Dict[str, Any]:
     chosen = instance_set.levels[level_index]
     ids = chosen.ids
     table = params.vertex_rows()  # rows made per chunk of each file: no copy of the whole table

@@ -51,9 +51,10 @@ class LeanFusedAdam(_ClearsWithoutProfilerScope, torch.optim.Adam):
         state = self.state[param]
         beta1, beta2 = group["betas"]
         steps = [state["step"]]
+        # torch's private ops, on purpose: the ops torch.optim.Adam(fused=True) runs (class docstring)
         with torch.no_grad():
-            torch._foreach_add_(steps, 1)
-            torch._fused_adam_(
+            torch._foreach_add_(steps, 1)  # pyright: ignore[reportPrivateImportUsage]
+            torch._fused_adam_(  # pyright: ignore[reportPrivateImportUsage]
                 [param],
                 [param.grad],
                 [state["exp_avg"]],

@@ -165,6 +165,8 @@ def dataset_images(data: Path, downscale_factor: Optional[int]) -> List[Path]:
 def make_masks(config: MasksConfig) -> Dict[str, object]:
     """Make all views' vote maps and the previews; returns where they went."""
     # the datamanager and its checks import nerfstudio, which `votesplat --help` should not wait for
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
     from votesplat_ns.ns.data_checks import (
         check_cache_outside_dataset,
         check_data_input,
@@ -188,9 +190,9 @@ def make_masks(config: MasksConfig) -> Dict[str, object]:
         mask_levels=config.levels,
         mask_folder=config.mask_folder,
         border_masks=config.border_masks,
+        dataparser=NerfstudioDataParserConfig(downscale_factor=config.downscale_factor),
         **config.sam_settings(),
     )
-    manager_config.dataparser.downscale_factor = config.downscale_factor
     check_data_input(manager_config, where=f"--data {config.data}", mask_source_flag="--source")
     cache_dir = config.cache_dir if config.cache_dir is not None else default_cache_dir(config.data, config.output_dir)
     check_cache_outside_dataset(cache_dir, config.data)

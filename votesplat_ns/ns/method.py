@@ -9,7 +9,7 @@ from __future__ import annotations
 import gc
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Type
+from typing import Any, Dict, Literal, Optional, Type
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -136,7 +136,7 @@ def trainer_config_in_process(
     output_dir: Path,
     steps: int,
     vote_start: int,
-    device: str = "cpu",
+    device: Literal["cpu", "cuda", "mps"] = "cpu",
     timestamp: str = "run",
     mask_folder: Optional[Path] = None,
     seed: int = 42,
@@ -164,14 +164,15 @@ def trainer_config_in_process(
     config.steps_per_save = 10 * steps
     config.load_dir = load_dir
     config.data = data
-    config.pipeline.datamanager.data = data
-    config.pipeline.datamanager.cache_dir = output_dir / "vote_cache"
+    datamanager, model = config.pipeline.datamanager, config.pipeline.model
+    assert isinstance(datamanager, VoteDataManagerConfig) and isinstance(model, VoteSplatModelConfig)
+    datamanager.data = data
+    datamanager.cache_dir = output_dir / "vote_cache"
     if mask_folder is not None:
-        config.pipeline.datamanager.mask_source = "folder"
-        config.pipeline.datamanager.mask_folder = mask_folder
-    model = config.pipeline.model
+        datamanager.mask_source = "folder"
+        datamanager.mask_folder = mask_folder
     model.vote_start_step = vote_start
-    for target, overrides in ((model, model_overrides), (config.pipeline.datamanager, datamanager_overrides or {})):
+    for target, overrides in ((model, model_overrides), (datamanager, datamanager_overrides or {})):
         for name, value in overrides.items():
             if not hasattr(target, name):
                 raise ValueError(f"votesplat's {type(target).__name__} has no field {name!r}")

@@ -144,7 +144,7 @@ class VoteSplatModel(SplatfactoModel):
         self.retrofitted = False
         self.retrofit_source_frame: Optional[str] = None  # the frame a retrofit PLY was read in
         if self.config.retrofit_from is not None:
-            self._load_retrofit_source()
+            self._load_retrofit_source(Path(self.config.retrofit_from))
         num_points = self.gauss_params["means"].shape[0]
         num_levels = len(self.config.vote_levels)
         device = self.gauss_params["means"].device
@@ -167,9 +167,9 @@ class VoteSplatModel(SplatfactoModel):
         """Train only the offsets on a frozen scene (retrofit)."""
         return self.config.retrofit_from is not None
 
-    def _load_retrofit_source(self) -> None:
+    def _load_retrofit_source(self, source: Path) -> None:
         loaded = retrofit_gaussians(
-            Path(self.config.retrofit_from),
+            source,
             self.config.sh_degree,
             self.config.retrofit_frame,
             self.kwargs,
@@ -203,17 +203,14 @@ class VoteSplatModel(SplatfactoModel):
             and hasattr(datamanager, "vote_maps_for_train_view")
         ):
             start_offsets_lifted(self, datamanager, log=CONSOLE.log)
-        if (
-            self.config.foreground_min_masked_share is not None
-            and trainer is not None
-            and hasattr(datamanager, "vote_batch")
-        ):
+        share = self.config.foreground_min_masked_share
+        if share is not None and trainer is not None and hasattr(datamanager, "vote_batch"):
             # after the last step's other callbacks (densification) and before the final checkpoint is saved
             last_step = trainer._start_step + trainer.config.max_num_iterations - 1
             callbacks.append(
                 TrainingCallback(
                     [TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
-                    lambda step: self.restrict_support_to_masked_gaussians(datamanager),
+                    lambda step: self.restrict_support_to_masked_gaussians(datamanager, share),
                     iters=(last_step,),
                 )
             )
@@ -283,8 +280,9 @@ class VoteSplatModel(SplatfactoModel):
         self.gauss_params["vote_support"].abs_()
 
     @torch.no_grad()
-    def restrict_support_to_masked_gaussians(self, datamanager) -> torch.Tensor:
-        """Negate the vote support of Gaussians whose weight in the training views lies mostly outside the masks.
+    def restrict_support_to_masked_gaussians(self, datamanager, min_masked_share: float) -> torch.Tensor:
+        """Negate the vote support of Gaussians whose weight in the training views lies mostly outside the masks
+        (no more than ``min_masked_share`` of it inside them).
 
         Returns the [N, L] foreground mask. See ``votesplat_ns.core.foreground``.
         """
@@ -307,7 +305,7 @@ class VoteSplatModel(SplatfactoModel):
             views(),
             rasterize_mode=self.config.rasterize_mode,
         )
-        foreground = foreground_from_exposure(exposure, self.config.foreground_min_masked_share)
+        foreground = foreground_from_exposure(exposure, min_masked_share)
         # > 0: foreground; 0: never supervised (zero offset); < 0: supervised, but seen mostly outside the
         # masks, so background. Every consumer tests > 0; the count itself is kept.
         support = self.gauss_params["vote_support"]
@@ -330,7 +328,9 @@ class VoteSplatModel(SplatfactoModel):
 
     @property
     def num_vote_levels(self) -> int:
-        return len(self.config.vote_levels)
+        levels = self.config.vote_levels
+        assert levels is not None, "populate_modules resolves the vote levels"
+        return len(levels)
 
     def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_gaussian_param_groups()
@@ -344,7 +344,8 @@ class VoteSplatModel(SplatfactoModel):
         with cuda_calls_stay_on_cpu(model_on_cpu=self.device.type == "cpu"):
             outputs = super().get_outputs(camera)
         if not self.training:  # ns-viewer's overlay, votes picture and selection (no-op for other callers)
-            outputs.update(self.viewer_state.extra_outputs(camera, outputs))
+            tensors = {name: value for name, value in outputs.items() if isinstance(value, torch.Tensor)}
+            outputs.update(self.viewer_state.extra_outputs(camera, tensors))
         return outputs
 
     def _project_for_votes(self, camera: Cameras) -> Dict[str, Union[torch.Tensor, List]]:

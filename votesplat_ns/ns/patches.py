@@ -209,7 +209,8 @@ def install_rasterizer_in_splatfacto() -> None:
 
     with _rasterizer_lock:
         if getattr(splatfacto_module, "rasterization", None) is not rasterize:
-            splatfacto_module.rasterization = rasterize
+            # the module's own import of gsplat's function, replaced as a name of that module
+            setattr(splatfacto_module, "rasterization", rasterize)
 
 
 # ----------------------------------------------------------------------------- Tensor.cuda on CPU

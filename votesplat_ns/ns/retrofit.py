@@ -233,6 +233,8 @@ def render_psnr(
     opacities = torch.sigmoid(gaussians["opacities"]).reshape(-1)
     scores = []
     for view in views:
+        if view.image is None:
+            raise ValueError("render_psnr compares renders with the views' images; pass views that have one")
         render, _, _ = rasterize_fn(
             means,
             quats,
@@ -351,7 +353,9 @@ def resolve_frame(
             for fit in fits
         )
 
-    fitting = sorted((fit for fit in fits if fit.psnr is not None), key=lambda fit: -fit.psnr)
+    # the frames whose renders were scored, best first, and their PSNRs
+    scored = sorted(((fit.psnr, fit) for fit in fits if fit.psnr is not None), key=lambda pair: -pair[0])
+    fitting, psnrs = [fit for _, fit in scored], [psnr for psnr, _ in scored]
     frame_flag = "--pipeline.model.retrofit-frame"
     if requested != "auto":
         chosen = next(fit for fit in fits if requested == fit.name or requested in fit.same_as)
@@ -366,10 +370,10 @@ def resolve_frame(
                 f"'{requested}' ({summary()}); {better}"
             )
         best = fitting[0]
-        if best is not chosen and best.psnr >= chosen.psnr + PSNR_MARGIN_DB:
+        if best is not chosen and psnrs[0] >= chosen.psnr + PSNR_MARGIN_DB:
             raise VoteSplatInputError(
                 f"{source} is not in frame '{requested}': it renders the training views at {chosen.psnr:.1f} dB PSNR in it and at "
-                f"{best.psnr:.1f} dB in frame '{best.name}' ({summary()}); pass {frame_flag} {best.name}"
+                f"{psnrs[0]:.1f} dB in frame '{best.name}' ({summary()}); pass {frame_flag} {best.name}"
             )
         return requested, moved[chosen.name], fits
     if not fitting:
@@ -379,7 +383,7 @@ def resolve_frame(
             f"({summary()}); check that the PLY is a scene of this capture (--data), in the capture's own frame "
             f"(gsplat's simple_trainer: train with --no-normalize-world-space)"
         )
-    if len(fitting) > 1 and fitting[0].psnr < fitting[1].psnr + PSNR_MARGIN_DB:
+    if len(fitting) > 1 and psnrs[0] < psnrs[1] + PSNR_MARGIN_DB:
         a, b = fitting[0].name, fitting[1].name
         raise VoteSplatInputError(
             f"cannot tell the frame of {source}: frames '{a}' and '{b}' both fit the training views ({summary()}); "

@@ -196,17 +196,17 @@ class QueryScene:
     @torch.no_grad()
     def render(self, keep: np.ndarray, camera: PinholeView) -> Tuple[np.ndarray, np.ndarray]:
         """RGB [H, W, 3] in [0, 1] (black background) and accumulated opacity [H, W] of the kept Gaussians."""
-        keep = torch.as_tensor(np.asarray(keep, dtype=bool)[self.finite], device=self.device)
-        if not bool(keep.any()):
+        kept = torch.as_tensor(np.asarray(keep, dtype=bool)[self.finite], device=self.device)
+        if not bool(kept.any()):
             return np.zeros((camera.height, camera.width, 3), np.float32), np.zeros(
                 (camera.height, camera.width), np.float32
             )
         colors, alphas, _ = rasterize(
-            self.means[keep],
-            self.quats[keep],
-            self.scales[keep],
-            self.opacities[keep],
-            self.colors[keep],
+            self.means[kept],
+            self.quats[kept],
+            self.scales[kept],
+            self.opacities[kept],
+            self.colors[kept],
             camera.viewmat.to(self.device)[None].float(),
             camera.K.to(self.device)[None].float(),
             int(camera.width),

@@ -247,6 +247,8 @@ class VoteSplatViewerState:
     def _make_encoder(self) -> Any:
         from votesplat_ns.core.semantics import ClipEncoder
 
+        if self.clip_checkpoint is None:  # the panel offers the text query only with a checkpoint
+            raise ValueError("the text query needs --pipeline.model.clip-checkpoint (open_clip weights)")
         return ClipEncoder.from_checkpoint(self.clip_model_name, self.clip_checkpoint, device=self.model.device)
 
     def _feature_views(self) -> List[Tuple[PinholeView, np.ndarray]]:
@@ -268,7 +270,7 @@ class VoteSplatViewerState:
             if image.shape[:2] != (view.height, view.width):
                 from PIL import Image
 
-                image = np.asarray(Image.fromarray(image).resize((view.width, view.height), Image.BILINEAR))
+                image = np.asarray(Image.fromarray(image).resize((view.width, view.height), Image.Resampling.BILINEAR))
             views.append((view, image))
         return views
 

@@ -202,6 +202,8 @@ class InstanceViewerState:
         if self.feature_views is None:
             raise ValueError("no training views to build instance features from")
         ids = self.instance_ids(scene)
+        if self.encoder_factory is None:
+            raise ValueError(f"text queries are off: {CLIP_DISABLED_HINT}")
         with _uninterruptible():
             if self._encoder is None:
                 self._encoder = self.encoder_factory()
@@ -272,13 +274,16 @@ class InstanceViewerState:
 
         keep = visible(self.selected)
         instance_map = None
-        if ids is not None and self._pending_click is not None:
+        click, query = self._pending_click, self._pending_query
+        if ids is not None and click is not None:
             instance_map = render_instance_map(
                 scene.subset(keep), view, ids if keep is None else ids[keep], self.rasterize_fn
             )
-            self._resolve_click(instance_map)
-        if ids is not None and self._pending_query is not None:
-            self._resolve_query(scene)
+            self._pending_click = None
+            self._resolve_click(instance_map, click)
+        if ids is not None and query is not None:
+            self._pending_query = None
+            self._resolve_query(scene, query)
         new_keep = visible(self.selected)
         if not _same_mask(keep, new_keep):
             keep, instance_map = new_keep, None
@@ -306,10 +311,9 @@ class InstanceViewerState:
                 outputs[OUTPUT_VOTES] = rgb
         return outputs
 
-    def _resolve_click(self, instance_map: Tensor) -> None:
+    def _resolve_click(self, instance_map: Tensor, screen_pos: Tuple[float, float]) -> None:
         from votesplat_ns.core.semantics import click_select
 
-        screen_pos, self._pending_click = self._pending_click, None
         height, width = instance_map.shape
         x, y = screen_to_pixel(screen_pos, width, height)
         self.selected = click_select(instance_map.cpu().numpy(), x, y)
@@ -318,10 +322,9 @@ class InstanceViewerState:
         else:
             self.status = self._selection_status()
 
-    def _resolve_query(self, scene: ViewerScene) -> None:
+    def _resolve_query(self, scene: ViewerScene, text: str) -> None:
         from votesplat_ns.core.semantics import query_text, select_instances
 
-        text, self._pending_query = self._pending_query, None
         if not self.has_encoder:
             self.status = f"text queries are off: {CLIP_DISABLED_HINT}"
             return

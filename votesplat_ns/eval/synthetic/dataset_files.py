@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, List, Tuple
+from typing import BinaryIO, Callable, List, Tuple
 
 import numpy as np
 
@@ -23,7 +23,7 @@ OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 # atomic writers
 
 
-def _atomic_write_bytes(path: Path, write: Callable[[object], None]) -> None:
+def _atomic_write_bytes(path: Path, write: Callable[[BinaryIO], None]) -> None:
     """``write(handle)`` fills a binary file that replaces ``path`` in one rename (``ply_io.atomic_write``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -56,8 +56,12 @@ def write_jpeg(path: Path, rgb: np.ndarray, quality: int) -> None:
 
 
 def write_json(path: Path, data: dict) -> None:
-    text = json.dumps(data, indent=2) + "\n"
-    _atomic_write_bytes(path, lambda handle: handle.write(text.encode("utf-8")))
+    payload = (json.dumps(data, indent=2) + "\n").encode("utf-8")
+
+    def write(handle: BinaryIO) -> None:
+        handle.write(payload)
+
+    _atomic_write_bytes(path, write)
 
 
 def write_point_ply(path: Path, points: np.ndarray, colours_uint8: np.ndarray) -> None:

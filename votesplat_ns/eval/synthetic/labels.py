@@ -33,13 +33,15 @@ def write_scene_labels(scene_dir: Path, output_dir: Path, frames: Optional[Seque
     names = {int(entry["id"]): str(entry["name"]) for entry in objects}
     by_name = {Path(frame["file_path"]).name: frame for frame in meta.get("frames", [])}
     if frames is None:
-        frames = (
+        frame_names: Sequence[str] = (
             (meta.get("votesplat_synthetic") or {}).get("eval_frames")
             or [Path(p).name for p in meta.get("test_filenames") or meta.get("val_filenames") or []]
             or sorted(by_name)
         )
+    else:
+        frame_names = frames
     written = []
-    for frame_name in frames:
+    for frame_name in frame_names:
         frame = by_name.get(Path(frame_name).name)
         if frame is None:
             raise ValueError(

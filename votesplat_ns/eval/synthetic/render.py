@@ -220,7 +220,13 @@ class SceneRenderer:
     def render_rgb(self, camera: Camera, spp: int = 64, seed: int = 0) -> np.ndarray:
         """Path-traced sRGB uint8 [H,W,3]."""
         mi = self._mi
-        image = mi.render(self.mi_scene, sensor=self.sensor(camera, spp), spp=int(spp), seed=int(seed))
+        # mitsuba's stub types seed as a drjit UInt; render takes a Python int (its own default is 0)
+        image = mi.render(
+            self.mi_scene,
+            sensor=self.sensor(camera, spp),
+            spp=int(spp),
+            seed=int(seed),  # pyright: ignore[reportArgumentType]
+        )
         linear = np.array(image, dtype=np.float64)[..., :3]
         return linear_to_srgb_uint8(linear)
 

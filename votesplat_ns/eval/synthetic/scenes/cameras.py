@@ -7,26 +7,27 @@ import math
 from typing import List, Sequence, Tuple
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from votesplat_ns.eval.synthetic.scenes.description import Camera, Intrinsics, SceneObject
 from votesplat_ns.eval.synthetic.scenes.primitives import primitive_mesh
 
 
-def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world [4,4] in OpenCV convention for a camera at ``eye`` looking at ``target``."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    forward = target - eye
+    eye_at, target_at, up_along = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    forward = target_at - eye_at
     norm = np.linalg.norm(forward)
     if norm == 0.0:
         raise ValueError("look_at: eye and target coincide; place the camera away from its target")
     forward /= norm
-    right = np.cross(forward, up)
+    right = np.cross(forward, up_along)
     if np.linalg.norm(right) < 1e-9:
         raise ValueError("look_at: viewing direction is parallel to 'up'; pick another up vector")
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, down, forward, eye
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, down, forward, eye_at
     return c2w
 
 

@@ -38,7 +38,8 @@ def _shade(srgb: Tuple[int, int, int], factor: float) -> Tuple[int, int, int]:
     """Darker (factor < 1) or lighter (factor > 1, towards white) variant of a colour."""
     c = np.asarray(srgb, dtype=np.float64)
     out = c * factor if factor <= 1.0 else c + (255.0 - c) * (factor - 1.0)
-    return tuple(int(v) for v in np.clip(np.round(out), 0, 255))
+    r, g, b = (int(v) for v in np.clip(np.round(out), 0, 255))
+    return r, g, b
 
 
 def _value_noise(rng: np.random.Generator, size: Tuple[int, int], cells: int) -> np.ndarray:

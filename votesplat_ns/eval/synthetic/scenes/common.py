@@ -69,9 +69,9 @@ def _forward_background(rng_tex, plain_colours: Optional[Tuple[Tuple[int, int, i
 
 def _plain_colours(rng_tex) -> Tuple[Tuple[int, int, int], Tuple[int, int, int]]:
     """Flat (ground, wall) sRGB colours: a light ground and a wall of another hue."""
-    ground = tuple(int(v) for v in rng_tex.uniform(150, 215, size=3))
-    wall = tuple(int(v) for v in rng_tex.uniform(110, 200, size=3))
-    return ground, wall
+    ground_r, ground_g, ground_b = (int(v) for v in rng_tex.uniform(150, 215, size=3))
+    wall_r, wall_g, wall_b = (int(v) for v in rng_tex.uniform(110, 200, size=3))
+    return (ground_r, ground_g, ground_b), (wall_r, wall_g, wall_b)
 
 
 def _lighting(rng_light) -> Lighting:
@@ -80,7 +80,8 @@ def _lighting(rng_light) -> Lighting:
     toward_sun = np.array(
         [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
     )
-    return Lighting(tuple(float(v) for v in -toward_sun), sun_irradiance=1.9, ambient_radiance=0.38)
+    x, y, z = (float(v) for v in -toward_sun)
+    return Lighting((x, y, z), sun_irradiance=1.9, ambient_radiance=0.38)
 
 
 def _scene(recipe: str, seed: int, objects, room, cameras, intrinsics, num_eval_views: int, touching, parameters):

@@ -9,7 +9,12 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from votesplat_ns.eval.synthetic.scenes.primitives import primitive_mesh, primitive_surface_distance, rigid_inverse
+from votesplat_ns.eval.synthetic.scenes.primitives import (
+    Primitive,
+    primitive_mesh,
+    primitive_surface_distance,
+    rigid_inverse,
+)
 
 
 def _object_box(obj) -> Tuple[np.ndarray, np.ndarray]:
@@ -30,7 +35,7 @@ class Material:
 class Part:
     id: int  # 0 for background pieces
     name: str
-    primitives: Tuple[object, ...]
+    primitives: Tuple[Primitive, ...]
     material: Material
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -40,11 +40,14 @@ class _Placed:
 
 
 def _support(placed: _Placed, direction_yaw: float) -> Optional[float]:
-    """Horizontal distance from the object's axis to its side surface along a world direction."""
-    kind, shape = placed.template.side
-    if kind in ("cylinder", "sphere"):
-        return float(shape)
-    hx, hy, _ = shape
+    """Horizontal distance from the object's axis to its side surface along a world direction (None: no contact
+    there)."""
+    side = placed.template.side
+    if side is None:
+        return None
+    if side.kind in ("cylinder", "sphere"):
+        return float(side.radius)
+    hx, hy, _ = side.box
     rel = (direction_yaw - placed.yaw) % (math.pi / 2)
     if min(rel, math.pi / 2 - rel) > 1e-6:
         return None  # a box only offers contact along its face normals
@@ -55,20 +58,22 @@ def _support(placed: _Placed, direction_yaw: float) -> Optional[float]:
 def _contact_height_ok(a: _Placed, b: _Placed) -> bool:
     """A sphere touches a vertical side only if that side reaches up to the sphere's equator."""
     for sph, other in ((a, b), (b, a)):
-        if sph.template.side[0] == "sphere" and other.template.side[0] != "sphere":
-            if other.template.side[0] == "box":
-                side_height = other.template.side[1][2]
+        ball, side = sph.template.side, other.template.side
+        if ball is not None and side is not None and ball.kind == "sphere" and side.kind != "sphere":
+            if side.kind == "box":
+                side_height = side.box[2]
             else:
                 side_height = other.template.height * 0.8
-            if side_height < sph.template.side[1] + 1e-3:
+            if side_height < ball.radius + 1e-3:
                 return False
     return True
 
 
 def _touching_pose(rng, anchor: _Placed, template: Template) -> Optional[np.ndarray]:
-    if anchor.template.side is None or template.side is None:
+    side_a, side_b = anchor.template.side, template.side
+    if side_a is None or side_b is None:
         return None
-    kind_a, kind_b = anchor.template.side[0], template.side[0]
+    kind_a, kind_b = side_a.kind, side_b.kind
     if kind_a == "box":
         direction = anchor.yaw + rng.integers(4) * (math.pi / 2)
     else:
@@ -90,7 +95,7 @@ def _touching_pose(rng, anchor: _Placed, template: Template) -> Optional[np.ndar
     if sa is None or sb is None:
         return None
     if kind_a == "sphere" and kind_b == "sphere":
-        distance = 2.0 * math.sqrt(anchor.template.side[1] * template.side[1])
+        distance = 2.0 * math.sqrt(side_a.radius * side_b.radius)
     else:
         distance = sa + sb
     xy = anchor.xy + distance * np.array([math.cos(direction), math.sin(direction)])
@@ -119,7 +124,7 @@ def _disc(rng: np.random.Generator, radius: float):
 def _place_objects(
     rng: np.random.Generator,
     kinds: Sequence[str],
-    sizes: Sequence[float],
+    sizes: Union[Sequence[float], np.ndarray],
     colours: Sequence[str],
     inside: Callable[[np.ndarray, float], bool],
     sample_xy: Callable[[int], np.ndarray],
@@ -197,7 +202,7 @@ def _rest_balls_on_tops(rng, placed: List[_Placed], touching: List[Tuple[int, in
                 for k, other in enumerate(placed)
                 if k not in (i, j)
             )
-            if clear:
+            if pose is not None and clear:
                 item.pose, item.on_table = pose, False
                 touching = [t for t in touching if i not in t] + [(j, i)]
     return touching
@@ -205,10 +210,10 @@ def _rest_balls_on_tops(rng, placed: List[_Placed], touching: List[Tuple[int, in
 
 def _stack_on(rng, base: _Placed, template: Template) -> Optional[np.ndarray]:
     """Pose resting a ball on the flat top of ``base`` (the two touch at one point)."""
-    if base.template.top is None or template.kind != "ball":
+    if base.template.top is None or template.kind != "ball" or template.side is None:
         return None
     hx, hy, top_z = base.template.top
-    r = template.side[1]
+    r = template.side.radius
     if r > 1.3 * min(hx, hy):
         return None
     offset = rng.uniform(-0.3, 0.3, size=2) * (hx, hy)
@@ -224,7 +229,8 @@ def _build_objects(placed: Sequence[_Placed], first_part_id: int = 1) -> Tuple[S
         parts = []
         for name, primitives, srgb in item.template.parts:
             world_prims = tuple(replace(p, pose=item.pose @ p.pose) for p in primitives)
-            parts.append(Part(part_id, name, world_prims, Material(srgb=tuple(int(c) for c in srgb))))
+            red, green, blue = (int(c) for c in srgb)
+            parts.append(Part(part_id, name, world_prims, Material(srgb=(red, green, blue))))
             part_id += 1
         interior = transform_points(item.pose, np.asarray(item.template.interior_point)[None])[0]
         name = item.template.kind if item.template.kind in _SELF_COLOURED else f"{item.colour} {item.template.kind}"
@@ -268,7 +274,9 @@ def _fill_bowl(
         colour = _FRUIT_COLOUR.get(kind) or str(rng.choice(free))
         used_colours.add(colour)
         tmpl = _fruit(kind, FRUITS[kind])(rng, s, PALETTE[colour])
-        rf = tmpl.side[1]
+        if tmpl.side is None:
+            raise ValueError(f"fruit template {kind!r} has no side shape to rest on the bowl's wall with")
+        rf = tmpl.side.radius
         for _ in range(500):
             theta = 0.0 if k == 0 else math.radians(rng.uniform(30.0, 62.0))
             phi = rng.uniform(0.0, 2.0 * math.pi)
@@ -296,6 +304,8 @@ def _place_on_top(
     Each one placed touches the base; one that finds no room is left out.
     """
     base = placed[base_index]
+    if base.template.top is None:
+        raise ValueError(f"a {base.template.kind} has no flat top to stand objects on")
     hx, hy, top_z = base.template.top
     on_top: List[Tuple[np.ndarray, float]] = []
     for kind, size, colour in items:
@@ -318,10 +328,14 @@ def _place_on_top(
 def _stack_box(rng, placed: List[_Placed], base_index: int, colour: str, touching: List[Tuple[int, int]]) -> bool:
     """Stand a smaller box on the top of box ``placed[base_index]`` (aligned with it, at least 5 mm inside its edges)."""
     base = placed[base_index]
+    if base.template.top is None:
+        raise ValueError(f"a {base.template.kind} has no flat top to stack a box on")
     hx_b, hy_b, top_z = base.template.top
     # _box's half extents are at most 0.078 s and 0.065 s
     size = 0.85 * min(hx_b / 0.078, hy_b / 0.065)
     template = _box(rng, size, PALETTE[colour])
+    if template.top is None:
+        raise ValueError("a box template has no flat top")
     hx_t, hy_t, _ = template.top
     room = np.array([hx_b - hx_t - 0.005, hy_b - hy_t - 0.005])
     if (room < 0).any():

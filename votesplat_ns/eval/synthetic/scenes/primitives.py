@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -256,6 +256,10 @@ class Quad:
         dx = np.maximum(np.abs(points[:, 0]) - self.half_size[0], 0.0)
         dy = np.maximum(np.abs(points[:, 1]) - self.half_size[1], 0.0)
         return np.sqrt(dx * dx + dy * dy + points[:, 2] ** 2)
+
+
+# What a part is made of: a surface with a pose in the part's frame.
+Primitive = Union[Revolved, Box, Quad]
 
 
 def _nondegenerate(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -5,22 +5,39 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Callable, Dict, Optional, Tuple
+from typing import Callable, Dict, Literal, Optional, Tuple
 
 import numpy as np
 
 from votesplat_ns.eval.synthetic.scenes.colours import PALETTE, _shade
-from votesplat_ns.eval.synthetic.scenes.primitives import Box, Revolved, _arc, rot_x, solid_frustum, sphere, translate
+from votesplat_ns.eval.synthetic.scenes.primitives import (
+    Box,
+    Primitive,
+    Revolved,
+    _arc,
+    rot_x,
+    solid_frustum,
+    sphere,
+    translate,
+)
+
+
+@dataclass(frozen=True)
+class Side:
+    """A template's lateral contact shape: a vertical cylinder or a sphere of ``radius``, or a box of half extents
+    and height ``box`` (hx, hy, height)."""
+
+    kind: Literal["cylinder", "sphere", "box"]
+    radius: float = 0.0
+    box: Tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
 class Template:
     kind: str
-    parts: Tuple[Tuple[str, Tuple[object, ...], Tuple[int, int, int]], ...]  # (name, primitives, srgb)
+    parts: Tuple[Tuple[str, Tuple[Primitive, ...], Tuple[int, int, int]], ...]  # (name, primitives, srgb)
     footprint_radius: float  # bounding circle on the table, about the local origin
-    side: Optional[
-        Tuple[str, object]
-    ]  # lateral contact shape: ("cylinder", r), ("sphere", r), ("box", (hx, hy, height))
+    side: Optional[Side]  # lateral contact shape (None: no side contact)
     avoid_direction: Optional[float]  # local yaw that a touching neighbour must not come from (mug handle)
     top: Optional[Tuple[float, float, float]]  # flat top for stacking: (half x, half y, height)
     interior_point: Tuple[float, float, float]
@@ -55,7 +72,7 @@ def _mug(rng, s, colour):
         kind="mug",
         parts=(("body", (body,), colour), ("handle", (handle,), _shade(colour, 0.6))),
         footprint_radius=r + ring + tube - 0.5 * t,
-        side=("cylinder", r),
+        side=Side("cylinder", radius=r),
         avoid_direction=0.0,
         top=None,
         interior_point=(0.0, 0.0, 0.5 * t),
@@ -109,7 +126,7 @@ def _box_shape(kind: str, hx: float, hy: float, hz: float, ht: float, colour) ->
         kind=kind,
         parts=(("body", (body,), colour), ("lid", (lid,), _shade(colour, 1.45))),
         footprint_radius=math.hypot(hx + e, hy + e),
-        side=("box", (hx + e, hy + e, 2 * hz + 2 * ht)),
+        side=Side("box", box=(hx + e, hy + e, 2 * hz + 2 * ht)),
         avoid_direction=None,
         top=(hx + e, hy + e, 2 * hz + 2 * ht),
         interior_point=(0.0, 0.0, hz),
@@ -123,7 +140,7 @@ def _ball(rng, s, colour):
         kind="ball",
         parts=(("ball", (sphere(r, translate(0.0, 0.0, r)),), colour),),
         footprint_radius=r,
-        side=("sphere", r),
+        side=Side("sphere", radius=r),
         avoid_direction=None,
         top=None,
         interior_point=(0.0, 0.0, r),
@@ -149,7 +166,7 @@ def _bottle(rng, s, colour):
         kind="bottle",
         parts=(("body", (body,), colour), ("neck", (neck,), _shade(colour, 1.4)), ("cap", (cap,), PALETTE["black"])),
         footprint_radius=r,
-        side=("cylinder", r),
+        side=Side("cylinder", radius=r),
         avoid_direction=None,
         top=None,
         interior_point=(0.0, 0.0, 0.5 * h),
@@ -166,7 +183,7 @@ def _can(rng, s, colour):
         kind="can",
         parts=(("body", (body,), colour), ("lid", (lid,), _shade(colour, 0.55))),
         footprint_radius=rl,
-        side=("cylinder", rl),
+        side=Side("cylinder", radius=rl),
         avoid_direction=None,
         top=(0.7 * rl, 0.7 * rl, h + hl),
         interior_point=(0.0, 0.0, 0.5 * h),
@@ -187,7 +204,7 @@ def _snowman(rng, s, colour):
             ("hat", (solid_frustum(rh, rh, hh, translate(0.0, 0.0, hat_z), segments=24),), PALETTE["black"]),
         ),
         footprint_radius=r1,
-        side=("sphere", r1),
+        side=Side("sphere", radius=r1),
         avoid_direction=None,
         top=None,
         interior_point=(0.0, 0.0, r1),
@@ -219,7 +236,7 @@ def _fruit(kind: str, radius: float):
             stem = solid_frustum(0.1 * r, 0.07 * r, 0.45 * r, translate(0.0, 0.0, 1.85 * r), segments=12)
             parts.append(("stem", (stem,), PALETTE["brown"]))
             height = 2.3 * r
-        return Template(kind, tuple(parts), r, ("sphere", r), None, None, (0.0, 0.0, r), height)
+        return Template(kind, tuple(parts), r, Side("sphere", radius=r), None, None, (0.0, 0.0, r), height)
 
     return build
 
@@ -329,7 +346,7 @@ def _board(rng, s, colour):
         kind="board",
         parts=(("board", (body,), colour),),
         footprint_radius=math.hypot(hx, hy),
-        side=("box", (hx, hy, 2 * hz)),
+        side=Side("box", box=(hx, hy, 2 * hz)),
         avoid_direction=None,
         top=(hx, hy, 2 * hz),
         interior_point=(0.0, 0.0, hz),

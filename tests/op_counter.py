@@ -1,43 +1,23 @@
-"""Counts the aten ops and host syncs of one vote step, per phase, on CPU.
+"""Counts the aten ops, host syncs and Triton launches of a vote step on CPU, and builds a model's vote step.
 
-The vote pass is launch-bound on a GPU: its cost is the number of kernels it launches and the
-host synchronisations that stall the launch queue, not arithmetic. Neither needs a GPU to count:
-every kernel is one aten op at the dispatcher, and every host sync is an op that reads a device
-value on the host or sizes a tensor by device data. This script runs, on a small synthetic scene
-and the torch backend:
-
-  * ``render_votes_tiled`` + ``vote_losses``, forward and backward, as the model calls them
-    (all levels in one call), once with the default CPU walk width and once with the GPU's
-    default width (a one-step walk);
-  * the model's vote step (``VoteSplatModel.vote_loss_terms`` + backward) on a CPU-built model
-    with random Gaussians, unless ``--no-model``;
-
-under :class:`OpCounter`, a ``TorchDispatchMode`` (it sees autograd's backward ops too) joined
-with a ``TorchFunctionMode`` (it sees ``Tensor.tolist``, which reads a CPU tensor without an aten
-op). Ops are attributed to a phase by the functions of ``core/vote_render.py`` on the Python
-stack when they run. It prints a table of ops and syncs per phase, and the median wall time of
-the forward + backward on CPU (one thread; a rough secondary figure: CPU time is not launch
-time).
-
-    python benchmarks/count_vote_ops.py [--levels 2 4] [--pixels 1024] [--json out.json]
+The vote pass is launch-bound on a GPU: its cost is the number of kernels it launches and the host
+synchronisations that stall the launch queue. Neither needs a GPU to count: every kernel is one aten op at
+the dispatcher, and every host sync is an op that reads a device value on the host or sizes a tensor by device
+data. :class:`OpCounter` is a ``TorchDispatchMode`` (it sees autograd's backward ops too) joined with a
+``TorchFunctionMode`` (it sees ``Tensor.tolist``, which reads a CPU tensor without an aten op); ops are
+attributed to a phase by the functions of ``core/vote_render.py`` on the Python stack when they run.
+``model_step`` builds ``VoteSplatModel.vote_loss_terms`` on a CPU model with random Gaussians.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import statistics
 import sys
-import time
 from collections import Counter, defaultdict
-from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
 import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # aten ops that read a device value on the host (on CUDA: wait for the queue) or whose output shape
 # depends on device data (the same wait, to size the result).
@@ -68,8 +48,6 @@ CHECK_FUNCTIONS = {
     "_read_host",
     "_raise_unless",
     "_pixel_runs",
-    "_use_kernel",
-    "_requested_backend",
     "_check_render_inputs",
     "_check_loss_inputs",
 }
@@ -100,7 +78,6 @@ VIEW_OPS = {
 }
 # Ops that only allocate (the caching allocator, no kernel launch on a GPU).
 ALLOC_OPS = {"empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided"}
-PHASES = ("model: sampling", "checks", "walk", "blend", "finish", "loss checks", "losses", "backward", "other")
 
 
 def _is_sync(func, args) -> bool:
@@ -275,80 +252,6 @@ def count_step(step: Callable[[], torch.Tensor]) -> OpCounter:
     return counter
 
 
-def median_ms(step: Callable[[], torch.Tensor], repeats: int, warmup: int = 3) -> float:
-    for _ in range(warmup):
-        step().backward()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        step().backward()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
-
-
-# ---------------------------------------------------------------------------- the renderer's vote step
-
-
-def synthetic_scene(n: int, width: int, height: int, pixels: int, levels: int, seed: int = 0):
-    """Random Gaussians in front of one camera, its projection and tile lists (our CPU rasteriser)."""
-    from benchmarks.bench_vote_render import random_gaussians
-    from votesplat_ns.core.rasterize_torch import rasterize_torch
-
-    device = torch.device("cpu")
-    scene = random_gaussians(n, width, height, 0, device, seed)
-    with torch.no_grad():
-        _, _, info = rasterize_torch(
-            scene["means"],
-            scene["quats"],
-            scene["scales"],
-            scene["opacities"],
-            scene["colors"],
-            scene["viewmat"][None],
-            scene["K"][None],
-            width,
-            height,
-            sh_degree=0,
-            tile_size=16,
-            packed=False,
-        )
-    g = torch.Generator().manual_seed(seed + 1)
-    flat = torch.randint(0, width * height, (pixels,), generator=g)
-    pixel_xy = torch.stack([flat % width, flat // width], dim=1).float() + 0.5
-    target_xy = pixel_xy[:, None, :] + 5.0 * torch.randn(pixels, levels, 2, generator=g)
-    valid = torch.rand(pixels, levels, generator=g) < 0.8
-    offsets = torch.zeros(n, levels, 3, requires_grad=True)
-    return scene, info, pixel_xy, target_xy, valid, offsets
-
-
-def render_step(scene, info, pixel_xy, target_xy, valid, offsets, options, chunk):
-    from votesplat_ns.core.vote_render import render_votes_tiled, vote_losses
-
-    def step():
-        votes = scene["means"].detach()[:, None, :] + offsets
-        render = render_votes_tiled(
-            info["means2d"][0],
-            info["conics"][0],
-            info["opacities"][0],
-            info["depths"][0],
-            votes,
-            scene["viewmat"],
-            scene["K"],
-            pixel_xy,
-            info["isect_offsets"][0],
-            info["flatten_ids"],
-            info["tile_size"],
-            options,
-            chunk=chunk,
-        )
-        losses = vote_losses(render, target_xy, valid, options)
-        return losses["vote"].sum() + 0.05 * losses["distortion"].sum()
-
-    return step
-
-
-# ---------------------------------------------------------------------------- the model's vote step
-
-
 def model_step(levels: int, n: int, width: int, height: int, pixels: int):
     """VoteSplatModel.vote_loss_terms on a CPU-built model with random Gaussians, after project_for_votes; the
     step's batch (host tensors, as the datamanager gives them) is ``step.batch``."""
@@ -424,122 +327,3 @@ def model_step(levels: int, n: int, width: int, height: int, pixels: int):
 
     step.batch = batch  # pyright: ignore[reportFunctionMemberAccess]
     return model, step
-
-
-# ---------------------------------------------------------------------------- report
-
-
-def table_row(label: str, counter: OpCounter) -> str:
-    """Per phase: launching ops (all aten ops, views included) / host syncs."""
-    cells = []
-    for phase in PHASES:
-        ops, kernels, syncs = (
-            counter.ops.get(phase, 0),
-            counter.kernels.get(phase, 0),
-            len(counter.syncs.get(phase, [])),
-        )
-        cells.append("-" if ops == 0 and syncs == 0 else f"{kernels} ({ops}) / {syncs}")
-    total = f"{counter.total_kernels} ({counter.total_ops}) / {counter.total_syncs}"
-    return f"| {label} | " + " | ".join(cells) + f" | {total} |"
-
-
-def summary(counter: OpCounter) -> Dict[str, object]:
-    return {
-        "ops": dict(counter.ops),
-        "syncs": {k: list(v) for k, v in counter.syncs.items()},
-        "kernels": dict(counter.kernels),
-        "total_ops": counter.total_ops,
-        "total_kernels": counter.total_kernels,
-        "total_syncs": counter.total_syncs,
-        "op_names": {k: dict(v) for k, v in counter.op_names.items()},
-    }
-
-
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--num-gaussians", type=int, default=3000)
-    parser.add_argument("--width", type=int, default=160)
-    parser.add_argument("--height", type=int, default=120)
-    parser.add_argument("--pixels", type=int, default=1024)
-    parser.add_argument("--levels", type=int, nargs="+", default=[2, 4])
-    parser.add_argument("--distortion", default="l1_pixels", choices=["l1", "l1_pixels", "squared", "none"])
-    parser.add_argument("--repeats", type=int, default=20, help="timed forward+backward repeats (0: no timing)")
-    parser.add_argument("--no-model", action="store_true", help="skip the model's vote step")
-    parser.add_argument("--detail", action="store_true", help="also print the aten op names per phase")
-    parser.add_argument("--json", type=Path, help="write the counts (and times) here")
-    return parser.parse_args(argv)
-
-
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    torch.set_num_threads(1)
-    from votesplat_ns.core.vote_render import AUTO_PAIRS_PER_STEP, VoteRenderOptions
-
-    options = VoteRenderOptions(distortion=args.distortion, backend="torch")
-    results = {}
-    header = "| step | " + " | ".join(PHASES) + " | total |"
-    lines = [header, "|" + " --- |" * (len(PHASES) + 2)]
-    times = []
-    for levels in args.levels:
-        scene, info, pixel_xy, target_xy, valid, offsets = synthetic_scene(
-            args.num_gaussians, args.width, args.height, args.pixels, levels
-        )
-        runs = torch.diff(
-            torch.cat([info["isect_offsets"].reshape(-1).long(), torch.tensor([info["flatten_ids"].numel()])])
-        )
-        print(
-            f"L={levels}: {args.num_gaussians} Gaussians at {args.width}x{args.height}, "
-            f"{int((info['radii'][0] > 0).sum())} in view, tile runs mean {runs.float().mean():.0f} / max {int(runs.max())}"
-        )
-        for walk, chunk in (("CPU walk", None), ("GPU walk", max(32, AUTO_PAIRS_PER_STEP // args.pixels))):
-            step = render_step(scene, info, pixel_xy, target_xy, valid, offsets, options, chunk)
-            step().backward()  # warm-up (first-call imports and caches out of the count)
-            counter = count_step(step)
-            label = f"render+losses L={levels}, {walk}"
-            lines.append(table_row(label, counter))
-            results[label] = summary(counter)
-            if args.repeats:
-                ms = median_ms(step, args.repeats)
-                results[label]["median_ms"] = ms
-                times.append(f"{label}: {ms:.1f} ms")
-            if args.detail:
-                for phase, names in counter.op_names.items():
-                    print(f"  {label} {phase}: {dict(names)}  syncs {counter.syncs.get(phase, [])}")
-        if not args.no_model:
-            from votesplat_ns.core import vote_render
-
-            _, step = model_step(levels, args.num_gaussians, args.width, args.height, args.pixels)
-            cpu_pairs = vote_render.AUTO_PAIRS_PER_STEP_CPU
-            for walk, pairs in (("CPU walk", cpu_pairs), ("GPU walk", AUTO_PAIRS_PER_STEP)):
-                # the model takes the default walk width of its device; "GPU walk" uses the GPU's
-                vote_render.AUTO_PAIRS_PER_STEP_CPU = pairs
-                try:
-                    step(seed=0).backward()
-                    counter = count_step(lambda: step(seed=0))
-                    label = f"model vote step L={levels}, {walk}"
-                    lines.append(table_row(label, counter))
-                    results[label] = summary(counter)
-                    if args.repeats:
-                        ms = median_ms(step, args.repeats)
-                        results[label]["median_ms"] = ms
-                        times.append(f"{label}: {ms:.1f} ms")
-                finally:
-                    vote_render.AUTO_PAIRS_PER_STEP_CPU = cpu_pairs
-                if args.detail:
-                    for phase, names in counter.op_names.items():
-                        print(f"  {label} {phase}: {dict(names)}  syncs {counter.syncs.get(phase, [])}")
-    print(
-        "\nlaunching aten ops (all aten ops, views included) / host syncs, per phase "
-        f"(torch {torch.__version__}, CPU, backend torch, {args.distortion}):\n"
-    )
-    print("\n".join(lines))
-    if times:
-        print(f"\nforward+backward, CPU, 1 thread, median of {args.repeats}:")
-        print("\n".join(times))
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
