@@ -95,7 +95,8 @@ def mask_tables(
     finite = scene.finite()
     columns = np.flatnonzero(finite)  # non-finite Gaussians are never seen
     means, quats, scales, opacities = scene.gaussians(finite)[:4]
-    tables = {name: np.full((len(views), finite.shape[0]), -1, dtype=np.int16) for name in names}
+    # int16 until a view has more masks than it holds (then int32); typed as the wider array it may become
+    tables: Dict[str, np.ndarray] = {name: np.full((len(views), finite.shape[0]), -1, dtype=np.int16) for name in names}
     for v, (index, view) in enumerate(zip(indices, views)):
         masks = _view_masks(pipeline.datamanager, known, names, index, view)
         for name in names:
