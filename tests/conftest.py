@@ -25,6 +25,15 @@ def pytest_collection_modifyitems(config, items) -> None:
             item.add_marker(pytest.mark.slow)
 
 
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    """The bad-input probe's report (tests/test_bad_inputs.py ``Probe``), when its cases ran in this session."""
+    probe = getattr(config, "votesplat_bad_input_probe", None)
+    if probe is not None and probe.outcomes:
+        terminalreporter.section("bad-input probe")
+        for line in probe.summary():
+            terminalreporter.write_line(line)
+
+
 def load_benchmark(script: str, module_name: str) -> ModuleType:
     """Import benchmarks/``script`` (not a package) as ``module_name``, registered in sys.modules so that its
     dataclasses resolve and tests can look it up by that name."""

@@ -27,13 +27,19 @@ The other cases are earlier ones (issue 2) and neighbours of these.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import fnmatch
 import hashlib
+import io
 import json
 import os
 import shutil
 import subprocess
 import sys
+import threading
+import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence
@@ -56,8 +62,10 @@ TEMP_MARKERS = (".tmp-", ".partial.", ".old.")
 class Workspace:
     """A folder for one case."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, monkeypatch: pytest.MonkeyPatch):
         self.root = root
+        self.monkeypatch = monkeypatch
+        """For a case run in-process (``Expect.call``): its fault, undone once the command ends."""
         self.drop_root_overrides = False
         self._locked: List[Path] = []
         self.home = root / "home"
@@ -141,7 +149,12 @@ class Expect:
     changed_paths: Sequence[str] = ()
     """Globs of existing files the command may change."""
     after: Optional[Callable[[], None]] = None
-    """More checks once the command has run."""
+    """More checks once the command has run (an AssertionError there: the command did something wrong)."""
+    call: Optional[Callable[[], object]] = None
+    """Run the command in this process instead: ``call()`` is its main, run under a fault the case set up
+    with ``ws.monkeypatch`` (a full disk, a Ctrl-C); ``argv`` then only names the command."""
+    cwd: Optional[Path] = None
+    """The folder the command runs in (default: the workspace's home/)."""
 
 
 # One training step that votes, without the end-of-training foreground pass (it renders every view).
@@ -558,6 +571,129 @@ def non_finite_vote_offsets(ws, fixtures):
     )
 
 
+# ---- a full disk (simulated: a tmpfs cannot be mounted everywhere the tests run)
+class FullDisk:
+    """A disk that fills up: once ``room`` bytes have gone into files opened under ``folder``, a write there stores
+    what still fits and fails as write() does on a full disk (OSError ENOSPC, naming no file).
+
+    Installed with ``monkeypatch`` over ``os.fdopen``, which every atomic write of the plugin opens its file with
+    (``core/ply_io.atomic_write``)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, folder: Path, room: int = 0):
+        self.folder = Path(os.path.abspath(folder))
+        self.room = room
+        self.lock = threading.Lock()
+        real_fdopen = os.fdopen
+
+        def fdopen(fd, *args, **kwargs):
+            handle = real_fdopen(fd, *args, **kwargs)
+            with contextlib.suppress(OSError):
+                path = Path(os.readlink(f"/proc/self/fd/{fd}"))
+                if self.folder in path.parents:
+                    return _FillingFile(handle, self)
+            return handle
+
+        monkeypatch.setattr(os, "fdopen", fdopen)
+
+    def take(self, size: int) -> int:
+        """How many of ``size`` bytes still fit."""
+        with self.lock:
+            fits = min(size, self.room)
+            self.room -= fits
+            return fits
+
+
+class _FillingFile:
+    def __init__(self, handle, disk: FullDisk):
+        self._handle = handle
+        self._disk = disk
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        fits = self._disk.take(view.nbytes)
+        self._handle.write(view[:fits])
+        if fits < view.nbytes:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return fits
+
+    def __getattr__(self, name: str):
+        return getattr(self._handle, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._handle.close()
+
+
+def votesplat_in_process(*args: str) -> Callable[[], object]:
+    """The ``votesplat`` command's main on ``args``, for a case run in-process."""
+    from votesplat_ns.cli.main import main
+
+    return lambda: main(list(args))
+
+
+@case
+def disk_full_during_export(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    exports = ws.root / "exports"
+    target = exports / "export"
+    shutil.copytree(fixtures.previous_export, target)  # the previous export must survive
+    FullDisk(ws.monkeypatch, exports, room=100_000)  # scene.ply stops part-way
+    argv = ["votesplat", "export", "--load-config", str(config), "--output-dir", str(target), "--num-views", "0"]
+    return Expect(
+        argv,
+        call=votesplat_in_process(*argv[1:]),
+        needles=[f"--output-dir {target}: the disk is full", "scene.ply", "nothing was left half-written"],
+        new_paths=("run/*/*/*/votesplat_instances", "run/*/*/*/votesplat_instances/**"),
+    )
+
+
+@case
+def disk_full_during_the_vote_cache_build(ws, fixtures):
+    scene = ws.scene()
+    cache = ws.root / "cache"
+    FullDisk(ws.monkeypatch, cache, room=300_000)  # a few views' entries fit
+    argv = ["votesplat", "masks", "--data", str(scene), "--cache-dir", str(cache)]
+
+    def finished_entries_stay_usable():
+        records = sorted(cache.glob("*/*.votes.npz"))
+        assert records, "no entry was finished before the disk filled up"
+        for path in records:  # an entry is its record and the labels file the record describes
+            with np.load(path) as record:
+                shape = tuple(int(v) for v in record["labels_shape"])
+            assert np.load(path.with_name(path.name.replace(".votes.npz", ".labels.npy"))).shape == shape
+
+    return Expect(
+        argv,
+        call=votesplat_in_process(*argv[1:]),
+        needles=[f"--cache-dir {cache}: the disk is full", ".npy", "nothing was left half-written"],
+        new_paths=("cache", "cache/*", "cache/*/*"),
+        after=finished_entries_stay_usable,
+    )
+
+
+def test_a_short_write_is_named_as_a_full_disk_only_when_the_disk_is_full(tmp_path, monkeypatch):
+    """numpy's write onto a full disk (np.save: "32768 requested and 6080 written") has no errno and names no file."""
+    from types import SimpleNamespace
+
+    from votesplat_ns.core.ply_io import atomic_write
+    from votesplat_ns.errors import input_error_for_write
+
+    target = tmp_path / "entry.labels.npy"
+    for free_blocks, expected in ((0, errno.ENOSPC), (10**6, errno.EIO)):
+        monkeypatch.setattr(os, "statvfs", lambda path, free=free_blocks: SimpleNamespace(f_bavail=free, f_frsize=4096))
+        with pytest.raises(OSError) as raised:
+            with atomic_write(target) as handle:
+                handle.write(b"x" * 6080)
+                raise OSError("32768 requested and 6080 written")
+        assert (raised.value.errno, raised.value.filename) == (expected, str(target))
+        assert list(tmp_path.iterdir()) == []  # the temporary file is gone
+    disk_full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(target))
+    line = str(input_error_for_write(disk_full, tmp_path, "--cache-dir"))
+    assert line.startswith(f"--cache-dir {tmp_path}: the disk is full") and str(target) in line
+
+
 # ---- query and click
 def votesplat(command: str, config: Path, *extra: str) -> List[str]:
     return [str(BIN / "votesplat"), command, "--load-config", str(config), *extra]
@@ -607,7 +743,14 @@ def program_of(argv: Sequence[str]) -> str:
     return PROGRAMS.get(name, f"{name} {argv[1]}")
 
 
-def run_command(ws: Workspace, argv: Sequence[str]) -> subprocess.CompletedProcess:
+@dataclass
+class Ran:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_command(ws: Workspace, argv: Sequence[str], cwd: Optional[Path] = None) -> Ran:
     env = dict(
         os.environ,
         COLUMNS="200",
@@ -616,9 +759,39 @@ def run_command(ws: Workspace, argv: Sequence[str]) -> subprocess.CompletedProce
         MPLCONFIGDIR=str(ws.home / ".matplotlib"),
     )
     prefix = DROP_ROOT_OVERRIDES if ws.drop_root_overrides else []
-    return subprocess.run(
-        prefix + list(argv), capture_output=True, check=False, text=True, cwd=ws.home, timeout=900, env=env
+    result = subprocess.run(
+        prefix + list(argv), capture_output=True, check=False, text=True, cwd=cwd or ws.home, timeout=900, env=env
     )
+    return Ran(result.returncode, result.stdout, result.stderr)
+
+
+def run_in_process(call: Callable[[], object], argv: Sequence[str], cwd: Path) -> Ran:
+    """``call()`` under ``argv`` with its stdout, stderr and warnings captured; an exception it lets out is printed
+    as Python would."""
+    out, err = io.StringIO(), io.StringIO()
+    returncode = 0
+    previous, previous_argv = os.getcwd(), sys.argv
+    os.chdir(cwd)
+    sys.argv = list(argv)
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        err.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = show
+            try:
+                call()
+            except SystemExit as exit:
+                returncode = exit.code if isinstance(exit.code, int) else 1
+            except BaseException:  # noqa: BLE001 - what escapes the command is what the user would see
+                err.write(traceback.format_exc())
+                returncode = 1
+    finally:
+        os.chdir(previous)
+        sys.argv = previous_argv
+    return Ran(returncode, out.getvalue(), err.getvalue())
 
 
 def matches(path: str, patterns: Sequence[str]) -> bool:
@@ -633,6 +806,86 @@ def matches(path: str, patterns: Sequence[str]) -> bool:
         elif len(parts) == len(globs) and all(fnmatch.fnmatchcase(p, g) for p, g in zip(parts, globs)):
             return True
     return False
+
+
+# What a case can end in. The first two are right (which one a case expects is its exit code); the others are
+# what the probe counts as failures.
+ONE_LINE = "ended in one clear line"
+RAN_ON = "ran on with what it had to say"
+TRACEBACK = "traceback"
+SILENT_WRONG = "silent wrong"
+DATA_LOST = "data lost"
+UNCLEAR = "unclear or misleading message"
+LEFTOVERS = "left files behind"
+VERDICTS = (ONE_LINE, RAN_ON, TRACEBACK, SILENT_WRONG, DATA_LOST, UNCLEAR, LEFTOVERS)
+
+
+@dataclass
+class Outcome:
+    verdict: str
+    detail: str = ""
+
+
+def judge(name: str, expect: Expect, ran: Ran, before: Dict[str, str], after: Dict[str, str]) -> Outcome:
+    """What a case ended in (see VERDICTS), and why when it is wrong."""
+    output = ran.stdout + ran.stderr
+    tail = output[-4000:]
+    if "Traceback" in output:
+        return Outcome(TRACEBACK, tail)
+    changed = [
+        path
+        for path in before
+        if path in after and after[path] != before[path] and not matches(path, expect.changed_paths)
+    ]
+    removed = [path for path in before if path not in after]
+    if changed or removed:
+        return Outcome(DATA_LOST, f"{name} changed {changed} and removed {removed}")
+    if ran.returncode != expect.exit_code:
+        verdict = SILENT_WRONG if ran.returncode == 0 else UNCLEAR
+        return Outcome(verdict, f"exit code {ran.returncode}, expected {expect.exit_code}: {tail}")
+    forbidden = [text for text in expect.forbidden if text in output]
+    if forbidden:
+        return Outcome(UNCLEAR, f"says {forbidden}: {tail}")
+    if expect.exit_code != 0:
+        errors = [line for line in ran.stderr.splitlines() if ": error: " in line]
+        lines = [line for line in ran.stderr.splitlines() if line.strip()]
+        if (
+            len(errors) != 1
+            or lines[-1] != errors[0]
+            or not errors[0].startswith(f"{program_of(expect.argv)}: error: ")
+        ):
+            return Outcome(UNCLEAR, f"not one error line at the end: {ran.stderr[-4000:]}")
+        missing = [needle for needle in expect.needles if needle not in errors[0]]
+        if missing:
+            return Outcome(UNCLEAR, f"the line lacks {missing}: {errors[0]}")
+    else:
+        wrong = [needle for needle in expect.needles if output.count(needle) != 1]
+        if wrong:
+            return Outcome(SILENT_WRONG, f"not said once: {wrong}: {tail}")
+    unexpected = [path for path in after if path not in before and not matches(path, expect.new_paths)]
+    leftovers = [path for path in after if any(marker in Path(path).name for marker in TEMP_MARKERS)]
+    if unexpected or leftovers:
+        return Outcome(LEFTOVERS, f"{name} left {unexpected + leftovers}")
+    if expect.after is not None:
+        try:
+            expect.after()
+        except AssertionError as error:
+            return Outcome(SILENT_WRONG, f"{name}: {error}")
+    return Outcome(ONE_LINE if expect.exit_code != 0 else RAN_ON)
+
+
+def run_case(name: str, ws: Workspace, fixtures: "Fixtures") -> Outcome:
+    """Set up case ``name`` in ``ws``, run its command and judge what it did."""
+    expect = CASES[name](ws, fixtures)
+    before = snapshot(ws.root)
+    cwd = expect.cwd or ws.home
+    if expect.call is not None:
+        ran = run_in_process(expect.call, expect.argv, cwd)
+        ws.monkeypatch.undo()  # the fault ends with the command
+    else:
+        ran = run_command(ws, expect.argv, cwd)
+    ws.unlock()
+    return judge(name, expect, ran, before, snapshot(ws.root))
 
 
 @dataclass
@@ -660,46 +913,44 @@ def fixtures(trained_demo, tmp_path_factory) -> Fixtures:
 
 
 @pytest.fixture
-def workspace(tmp_path):
-    ws = Workspace(tmp_path)
+def workspace(tmp_path, monkeypatch):
+    ws = Workspace(tmp_path, monkeypatch)
     yield ws
     ws.unlock()
 
 
+class Probe:
+    """The outcome of every case run in this session; conftest.py's ``pytest_terminal_summary`` prints :meth:`summary`."""
+
+    def __init__(self) -> None:
+        self.outcomes: Dict[str, Outcome] = {}
+
+    def summary(self) -> List[str]:
+        """Cases tried, and how many ended in each way; then each case that ended wrongly."""
+        outcomes = self.outcomes
+        counts = {verdict: sum(outcome.verdict == verdict for outcome in outcomes.values()) for verdict in VERDICTS}
+        lines = [
+            f"bad-input probe: {len(outcomes)} cases tried; {counts[ONE_LINE]} ended in one clear line, "
+            f"{counts[RAN_ON]} ran on with what they had to say; tracebacks {counts[TRACEBACK]}, "
+            f"silent wrong {counts[SILENT_WRONG]}, data lost {counts[DATA_LOST]}, "
+            f"unclear messages {counts[UNCLEAR]}, left files behind {counts[LEFTOVERS]}"
+        ]
+        wrong = [
+            (name, outcome) for name, outcome in sorted(outcomes.items()) if outcome.verdict not in (ONE_LINE, RAN_ON)
+        ]
+        return lines + [f"  {name}: {outcome.verdict}" for name, outcome in wrong]
+
+
+@pytest.fixture(scope="session")
+def probe(request) -> Probe:
+    found = Probe()
+    request.config.votesplat_bad_input_probe = found
+    return found
+
+
 @pytest.mark.slow  # every case starts a console script; several train a step or load a trained run
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_bad_input(name, workspace, fixtures):
-    expect = CASES[name](workspace, fixtures)
-    before = snapshot(workspace.root)
-    result = run_command(workspace, expect.argv)
-    output = result.stdout + result.stderr
-    assert result.returncode == expect.exit_code, output[-4000:]
-    assert "Traceback" not in output, output[-4000:]
-    for text in expect.forbidden:
-        assert text not in output, output[-4000:]
-    if expect.exit_code != 0:
-        errors = [line for line in result.stderr.splitlines() if ": error: " in line]
-        assert len(errors) == 1, result.stderr[-4000:]
-        last = [line for line in result.stderr.splitlines() if line.strip()][-1]
-        assert last == errors[0] and last.startswith(f"{program_of(expect.argv)}: error: "), result.stderr[-4000:]
-        for needle in expect.needles:
-            assert needle in last, last
-    else:
-        for needle in expect.needles:
-            assert output.count(needle) == 1, (needle, output[-4000:])
-
-    workspace.unlock()
-    after = snapshot(workspace.root)
-    changed = [
-        path
-        for path in before
-        if path in after and after[path] != before[path] and not matches(path, expect.changed_paths)
-    ]
-    assert not changed, f"{name} changed {changed}"
-    assert not [path for path in before if path not in after], f"{name} removed files"
-    unexpected = [path for path in after if path not in before and not matches(path, expect.new_paths)]
-    assert not unexpected, f"{name} left {unexpected}"
-    leftovers = [path for path in after if any(marker in Path(path).name for marker in TEMP_MARKERS)]
-    assert not leftovers, f"{name} left temporary files {leftovers}"
-    if expect.after is not None:
-        expect.after()
+def test_bad_input(name, workspace, fixtures, probe):
+    outcome = run_case(name, workspace, fixtures)
+    probe.outcomes[name] = outcome
+    assert outcome.verdict in (ONE_LINE, RAN_ON), f"{outcome.verdict}: {outcome.detail}"

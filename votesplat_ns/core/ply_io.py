@@ -27,7 +27,9 @@ Only numpy is needed here (no nerfstudio import).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
 import secrets
 import shutil
 from pathlib import Path
@@ -120,15 +122,44 @@ def atomic_write(path: PathLike, mode: str = "wb") -> Iterator:
     tmp_name = temp_sibling(path)
     fd = os.open(tmp_name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
-        with os.fdopen(fd, mode) as handle:
-            yield handle
-            handle.flush()
-            os.fsync(handle.fileno())
+        try:
+            with os.fdopen(fd, mode) as handle:
+                yield handle
+                handle.flush()
+                os.fsync(handle.fileno())
+        except OSError as error:
+            named = write_error_naming(error, path)
+            if named is error:
+                raise
+            raise named from error
         os.replace(tmp_name, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_name)
         raise
+
+
+def write_error_naming(error: OSError, path: PathLike) -> OSError:
+    """``error``, raised while writing ``path``, as an ``OSError`` that names ``path`` and its errno.
+
+    A failed ``write()`` names no file, and numpy's short write (``np.save`` onto a full disk: "32768
+    requested and 6080 written") has no errno either; such an error gets ``path`` and, for a short
+    write, ENOSPC when the disk has less room left than was asked for (EIO otherwise). An error that
+    already names a file is returned as it is.
+    """
+    if error.filename is not None:
+        return error
+    code = error.errno
+    if code is None:
+        short = re.search(r"(\d+) requested and (\d+) written", str(error))
+        if short is None:
+            return error
+        code = errno.EIO
+        with contextlib.suppress(OSError):
+            stats = os.statvfs(Path(path).parent)
+            if stats.f_bavail * stats.f_frsize < int(short.group(1)) - int(short.group(2)):
+                code = errno.ENOSPC
+    return OSError(code, os.strerror(code), os.fspath(path))
 
 
 def jsonable(value: Any) -> Any:
