@@ -539,6 +539,40 @@ def export_over_a_user_file(ws, fixtures):
 
 
 @case
+def output_dir_checked_before_the_run(ws, fixtures):
+    target = ws.root / "export.ply"
+    target.write_text("mine")
+    missing = ws.root / "outputs" / "config.yml"  # the run is read after the folder is checked
+    return Expect(ns_export(missing, target), needles=[f"--output-dir {target} is a file"])
+
+
+def edit_run_config(config_path: Path, edit: Callable[[object], None]) -> None:
+    """Change a copied run's config.yml (made by copy_run, so trusted) as ns-train would have written it."""
+    import yaml
+
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    edit(config)
+    config_path.write_text(yaml.dump(config))
+
+
+@case
+def export_into_the_folder_it_runs_in(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    # the default vote cache, outputs/<dataset>/votesplat_cache, lies under the folder the command runs in
+    edit_run_config(config, lambda run: setattr(run.pipeline.datamanager, "cache_dir", None))
+    target = ws.root / "export"
+    shutil.copytree(fixtures.previous_export, target)
+    return Expect(
+        ns_export(config, Path(".")),
+        cwd=target,
+        needles=[
+            f"--output-dir . is the folder this command runs in ({target})",
+            "run the command from another folder",
+        ],
+    )
+
+
+@case
 def previous_export_that_cannot_be_deleted(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")
     target = ws.root / "exports" / "export"
