@@ -572,6 +572,78 @@ def export_into_the_folder_it_runs_in(ws, fixtures):
     )
 
 
+def relative_run(ws: Workspace, fixtures: "Fixtures") -> Path:
+    """A copy of the trained run as ns-train writes it when run in ws.root/project with ``--data data/demo``
+    (``--output-dir`` left at ``outputs``): every path in its config.yml is relative to that folder."""
+    project = ws.root / "project"
+    config = copy_run(fixtures.trained_demo, project / "outputs")
+    shutil.copytree(DEMO_SCENE, project / "data" / "demo", ignore=shutil.ignore_patterns("README.md"))
+
+    def relative(run):
+        run.output_dir = Path("outputs")
+        run.data = run.pipeline.datamanager.data = Path("data/demo")
+        run.pipeline.datamanager.cache_dir = None  # outputs/demo/votesplat_cache in the project
+
+    edit_run_config(config, relative)
+    return config
+
+
+@case
+def export_run_from_another_folder(ws, fixtures):
+    config = relative_run(ws, fixtures)
+
+    def nothing_written_where_it_ran():
+        assert not (ws.home / "outputs").exists(), "the vote cache was made again in the current folder"
+
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        exit_code=0,
+        needles=["Exported"],
+        forbidden=["the run has no checkpoint", "the training masks are unavailable"],
+        new_paths=(
+            "export",
+            "export/**",
+            "project/outputs/demo/votesplat_cache",  # the run's own vote cache, made where training made it
+            "project/outputs/demo/votesplat_cache/**",
+            "project/outputs/demo/votesplat/test/votesplat_instances",
+            "project/outputs/demo/votesplat/test/votesplat_instances/**",
+        ),
+        after=nothing_written_where_it_ran,
+    )
+
+
+def test_a_run_is_read_from_its_own_folder_whatever_the_current_folder(tmp_path, monkeypatch):
+    """No model is built: the config alone says where the checkpoints, the data and the vote cache are."""
+    import yaml
+
+    from votesplat_ns.ns.method import trainer_config_in_process
+    from votesplat_ns.ns.run_config import load_run_config
+
+    project = tmp_path / "project"
+    shutil.copytree(DEMO_SCENE, project / "data" / "demo", ignore=shutil.ignore_patterns("README.md"))
+    config = trainer_config_in_process(Path("data/demo"), Path("outputs"), 10, 5)
+    config.pipeline.datamanager.cache_dir = None
+    config.set_experiment_name()  # as ns-train's save_config does
+    run_dir = project / "outputs" / str(config.experiment_name) / "votesplat" / str(config.timestamp)
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.yml").write_text(yaml.dump(config))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    loaded = load_run_config(run_dir / "config.yml")
+    assert loaded.get_checkpoint_dir() == run_dir / "nerfstudio_models"
+    assert loaded.pipeline.datamanager.data == project / "data" / "demo"
+    assert loaded.pipeline.datamanager.cache_dir == project / "outputs" / "demo" / "votesplat_cache"
+    monkeypatch.chdir(project)  # where it was trained: the relative paths stay as they were written
+    loaded = load_run_config(
+        Path("outputs") / str(config.experiment_name) / "votesplat" / str(config.timestamp) / "config.yml"
+    )
+    assert loaded.pipeline.datamanager.data == Path("data/demo") and loaded.pipeline.datamanager.cache_dir is None
+    moved = tmp_path / "moved" / "run"  # a run folder copied elsewhere and renamed: its own checkpoints
+    shutil.copytree(run_dir, moved)
+    assert load_run_config(moved / "config.yml").get_checkpoint_dir() == moved / "nerfstudio_models"
+
+
 @case
 def previous_export_that_cannot_be_deleted(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")

@@ -28,10 +28,12 @@ call that can run the check does not read the unchecked instances.
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import hashlib
 import importlib
 import json
+import os
 import re
 import shutil
 import time
@@ -156,11 +158,18 @@ def code_digest() -> str:
 def masks_fingerprint(pipeline: Any) -> Optional[str]:
     """The run's datamanager settings (data, mask source, levels, downscale, ...) as text; None without one.
 
-    Function reprs carry memory addresses, which differ between processes; they are cut out.
+    The data path is made absolute and the cache folder left out, so that a command run from another folder
+    (``ns/run_config.py`` ``anchor_to_run_folder``) keys alike. Function reprs carry memory addresses, which
+    differ between processes; they are cut out.
     """
     config = getattr(getattr(pipeline, "datamanager", None), "config", None)
     if config is None:
         return None
+    config = copy.copy(config)
+    if getattr(config, "data", None) is not None:
+        config.data = Path(os.path.abspath(config.data))
+    if hasattr(config, "cache_dir"):
+        config.cache_dir = None  # where the masks are cached does not change them
     return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(config))
 
 
