@@ -644,6 +644,81 @@ def test_a_run_is_read_from_its_own_folder_whatever_the_current_folder(tmp_path,
     assert load_run_config(moved / "config.yml").get_checkpoint_dir() == moved / "nerfstudio_models"
 
 
+def moved_dataset_run(ws: Workspace, fixtures: "Fixtures") -> Path:
+    """A copy of the trained run whose dataset is no longer where its config.yml says."""
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+
+    def moved(run):
+        run.data = run.pipeline.datamanager.data = ws.root / "gone" / "demo"
+
+    edit_run_config(config, moved)
+    return config
+
+
+RUN_RECORD = ("run/*/*/*/votesplat_instances", "run/*/*/*/votesplat_instances/**")
+
+
+@case
+def export_without_the_dataset(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    gone = ws.root / "gone" / "demo"
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        exit_code=0,
+        needles=[
+            f"Warning: the training masks are unavailable (the run's dataset {gone} is not there; pass its folder "
+            "with --data); using the vote clustering without the mask check"
+        ],
+        new_paths=("export", "export/**"),  # the unchecked instances are not kept beside the run
+    )
+
+
+@case
+def export_without_the_dataset_or_the_mask_check(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    return Expect(
+        ns_export(config, ws.root / "export", "--mask-check", "False"),
+        exit_code=0,
+        needles=["Exported"],
+        forbidden=["Warning: the training masks", "error:", "Training views unavailable"],
+        new_paths=("export", "export/**") + RUN_RECORD,
+    )
+
+
+@case
+def click_on_a_run_whose_dataset_moved(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    argv = votesplat("click", config, "--view", "0", "--x", "64", "--y", "64", "--output-dir", str(ws.root / "sel"))
+    return Expect(
+        argv,
+        needles=[f"--load-config {config}: the run's dataset {ws.root / 'gone' / 'demo'} is not there", "with --data"],
+    )
+
+
+@case
+def click_with_the_moved_dataset_given(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    scene = ws.scene("moved_here")
+    output = ws.root / "sel"
+    argv = votesplat(
+        "click", config, "--view", "0", "--x", "64", "--y", "64", "--output-dir", str(output), "--data", str(scene)
+    )
+    return Expect(
+        argv + ["--no-mask-check"],
+        exit_code=0,
+        needles=["View 0, pixel (64.0, 64.0): instance"],
+        new_paths=("sel", "sel/*") + RUN_RECORD,
+    )
+
+
+@case
+def data_flag_to_a_missing_folder(ws, fixtures):
+    missing = ws.root / "nowhere"
+    argv = votesplat("click", fixtures.trained_demo, "--view", "0", "--x", "64", "--y", "64")
+    argv += ["--output-dir", str(ws.root / "sel"), "--data", str(missing)]
+    return Expect(argv, needles=[f"--data {missing}: folder not found"])
+
+
 @case
 def previous_export_that_cannot_be_deleted(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")

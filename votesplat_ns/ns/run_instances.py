@@ -202,17 +202,19 @@ def compute_instances(
     rasterize_fn: Optional[Callable[..., tuple]] = None,
     on_level: Optional[Callable[[int, str], None]] = None,
     log: Optional[Log] = None,
+    masks_unavailable: Optional[str] = None,
 ) -> Tuple[InstanceSet, bool]:
     """The instances of every level of ``scene``; returns them and whether the mask check ran.
 
     Without a ``pipeline`` whose datamanager has the training masks, or without ``rasterize_fn``, the
-    check cannot run: ``log`` says so once and the vote clustering alone is returned.
+    check cannot run: ``log`` says so once (with ``masks_unavailable``, the caller's reason) and the vote
+    clustering alone is returned.
     """
     refine = None
     if settings.mask_check:
         reason = None
         if pipeline is None or rasterize_fn is None:
-            reason = "no training views or rasterizer in this process"
+            reason = masks_unavailable or "no training views or rasterizer in this process"
         else:
             try:
                 options = {"max_views": settings.mask_check_views, **dict(settings.mask_check_options)}
@@ -280,6 +282,7 @@ def run_instances(
     rasterize_fn: Optional[Callable[..., tuple]] = None,
     on_level: Optional[Callable[[int, str], None]] = None,
     log: Optional[Log] = None,
+    masks_unavailable: Optional[str] = None,
 ) -> InstanceSet:
     """The instances of a trained run: read from ``run_dir``'s record when its key matches, else computed and kept.
 
@@ -289,9 +292,11 @@ def run_instances(
     pipeline: the loaded nerfstudio pipeline (its datamanager gives the mask check its training views
         and masks); rasterize_fn: gsplat's ``rasterization`` signature (the check renders with it).
     on_level: called before each level is clustered (progress); log: one-line messages (rebuilds, warnings).
+    masks_unavailable: why there is no ``pipeline`` (said in the warning that the mask check cannot run).
     """
-    if run_dir is None:  # nothing is kept, so no key is needed (hashing 5M Gaussians costs about a second)
-        return compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log)[0]
+    # nothing is kept (no folder, or the mask check cannot run), so no key is needed (5M Gaussians hash in ~1 s)
+    if run_dir is None or (pipeline is None and settings.mask_check):
+        return compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log, masks_unavailable)[0]
     key = record_key(scene, settings, pipeline)
     target = Path(run_dir) / RECORD_FOLDER
     if target.is_dir():
@@ -309,7 +314,7 @@ def run_instances(
                 " and ".join(_WHAT_CHANGED[part] for part in changed) if found is not None else "an unreadable record"
             )
             log(f"The instances kept in {target} were computed for {what}; computing them again")
-    instances, checked = compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log)
+    instances, checked = compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log, masks_unavailable)
     if checked:
         try:
             _write_record(instances, target.parent, key, settings)
