@@ -907,6 +907,14 @@ def query_longer_than_clip_reads(ws, fixtures):
 
 
 @case
+def query_eval_labels_folder_missing(ws, fixtures):
+    missing = ws.root / "labels"
+    argv = votesplat("query-eval", fixtures.trained_demo, "--labels", str(missing))
+    argv += ["--clip-random-init", "--clip-model", "ViT-S-32-alt"]
+    return Expect(argv, needles=[f"--labels {missing}: folder not found"], forbidden=["frame_*.json label files"])
+
+
+@case
 def click_into_a_read_only_folder(ws, fixtures):
     shared = ws.read_only(ws.root / "shared")
     argv = votesplat(

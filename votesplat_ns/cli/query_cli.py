@@ -183,7 +183,7 @@ class QueryEval(_EncoderArgs):
     def run(self, encoder: Optional[EncoderProtocol] = None, scene: Optional[QueryScene] = None) -> Dict[str, Any]:
         if self.output is not None:
             check_writable_folder(Path(self.output).parent, "--output", given=self.output)
-        frames = load_scene_labels(self.labels)
+        frames = load_scene_labels(self.labels, "--labels")
         encoder = encoder or self.encoder()
         scene = scene or self.load_scene()
         cache = features_cache_path(scene, self.features_cache)
