@@ -38,6 +38,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 import traceback
 import warnings
 from dataclasses import dataclass
@@ -148,6 +149,8 @@ class Expect:
     """Globs (relative to the workspace) of paths the command may create."""
     changed_paths: Sequence[str] = ()
     """Globs of existing files the command may change."""
+    removed_paths: Sequence[str] = ()
+    """Globs of existing paths the command may delete (leftovers of a killed run, never the user's files)."""
     after: Optional[Callable[[], None]] = None
     """More checks once the command has run (an AssertionError there: the command did something wrong)."""
     call: Optional[Callable[[], object]] = None
@@ -720,6 +723,32 @@ def data_flag_to_a_missing_folder(ws, fixtures):
 
 
 @case
+def leftovers_of_a_killed_export(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    target = ws.root / "export"
+    killed = ws.root / ".export.partial.tmp-4242-0123456789ab"  # what kill -9 during an export leaves
+    (killed / "instances").mkdir(parents=True)
+    (killed / "scene.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n")
+    hour_ago = time.time() - 3600
+    for path in (killed / "scene.ply", killed / "instances", killed):
+        os.utime(path, (hour_ago, hour_ago))
+    running = ws.root / ".export.partial.tmp-4343-0123456789ab"  # an export in progress in another process
+    running.mkdir()
+
+    def only_the_old_one_is_swept():
+        assert not killed.exists() and running.is_dir()
+
+    return Expect(
+        ns_export(config, target, "--mask-check", "False"),
+        exit_code=0,
+        needles=["Exported"],
+        new_paths=("export", "export/**") + RUN_RECORD,
+        removed_paths=(".export.partial.tmp-4242-*", ".export.partial.tmp-4242-*/**"),
+        after=only_the_old_one_is_swept,
+    )
+
+
+@case
 def previous_export_that_cannot_be_deleted(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")
     target = ws.root / "exports" / "export"
@@ -1026,7 +1055,7 @@ def judge(name: str, expect: Expect, ran: Ran, before: Dict[str, str], after: Di
         for path in before
         if path in after and after[path] != before[path] and not matches(path, expect.changed_paths)
     ]
-    removed = [path for path in before if path not in after]
+    removed = [path for path in before if path not in after and not matches(path, expect.removed_paths)]
     if changed or removed:
         return Outcome(DATA_LOST, f"{name} changed {changed} and removed {removed}")
     if ran.returncode != expect.exit_code:
@@ -1052,7 +1081,9 @@ def judge(name: str, expect: Expect, ran: Ran, before: Dict[str, str], after: Di
         if wrong:
             return Outcome(SILENT_WRONG, f"not said once: {wrong}: {tail}")
     unexpected = [path for path in after if path not in before and not matches(path, expect.new_paths)]
-    leftovers = [path for path in after if any(marker in Path(path).name for marker in TEMP_MARKERS)]
+    leftovers = [
+        path for path in after if path not in before and any(marker in Path(path).name for marker in TEMP_MARKERS)
+    ]
     if unexpected or leftovers:
         return Outcome(LEFTOVERS, f"{name} left {unexpected + leftovers}")
     if expect.after is not None:

@@ -28,10 +28,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import os
 import re
 import secrets
 import shutil
+import time
 from pathlib import Path
 from typing import Any, Dict, Iterator, Optional, Sequence, Tuple, Union
 
@@ -81,6 +83,22 @@ def temp_sibling(path: PathLike, tag: str = "") -> Path:
     """A fresh hidden name next to ``path`` (``.<name><tag>.tmp-<pid>-<random>``); nothing is created."""
     path = Path(path)
     return path.parent / f".{path.name}{tag}{TEMP_MARKER}{os.getpid()}-{secrets.token_hex(6)}"
+
+
+LEFTOVER_AGE_S = 600.0
+"""A hidden temporary sibling older than this is the leftover of a killed process (a write in progress is younger)."""
+
+
+def sweep_leftovers(path: PathLike, max_age_s: float = LEFTOVER_AGE_S) -> None:
+    """Delete the hidden folders and files that writes of ``path`` left beside it when killed (``.<name>.partial``
+    or ``.old`` siblings, :func:`temp_sibling`), once they are older than ``max_age_s``, so that a write in progress
+    in another process is left alone."""
+    path = Path(path)
+    now = time.time()
+    for leftover in path.parent.glob(f".{glob.escape(path.name)}.*{TEMP_MARKER}*"):
+        with contextlib.suppress(OSError):
+            if now - leftover.lstat().st_mtime > max_age_s:
+                shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()
 
 
 def make_temp_dir(path: PathLike, tag: str = "") -> Path:

@@ -46,7 +46,13 @@ from votesplat_ns.core.instances import (
     save_instance_picture,
     vote_level_index,
 )
-from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
+from votesplat_ns.core.ply_io import (
+    make_temp_dir,
+    sweep_leftovers,
+    temp_sibling,
+    write_gaussian_table,
+    write_instance_id_file,
+)
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.errors import VoteSplatInputError, check_writable_folder
 
@@ -271,6 +277,7 @@ def export_instances(
             )
 
         output_dir.parent.mkdir(parents=True, exist_ok=True)
+        sweep_leftovers(output_dir)  # what exports killed mid-write left beside it
         staging = make_temp_dir(output_dir, ".partial")  # umask permissions: it becomes the export folder
         try:
             manifest = _write_export(

@@ -36,7 +36,6 @@ import json
 import os
 import re
 import shutil
-import time
 from pathlib import Path
 from typing import Any, Callable, Dict, Mapping, Optional, Tuple
 
@@ -44,7 +43,7 @@ import numpy as np
 
 from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import MANIFEST_NAME, InstanceSet
-from votesplat_ns.core.ply_io import TEMP_MARKER, jsonable, make_temp_dir, replace_folder
+from votesplat_ns.core.ply_io import jsonable, make_temp_dir, replace_folder, sweep_leftovers
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 
@@ -63,8 +62,6 @@ INSTANCE_CODE_MODULES = (
     "votesplat_ns.ns.run_instances",
 )
 # The parts of a key, in the order a changed one is named.
-# Hidden folders of a write older than this are leftovers of a killed process.
-LEFTOVER_AGE_S = 600.0
 KEY_PARTS = ("gaussians", "settings", "masks", "code")
 _WHAT_CHANGED = {
     "gaussians": "another checkpoint",
@@ -240,20 +237,10 @@ def compute_instances(
     return instances, refine is not None or not settings.mask_check
 
 
-def _sweep_leftovers(run_dir: Path) -> None:
-    """Delete hidden staging/replaced folders that earlier writes left (a kill mid-write), once they are
-    older than :data:`LEFTOVER_AGE_S`, so a write in progress in another process is left alone."""
-    now = time.time()
-    for leftover in run_dir.glob(f".{RECORD_FOLDER}.*{TEMP_MARKER}*"):
-        with contextlib.suppress(OSError):
-            if now - leftover.lstat().st_mtime > LEFTOVER_AGE_S:
-                shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
-
-
 def _write_record(instances: InstanceSet, run_dir: Path, key: Dict[str, str], settings: InstanceSettings) -> Path:
     """Write the record into a hidden sibling and rename it onto ``run_dir/RECORD_FOLDER``."""
     target = run_dir / RECORD_FOLDER
-    _sweep_leftovers(run_dir)
+    sweep_leftovers(target)  # what killed writes left
     staging = make_temp_dir(target, ".partial")
     try:
         instances.save(
