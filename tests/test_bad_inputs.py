@@ -457,6 +457,25 @@ def damaged_cache_entry(ws, fixtures):
     )
 
 
+@case
+def user_file_in_a_cache_folder_that_is_rebuilt(ws, fixtures):
+    from votesplat_ns.cli.masks_cli import MasksConfig, main as make_masks
+
+    scene = ws.scene()
+    cache = ws.root / "cache"
+    made = make_masks(MasksConfig(data=scene, cache_dir=cache))
+    entry_dir = made["entry_dir"]
+    config_json = entry_dir / "config.json"
+    config_json.write_text(json.dumps({**json.loads(config_json.read_text()), "levels": ["edited"]}))  # tampered
+    (entry_dir / "notes.txt").write_text("which view is which")
+    return Expect(
+        masks(scene, "--cache-dir", str(cache)),
+        exit_code=0,
+        needles=["was made with other arguments; rebuilding it (kept notes.txt, which the cache does not write)"],
+        changed_paths=("cache/*/*.npy", "cache/*/*.npz", "cache/*/config.json"),
+    )
+
+
 # ---- masks
 @case
 def hidden_folder_in_the_mask_folder(ws, fixtures):
