@@ -35,6 +35,7 @@ import io
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -158,6 +159,8 @@ class Expect:
     with ``ws.monkeypatch`` (a full disk, a Ctrl-C); ``argv`` then only names the command."""
     cwd: Optional[Path] = None
     """The folder the command runs in (default: the workspace's home/)."""
+    line: str = ": error: "
+    """A failure's one line is ``<command><line><message>`` (``: interrupted: `` for Ctrl-C)."""
 
 
 # One training step that votes, without the end-of-training foreground pass (it renders every view).
@@ -397,6 +400,65 @@ def masks_without_any_vote(ws, fixtures):
         exit_code=0,
         needles=["no mask of the 30 training views gives a vote", "votesplat masks --data"],
         new_paths=("runs", "runs/**", "cache", "cache/**"),
+    )
+
+
+@case
+def ctrl_c_during_training(ws, fixtures):
+    from nerfstudio.scripts.train import entrypoint
+
+    from votesplat_ns.ns.trainer import VoteSplatTrainer
+
+    scene = ws.scene()
+    train_iteration = VoteSplatTrainer.train_iteration
+
+    def press_ctrl_c_during_step_2(self, step):
+        result = train_iteration(self, step)
+        if step == 2:  # the signal arrives while the step ends
+            os.kill(os.getpid(), signal.SIGINT)
+        return result
+
+    ws.monkeypatch.setattr(VoteSplatTrainer, "train_iteration", press_ctrl_c_during_step_2)
+    argv = ns_train(ws, scene, *ONE_VOTE_STEP)
+    argv[argv.index("--max-num-iterations") + 1] = "20"
+
+    def the_last_finished_step_is_saved():
+        saved = sorted((ws.root / "runs").glob("*/votesplat/*/nerfstudio_models/step-*.ckpt"))
+        assert [path.name for path in saved] == ["step-000000002.ckpt"], saved
+        state = torch.load(saved[0], map_location="cpu", weights_only=True)
+        assert state["step"] == 2 and "_model.gauss_params.vote_offsets" in state["pipeline"]
+
+    return Expect(
+        argv,
+        call=entrypoint,
+        exit_code=130,
+        line=": interrupted: ",
+        needles=["stopped after step 2; saved", "nerfstudio_models/step-000000002.ckpt", "--load-dir"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),
+        after=the_last_finished_step_is_saved,
+    )
+
+
+@case
+def ctrl_c_while_the_masks_are_made(ws, fixtures):
+    from nerfstudio.scripts.train import entrypoint
+
+    from votesplat_ns.core.vote_cache import VoteCache
+
+    scene = ws.scene()
+
+    def press_ctrl_c(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # Python turns it into KeyboardInterrupt here
+        raise AssertionError("SIGINT did not interrupt")
+
+    ws.monkeypatch.setattr(VoteCache, "build_all", press_ctrl_c)
+    return Expect(
+        ns_train(ws, scene),
+        call=entrypoint,
+        exit_code=130,
+        line=": interrupted: ",
+        needles=["stopped while the run was set up", "nothing was saved"],
+        new_paths=NS_TRAIN_RUN_FILES,
     )
 
 
@@ -1084,12 +1146,12 @@ def judge(name: str, expect: Expect, ran: Ran, before: Dict[str, str], after: Di
     if forbidden:
         return Outcome(UNCLEAR, f"says {forbidden}: {tail}")
     if expect.exit_code != 0:
-        errors = [line for line in ran.stderr.splitlines() if ": error: " in line]
+        errors = [line for line in ran.stderr.splitlines() if expect.line in line]
         lines = [line for line in ran.stderr.splitlines() if line.strip()]
         if (
             len(errors) != 1
             or lines[-1] != errors[0]
-            or not errors[0].startswith(f"{program_of(expect.argv)}: error: ")
+            or not errors[0].startswith(program_of(expect.argv) + expect.line)
         ):
             return Outcome(UNCLEAR, f"not one error line at the end: {ran.stderr[-4000:]}")
         missing = [needle for needle in expect.needles if needle not in errors[0]]

@@ -30,7 +30,9 @@ Scoped, applied where they are needed (listed here so that an upgrade checks the
   not patched.
 * ``safe resume`` (``ns/trainer.py`` ``VoteSplatTrainer``, the method's ``TrainerConfig._target``): a subclass
   whose ``_load_checkpoint`` reads with ``weights_only=True``, skips a half-written newest checkpoint and fails
-  in one line; not a patch of ``Trainer``, so other methods keep nerfstudio's.
+  in one line, and whose ``train`` saves a checkpoint at Ctrl-C and exits 130 (nerfstudio's ``launch`` prints
+  the ``KeyboardInterrupt`` and exits 0 with nothing saved); not a patch of ``Trainer``, so other methods keep
+  nerfstudio's.
 
 Left unpatched on purpose: nerfstudio's own reads of a config.yml with ``yaml.Loader`` (``eval_setup``, used
 by ``ns-viewer``, ``ns-eval``, ``ns-render`` and ``ns-export``'s other exporters; ``ns-train --load-config``).

@@ -13,18 +13,28 @@ ends in a traceback for a missing, truncated or foreign file. :class:`VoteSplatT
   as does a folder without a loadable checkpoint or a ``--load-step`` / ``--load-checkpoint`` that cannot be read.
 
 The rest of the load (pipeline, optimizers, schedulers, gradient scaler) is nerfstudio's, on the loaded state.
+
+Ctrl-C: nerfstudio's ``launch`` catches ``KeyboardInterrupt``, prints its traceback and exits 0 with nothing saved.
+:class:`VoteSplatTrainer` takes SIGINT itself while it trains: the step under way finishes, a checkpoint of the
+last finished step is saved (resume with ``--load-dir``), one line says where, and the command exits 130 (as a
+shell does for Ctrl-C). A second Ctrl-C stops at once without saving, also in one line and with 130; so does one
+while the run is set up (masks being made), where there is nothing to save yet.
 """
 
 from __future__ import annotations
 
+import signal
+import sys
+import threading
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import torch
 from nerfstudio.engine.trainer import Trainer
+from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.errors import VoteSplatInputError
+from votesplat_ns.errors import VoteSplatInputError, program_name
 from votesplat_ns.ns.run import checkpoint_failure_reason
 
 DAMAGED = "the file is truncated or damaged"
@@ -93,8 +103,82 @@ def resume_state(load_dir: Optional[Path], load_step: Optional[int], load_checkp
     return None  # unreachable: the loop returns or raises on its last candidate
 
 
+INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what a shell reports for a command stopped by Ctrl-C
+
+
+def interrupted(message: str) -> SystemExit:
+    """Print ``<command>: interrupted: <message>`` on stderr; the exit to raise."""
+    sys.stderr.write(f"{program_name()}: interrupted: {message}\n")
+    sys.stderr.flush()
+    return SystemExit(INTERRUPTED_EXIT_CODE)
+
+
 class VoteSplatTrainer(Trainer):
-    """nerfstudio's ``Trainer`` whose checkpoint loading reads with ``weights_only=True`` and fails in one line."""
+    """nerfstudio's ``Trainer`` whose checkpoint loading reads with ``weights_only=True`` and fails in one line,
+    and which saves a checkpoint at Ctrl-C (module doc)."""
+
+    _interrupted = False
+    _last_trained_step: Optional[int] = None
+
+    def setup(self, *args: Any, **kwargs: Any) -> None:
+        try:
+            super().setup(*args, **kwargs)
+        except KeyboardInterrupt:
+            raise interrupted(
+                "stopped while the run was set up, before any step was trained; nothing was saved"
+            ) from None
+
+    def train_iteration(self, step: int):
+        result = super().train_iteration(step)
+        self._last_trained_step = step
+        return result
+
+    def train(self) -> None:
+        if threading.current_thread() is not threading.main_thread():  # signal handlers live in the main thread
+            super().train()
+            return
+
+        def stop_after_this_step(signum, frame) -> None:
+            if self._interrupted:  # a second Ctrl-C
+                raise KeyboardInterrupt
+            self._interrupted = True
+            self.stop_training = True
+            CONSOLE.print(
+                "Ctrl-C: saving a checkpoint once this step is done (press Ctrl-C again to stop at once, without saving)",
+                style="bold yellow",
+                markup=False,
+            )
+
+        previous = signal.signal(signal.SIGINT, stop_after_this_step)
+        try:
+            super().train()
+        except KeyboardInterrupt:
+            self.shutdown()
+            raise interrupted(
+                "stopped at once by a second Ctrl-C; no checkpoint was saved for the steps since the last one"
+            ) from None
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        if self._interrupted:
+            self.shutdown()
+            step = self._last_trained_step
+            if step is None:
+                raise interrupted("stopped before the first step was trained; nothing was saved")
+            raise interrupted(
+                f"stopped after step {step}; saved {self.checkpoint_dir / f'step-{step:09d}.ckpt'}: continue with "
+                f"ns-train votesplat ... --load-dir {self.checkpoint_dir}"
+            )
+
+    def _after_train(self) -> None:
+        if not self._interrupted:
+            super()._after_train()
+            return
+        # interrupted: save the last finished step, and skip the end of training (its callbacks, the viewer's wait)
+        self.training_state = "completed"
+        if self._last_trained_step is not None:
+            self.step = self._last_trained_step
+            self.save_checkpoint(self.step)
+        writer.write_out_storage()
 
     def _load_checkpoint(self) -> None:
         found = resume_state(self.config.load_dir, self.config.load_step, self.config.load_checkpoint)
