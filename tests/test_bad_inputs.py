@@ -371,6 +371,84 @@ def truncated_label_image(ws, fixtures):
     )
 
 
+# transforms.json problems nerfstudio's dataparser asserts on (or scales the scene by zero for): (edit, needles)
+def _drop_splits(meta: dict) -> None:
+    for split in ("train", "val", "test"):
+        meta.pop(f"{split}_filenames", None)
+
+
+def _frame_size_beside_the_files(meta: dict) -> None:
+    meta["frames"][3].update(w=100, h=80)
+
+
+def _one_frame(meta: dict) -> None:
+    meta["frames"] = meta["frames"][:1]
+    _drop_splits(meta)
+
+
+def _fewer_frames_than_the_split_lists(meta: dict) -> None:
+    meta["frames"] = meta["frames"][:10]
+
+
+TRANSFORMS_PROBLEMS: Dict[str, tuple] = {
+    "no_focal_length": (
+        lambda meta: meta.pop("fl_x"),
+        ["no fl_x, neither for the whole file nor for frame 0 (images/frame_00001.png)", "34 of 34 frames lack it"],
+    ),
+    "frame_size_beside_another_file_size": (
+        _frame_size_beside_the_files,
+        ["frame 3 (images/frame_00004.png) gives w=100 but the file gives w=128", "nerfstudio reads only the file's"],
+    ),
+    "one_frame": (_one_frame, ["transforms.json lists one frame", "views from several places"]),
+    "split_list_naming_missing_frames": (
+        _fewer_frames_than_the_split_lists,
+        ["train_filenames lists images/frame_00011.png (and 20 more)", "which no frame lists"],
+    ),
+}
+
+
+def transforms_problem(problem: str):
+    edit, needles = TRANSFORMS_PROBLEMS[problem]
+
+    def make(ws, fixtures):
+        scene = ws.scene()
+        edit_transforms(scene, edit)
+        return Expect(
+            ns_train(ws, scene), needles=[str(scene / "transforms.json")] + needles, new_paths=NS_TRAIN_RUN_FILES
+        )
+
+    make.__name__ = f"transforms_json_{problem}"
+    return make
+
+
+for _problem in TRANSFORMS_PROBLEMS:
+    case(transforms_problem(_problem))
+
+
+@pytest.mark.parametrize("problem", sorted(TRANSFORMS_PROBLEMS))
+def test_transforms_problems_nerfstudio_asserts_on_are_refused_in_one_line(problem, tmp_path):
+    """The checks alone (no command): the catalogue runs the same edits through ns-train."""
+    from votesplat_ns.errors import VoteSplatInputError
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig, check_data_input
+
+    scene = tmp_path / "scene"
+    shutil.copytree(DEMO_SCENE, scene)
+    edit, needles = TRANSFORMS_PROBLEMS[problem]
+    edit_transforms(scene, edit)
+    with pytest.raises(VoteSplatInputError) as caught:
+        check_data_input(VoteDataManagerConfig(data=scene))
+    assert "\n" not in str(caught.value) and all(needle in str(caught.value) for needle in needles), caught.value
+
+
+def test_a_frame_repeating_the_files_camera_values_is_accepted(tmp_path):
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig, check_data_input
+
+    scene = tmp_path / "scene"
+    shutil.copytree(DEMO_SCENE, scene)
+    edit_transforms(scene, lambda meta: meta["frames"][3].update(w=meta["w"], h=meta["h"], fl_x=meta["fl_x"]))
+    check_data_input(VoteDataManagerConfig(data=scene))
+
+
 # ---- training that would run to the end for nothing
 @case
 def vote_start_after_the_last_step(ws, fixtures):
