@@ -670,6 +670,15 @@ def run_without_checkpoint(ws, fixtures):
 
 
 @case
+def viewer_on_a_run_without_checkpoint(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    for checkpoint in (config.parent / "nerfstudio_models").glob("*.ckpt"):  # stopped before its first save
+        checkpoint.unlink()
+    argv = [str(BIN / "ns-viewer"), "--load-config", str(config), "--viewer.websocket-port", "7999"]
+    return Expect(argv, needles=[f"--load-config {config}: the run has no checkpoint"], forbidden=["IndexError"])
+
+
+@case
 def read_only_export_target(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")
     shared = ws.read_only(ws.root / "shared")
@@ -1117,6 +1126,8 @@ PROGRAMS = {"ns-train": "ns-train votesplat", "ns-export": "ns-export votesplat-
 
 def program_of(argv: Sequence[str]) -> str:
     name = Path(argv[0]).name
+    if name in ("ns-viewer",):  # a command without subcommands
+        return name
     return PROGRAMS.get(name, f"{name} {argv[1]}")
 
 
