@@ -653,6 +653,63 @@ def garbage_sam_checkpoint(ws, fixtures):
     )
 
 
+# ---- 3DGS PLY files from elsewhere (a retrofit's source)
+def write_ascii_ply(path: Path, columns: Dict[str, np.ndarray]) -> None:
+    """A PLY in the ASCII format (as some tools write them), every column a float property."""
+    count = len(next(iter(columns.values())))
+    header = ["ply", "format ascii 1.0", f"element vertex {count}"]
+    header += [f"property float {name}" for name in columns] + ["end_header"]
+    table = np.stack([np.asarray(column, np.float32) for column in columns.values()], axis=1)
+    with open(path, "w", encoding="ascii") as handle:
+        handle.write("\n".join(header) + "\n")
+        np.savetxt(handle, table, fmt="%.9g")
+
+
+def with_vote_offsets(columns: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    """The columns plus the official VoteSplat code's per-Gaussian vote offsets."""
+    rng = np.random.default_rng(0)
+    count = len(next(iter(columns.values())))
+    return {**columns, **{f"vote_offset_{i}": rng.normal(size=count).astype(np.float32) for i in range(3)}}
+
+
+def test_ascii_big_endian_and_votesplat_plys_read_as_the_binary_one(tmp_path):
+    from votesplat_ns.core.ply_io import gaussian_property_names, read_3dgs_ply, read_vertex_ply, write_vertex_ply
+
+    rng = np.random.default_rng(1)
+    names = gaussian_property_names(15)
+    table = rng.normal(size=(50, len(names))).astype(np.float32)
+    columns = {name: table[:, index] for index, name in enumerate(names)}
+    write_vertex_ply(tmp_path / "binary.ply", columns)
+    expected, degree = read_3dgs_ply(tmp_path / "binary.ply")
+    write_ascii_ply(tmp_path / "ascii.ply", columns)
+    write_vertex_ply(tmp_path / "votesplat.ply", with_vote_offsets(columns))
+    big = (tmp_path / "binary.ply").read_bytes()
+    body = big.index(b"end_header\n") + len(b"end_header\n")
+    swapped = np.frombuffer(big[body:], "<f4").astype(">f4").tobytes()
+    (tmp_path / "big.ply").write_bytes(big[:body].replace(b"binary_little_endian", b"binary_big_endian") + swapped)
+    for name in ("ascii", "votesplat", "big"):
+        arrays, other_degree = read_3dgs_ply(tmp_path / f"{name}.ply")
+        assert other_degree == degree == 3
+        for key in expected:
+            np.testing.assert_allclose(arrays[key], expected[key], rtol=1e-6, err_msg=f"{name} {key}")
+    assert read_vertex_ply(tmp_path / "ascii.ply").keys() == columns.keys()
+
+
+@case
+def retrofit_from_an_ascii_votesplat_ply(ws, fixtures):
+    from votesplat_ns.core.ply_io import read_vertex_ply
+
+    source = ws.root / "votesplat_point_cloud.ply"  # a trained scene as the official VoteSplat code writes it, in ASCII
+    write_ascii_ply(source, with_vote_offsets(read_vertex_ply(fixtures.previous_export / "scene.ply")))
+    argv = ns_train(ws, DEMO_SCENE, *ONE_VOTE_STEP, "--pipeline.model.retrofit-from", str(source))
+    return Expect(
+        argv,
+        exit_code=0,
+        needles=[f"Note: {source} holds vote offsets (vote_offset_0..2", "they are not read"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),
+    )
+
+
 # ---- export
 @case
 def truncated_checkpoint(ws, fixtures):

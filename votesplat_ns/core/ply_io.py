@@ -375,18 +375,42 @@ def read_ply_header(path: PathLike):
                     raise ValueError(f"{path}: unknown PLY property type {words[1]!r}")
                 props.append((words[2], _PLY_TO_NUMPY[words[1]]))
         offset = handle.tell()
-    if fmt != "binary_little_endian":
-        raise ValueError(f"{path}: PLY format {fmt!r} is not supported, only binary_little_endian")
+    if fmt not in PLY_FORMATS:
+        raise ValueError(f"{path}: PLY format {fmt!r} is not supported, only {', '.join(PLY_FORMATS)}")
     if count is None:
         raise ValueError(f"{path}: PLY header declares no vertex element")
     return fmt, count, props, comments, offset
 
 
+PLY_FORMATS = ("binary_little_endian", "binary_big_endian", "ascii")
+
+
+def _vertex_dtype(fmt: str, props) -> np.dtype:
+    order = ">" if fmt == "binary_big_endian" else "<"
+    return np.dtype([(name, order + code if code[1] != "1" else code) for name, code in props])
+
+
+def read_vertex_data(path: PathLike, fmt: str, count: int, props, offset: int) -> np.ndarray:
+    """The vertex records after a PLY header (:func:`read_ply_header`'s values) as a structured array; fewer than
+    ``count`` when the file is truncated. An ASCII value that is not a number raises ``ValueError``."""
+    dtype = _vertex_dtype(fmt, props)
+    if fmt != "ascii":
+        return np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    with open(path, "rb") as handle:
+        handle.seek(offset)
+        values = np.loadtxt(handle, dtype=np.float64, max_rows=count, ndmin=2) if count else np.zeros((0, len(props)))
+    if values.shape[0] and values.shape[1] != len(props):
+        raise ValueError(f"its vertex lines hold {values.shape[1]} values, the header declares {len(props)} properties")
+    data = np.empty(values.shape[0], dtype=dtype)
+    for column, (name, _) in enumerate(props):
+        data[name] = values[:, column]
+    return data
+
+
 def read_vertex_ply(path: PathLike) -> Dict[str, np.ndarray]:
-    """Every vertex property of a binary little-endian PLY as a dict of 1-D arrays (file order)."""
-    _, count, props, _, offset = read_ply_header(path)
-    dtype = np.dtype([(name, "<" + code if code[1] != "1" else code) for name, code in props])
-    data = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    """Every vertex property of a PLY (binary or ASCII) as a dict of 1-D arrays (file order)."""
+    fmt, count, props, _, offset = read_ply_header(path)
+    data = read_vertex_data(path, fmt, count, props, offset)
     if data.shape[0] != count:
         raise ValueError(f"{path}: file is truncated ({data.shape[0]} of {count} vertices)")
     return {name: data[name].copy() for name, _ in props}
@@ -398,6 +422,9 @@ _REQUIRED_GAUSSIAN_PROPERTIES = (
     + [f"rot_{i}" for i in range(4)]
 )
 _OPTIONAL_GAUSSIAN_PROPERTIES = ("nx", "ny", "nz")  # zeros in every writer; gsplat's export_splats leaves them out
+VOTESPLAT_OFFSET_PROPERTIES = ("vote_offset_0", "vote_offset_1", "vote_offset_2")
+"""Columns the official VoteSplat code adds to its 3DGS PLY (each Gaussian's vote offset): accepted and not read,
+as they do not change what the scene looks like (a retrofit learns its own offsets; ``ns/retrofit_source.py`` says so)."""
 MAX_SH_DEGREE = 4  # the highest degree gsplat renders
 
 
@@ -458,17 +485,18 @@ def _names_list(names: Sequence[str], limit: int = 6) -> str:
 def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
     """Read and check a standard 3DGS PLY written by any tool; returns (arrays as ``read_gaussian_ply``, SH degree).
 
-    Accepted: binary little-endian, one vertex element with exactly the properties x y z
+    Accepted: binary (little or big endian) or ASCII, one vertex element with exactly the properties x y z
     [nx ny nz] f_dc_0..2 f_rest_0..f_rest_{3((d+1)^2-1)-1} opacity scale_0..2 rot_0..3 in any
     order and any numeric type (the layout of the original 3DGS writer, gsplat's export_splats,
-    ``ns-export gaussian-splat`` and :func:`write_gaussian_table`). Anything else — not a PLY, a
+    ``ns-export gaussian-splat`` and :func:`write_gaussian_table`), plus the official VoteSplat code's
+    vote_offset_0..2 (:data:`VOTESPLAT_OFFSET_PROPERTIES`, not read). Anything else — not a PLY, a
     truncated file, no vertices, missing or extra properties (an extra one such as Mip-Splatting's
     filter_3D changes what the scene looks like), f_rest for no SH degree, a NaN or infinite
     value — raises :class:`GaussianPlyError` with a one-line message naming the file.
     """
-    what_to_do = "give a binary 3DGS PLY (ns-export gaussian-splat, the original 3DGS or gsplat's simple_trainer)"
+    what_to_do = "give a 3DGS PLY (ns-export gaussian-splat, the original 3DGS or gsplat's simple_trainer)"
     try:
-        _, count, props, _, offset = read_ply_header(path)
+        fmt, count, props, _, offset = read_ply_header(path)
     except FileNotFoundError:
         raise GaussianPlyError(f"{path} does not exist; {what_to_do}") from None
     except (ValueError, IndexError, UnicodeError) as err:
@@ -485,7 +513,12 @@ def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
     expected_rest = [f"f_rest_{i}" for i in range(num_rest)]
     missing = [name for name in _REQUIRED_GAUSSIAN_PROPERTIES if name not in names]
     missing += [name for name in expected_rest if name not in rest_names]
-    known = set(_REQUIRED_GAUSSIAN_PROPERTIES) | set(_OPTIONAL_GAUSSIAN_PROPERTIES) | set(expected_rest)
+    known = (
+        set(_REQUIRED_GAUSSIAN_PROPERTIES)
+        | set(_OPTIONAL_GAUSSIAN_PROPERTIES)
+        | set(expected_rest)
+        | set(VOTESPLAT_OFFSET_PROPERTIES)
+    )
     extra = [name for name in names if name not in known]
     if missing:
         hint = (
@@ -508,16 +541,26 @@ def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
         )
     if count == 0:
         raise GaussianPlyError(f"{path} holds no Gaussians (its vertex count is 0); export the trained scene again")
-    dtype = np.dtype([(name, "<" + code if code[1] != "1" else code) for name, code in props])
+    dtype = _vertex_dtype(fmt, props)
     size = os.path.getsize(path)
-    if size - offset < count * dtype.itemsize:
+    if fmt != "ascii" and size - offset < count * dtype.itemsize:
         raise GaussianPlyError(
             f"{path} is truncated: its header declares {count} Gaussians ({count * dtype.itemsize} bytes) but only "
             f"{max(size - offset, 0)} bytes follow; copy or export the file again"
         )
-    data = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    try:
+        data = read_vertex_data(path, fmt, count, props, offset)
+    except ValueError as err:  # an ASCII value that is not a number
+        raise GaussianPlyError(f"{path}: its vertex values cannot be read ({err}); {what_to_do}") from None
+    if data.shape[0] < count:
+        raise GaussianPlyError(
+            f"{path} is truncated: its header declares {count} Gaussians but only {data.shape[0]} follow; copy or "
+            "export the file again"
+        )
     columns = {name: data[name] for name in names}
-    bad_names = [name for name in names if not np.isfinite(columns[name]).all()]
+    bad_names = [
+        name for name in names if name not in VOTESPLAT_OFFSET_PROPERTIES and not np.isfinite(columns[name]).all()
+    ]
     if bad_names:
         bad_rows = ~np.all([np.isfinite(columns[name]) for name in bad_names], axis=0)
         raise GaussianPlyError(
