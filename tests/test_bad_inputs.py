@@ -1,28 +1,26 @@
-"""Bad-input catalogue: the real commands, in subprocesses, given what a clumsy user gives them.
+"""Bad-input catalogue: the real commands given what a clumsy user (or an attacker) gives them, and the probe
+that sums up how every case ended.
 
-Every case runs one console script (ns-train votesplat, ns-export votesplat-instances, votesplat
-query/click/masks) in a workspace of its own and checks
-  - the exit code,
-  - for a failure: one line ``<command>: error: ...`` naming the file or flag, and no traceback,
-  - for a run that must go on: its warning, said once,
-  - the workspace afterwards: every file that was there is unchanged, and new paths are only those
-    the case allows (no partial or hidden temporary files, user files untouched).
+Every case runs one console script (ns-train votesplat, ns-export votesplat-instances, ns-viewer, votesplat
+export/query/click/query-eval/masks) in a workspace of its own. Most run it in a subprocess; a case whose
+fault cannot be made from outside (a full disk, Ctrl-C at a given step) runs the command's main in this
+process under a monkeypatched fault (``Expect.call``). Each case is judged (``judge``) into one verdict:
+  - ended in one clear line: the exit code expected, one line ``<command>: error: ...`` (``: interrupted: ``
+    for Ctrl-C) last on stderr, naming the file or flag, and no traceback;
+  - ran on with what it had to say: exit 0, each expected warning said once, the result checked;
+  - or what the probe counts as wrong: a traceback, silent wrong (exit 0 where it must fail, a warning
+    missing, a wrong result), data lost (a file that was there changed or gone), an unclear message, files
+    left behind (new paths the case does not allow, partial or hidden temporary files).
 ns-train writes its run's config.yml before the plugin runs (nerfstudio's order), so ns-train
 cases allow that one file. Cases that need a folder the command may not write make it read-only;
 when the tests run as root (who may write anywhere) the command runs without the capabilities
 that let root ignore file permissions (setpriv).
 
-Most cases fail before training or loading starts, so each costs about the command's start-up.
+``test_bad_input`` runs every case (``pytest tests/test_bad_inputs.py -m slow``); at the end of the session
+conftest.py prints the probe's report: cases tried, how many ended in one clear line or ran on, and the
+counts of tracebacks, silent wrong, data lost, unclear messages and files left behind, with each case that
+ended wrongly. Most cases fail before training or loading starts, so each costs about the command's start-up.
 The cases that need a trained run copy the session's ``trained_demo`` (tests/conftest.py).
-
-Issue 16, items 3-7 (item 8, the help, is checked in test_method.py):
-  3 masks_without_any_vote, vote_start_after_the_last_step
-  4 truncated_training_image, nan_in_a_pose, read_only_cache_folder, truncated_checkpoint, read_only_export_target
-  5 damaged_cache_entry
-  6 some_frames_without_instance_masks, hidden_folder_in_the_mask_folder, image_of_the_wrong_size,
-    garbage_clip_checkpoint, duplicate_frames, query_longer_than_clip_reads
-  7 export_over_a_user_file, previous_export_that_cannot_be_deleted, non_finite_vote_offsets
-The other cases are earlier ones (issue 2) and neighbours of these.
 """
 
 from __future__ import annotations
@@ -447,6 +445,121 @@ def test_a_frame_repeating_the_files_camera_values_is_accepted(tmp_path):
     shutil.copytree(DEMO_SCENE, scene)
     edit_transforms(scene, lambda meta: meta["frames"][3].update(w=meta["w"], h=meta["h"], fl_x=meta["fl_x"]))
     check_data_input(VoteDataManagerConfig(data=scene))
+
+
+# ---- inputs that would train silently wrong (data_checks refuses them)
+@case
+def jpeg_label_image(ws, fixtures):
+    scene = ws.scene()
+    label = scene / "instances" / "frame_00002.png"
+    ids = np.array(Image.open(label))
+    Image.fromarray(ids.astype(np.uint8)).save(label, format="JPEG", quality=95)  # a JPEG under the .png name
+    return Expect(
+        ns_train(ws, scene), needles=[f"label image {label} is a JPEG file", "PNG"], new_paths=NS_TRAIN_RUN_FILES
+    )
+
+
+@case
+def cmyk_training_image(ws, fixtures):
+    scene = ws.scene()
+    image = scene / "images" / "frame_00003.png"
+    Image.open(image).convert("CMYK").save(image.with_suffix(".jpg"), format="JPEG", quality=100)
+    image.unlink()
+
+    def renamed(meta):
+        old, new = "images/frame_00003.png", "images/frame_00003.jpg"
+        meta["frames"][2]["file_path"] = new
+        for split in ("train", "val", "test"):
+            meta[f"{split}_filenames"] = [new if name == old else name for name in meta[f"{split}_filenames"]]
+
+    edit_transforms(scene, renamed)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"image {image.with_suffix('.jpg')} has PIL mode CMYK", "convert it to RGB"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def fisheye_camera_without_its_distortion(ws, fixtures):
+    scene = ws.scene()
+    edit_transforms(scene, lambda meta: meta.update(camera_model="OPENCV_FISHEYE"))  # k1..k4 all 0
+    return Expect(
+        ns_train(ws, scene),
+        needles=["camera_model OPENCV_FISHEYE with k1..k4 all 0", "trained as a pinhole camera"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def camera_model_splatfacto_cannot_render(ws, fixtures):
+    scene = ws.scene()
+    edit_transforms(scene, lambda meta: meta.update(camera_model="EQUIRECTANGULAR"))
+    return Expect(
+        ns_train(ws, scene), needles=["camera_model 'EQUIRECTANGULAR' is not supported"], new_paths=NS_TRAIN_RUN_FILES
+    )
+
+
+# ---- files that could run code (harmless payloads: they would only create a marker file)
+class Payload:
+    """Pickles as a call of os.system that makes ``marker``: what a planted checkpoint would do."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def no_marker(marker: Path) -> Callable[[], None]:
+    def check() -> None:
+        assert not marker.exists(), "the payload ran"
+
+    return check
+
+
+@case
+def config_yml_that_runs_code(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    marker = ws.root / "ran"
+    text = config.read_text()
+    config.write_text(
+        text.replace("experiment_name: demo", f"experiment_name: !!python/object/apply:os.system ['touch {marker}']")
+    )
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        needles=[f"--load-config {config}: refused to load tag !!python/object/apply:os.system", "could run code"],
+        after=no_marker(marker),
+    )
+
+
+@case
+def retrofit_from_a_checkpoint_that_runs_code(ws, fixtures):
+    marker = ws.root / "ran"
+    source = ws.root / "step-000000005.ckpt"
+    torch.save({"step": 5, "pipeline": Payload(marker)}, source)
+    return Expect(
+        ns_train(ws, DEMO_SCENE, "--pipeline.model.retrofit-from", str(source)),
+        needles=[f"--pipeline.model.retrofit-from {source}", "Python objects besides weights"],
+        forbidden=["weights_only"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),  # read once the masks are made
+        after=no_marker(marker),
+    )
+
+
+@case
+def resume_from_a_checkpoint_that_runs_code(ws, fixtures):
+    marker = ws.root / "ran"
+    models = ws.root / "models"
+    models.mkdir()
+    torch.save({"step": 5, "pipeline": Payload(marker)}, models / "step-000000005.ckpt")
+    return Expect(
+        ns_train(ws, DEMO_SCENE, "--load-dir", str(models)),
+        needles=[f"--load-dir {models}", "Python objects besides weights"],
+        forbidden=["weights_only"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),  # read once the masks are made
+        after=no_marker(marker),
+    )
 
 
 # ---- training that would run to the end for nothing
