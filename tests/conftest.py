@@ -42,6 +42,15 @@ def run_benchmark(script: str, *args: str, expect_ok: bool = True) -> subprocess
     return done
 
 
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
+    """The bad-input probe's report (tests/test_bad_inputs.py ``Probe``), when its cases ran in this session."""
+    probe = getattr(config, "votesplat_bad_input_probe", None)
+    if probe is not None and probe.outcomes:
+        terminalreporter.section("bad-input probe")
+        for line in probe.summary():
+            terminalreporter.write_line(line)
+
+
 def train_votesplat(data: Path, output_dir: Path, steps: int, vote_start: int, **model_overrides) -> Path:
     """Train votesplat in-process on CPU and return the run's config.yml."""
     from votesplat_ns.ns.method import train_in_process

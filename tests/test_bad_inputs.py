@@ -1,41 +1,45 @@
-"""Bad-input catalogue: the real commands, in subprocesses, given what a clumsy user gives them.
+"""Bad-input catalogue: the real commands given what a clumsy user (or an attacker) gives them, and the probe
+that sums up how every case ended.
 
-Every case runs one console script (ns-train votesplat, ns-export votesplat-instances, votesplat
-query/click/masks) in a workspace of its own and checks
-  - the exit code,
-  - for a failure: one line ``<command>: error: ...`` naming the file or flag, and no traceback,
-  - for a run that must go on: its warning, said once,
-  - the workspace afterwards: every file that was there is unchanged, and new paths are only those
-    the case allows (no partial or hidden temporary files, user files untouched).
+Every case runs one console script (ns-train votesplat, ns-export votesplat-instances, ns-viewer, votesplat
+export/query/click/query-eval/masks) in a workspace of its own. Most run it in a subprocess; a case whose
+fault cannot be made from outside (a full disk, Ctrl-C at a given step) runs the command's main in this
+process under a monkeypatched fault (``Expect.call``). Each case is judged (``judge``) into one verdict:
+  - ended in one clear line: the exit code expected, one line ``<command>: error: ...`` (``: interrupted: ``
+    for Ctrl-C) last on stderr, naming the file or flag, and no traceback;
+  - ran on with what it had to say: exit 0, each expected warning said once, the result checked;
+  - or what the probe counts as wrong: a traceback, silent wrong (exit 0 where it must fail, a warning
+    missing, a wrong result), data lost (a file that was there changed or gone), an unclear message, files
+    left behind (new paths the case does not allow, partial or hidden temporary files).
 ns-train writes its run's config.yml before the plugin runs (nerfstudio's order), so ns-train
 cases allow that one file. Cases that need a folder the command may not write make it read-only;
 when the tests run as root (who may write anywhere) the command runs without the capabilities
 that let root ignore file permissions (setpriv).
 
-Most cases fail before training or loading starts, so each costs about the command's start-up.
+``test_bad_input`` runs every case (``pytest tests/test_bad_inputs.py -m slow``); at the end of the session
+conftest.py prints the probe's report: cases tried, how many ended in one clear line or ran on, and the
+counts of tracebacks, silent wrong, data lost, unclear messages and files left behind, with each case that
+ended wrongly. Most cases fail before training or loading starts, so each costs about the command's start-up.
 The cases that need a trained run copy the session's ``trained_demo`` (tests/conftest.py).
-
-Issue 16, items 3-7 (item 8, the help, is checked in test_method.py):
-  3 masks_without_any_vote, vote_start_after_the_last_step
-  4 truncated_training_image, nan_in_a_pose, read_only_cache_folder, truncated_checkpoint, read_only_export_target
-  5 damaged_cache_entry
-  6 some_frames_without_instance_masks, hidden_folder_in_the_mask_folder, image_of_the_wrong_size,
-    garbage_clip_checkpoint, duplicate_frames, query_longer_than_clip_reads
-  7 export_over_a_user_file, previous_export_that_cannot_be_deleted, non_finite_vote_offsets
-Issue 37 (SAM masks): sam_checkpoint_of_another_model_type, truncated_sam_checkpoint,
-  sixteen_bit_grey_image_for_sam (grey and RGBA images are read as RGB: tests/test_data_checks.py).
-The other cases are earlier ones (issue 2) and neighbours of these.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import fnmatch
 import hashlib
+import io
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import threading
+import time
+import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence
@@ -58,8 +62,10 @@ TEMP_MARKERS = (".tmp-", ".partial.", ".old.")
 class Workspace:
     """A folder for one case."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, monkeypatch: pytest.MonkeyPatch):
         self.root = root
+        self.monkeypatch = monkeypatch
+        """For a case run in-process (``Expect.call``): its fault, undone once the command ends."""
         self.drop_root_overrides = False
         self._locked: List[Path] = []
         self.home = root / "home"
@@ -142,8 +148,17 @@ class Expect:
     """Globs (relative to the workspace) of paths the command may create."""
     changed_paths: Sequence[str] = ()
     """Globs of existing files the command may change."""
+    removed_paths: Sequence[str] = ()
+    """Globs of existing paths the command may delete (leftovers of a killed run, never the user's files)."""
     after: Optional[Callable[[], None]] = None
-    """More checks once the command has run."""
+    """More checks once the command has run (an AssertionError there: the command did something wrong)."""
+    call: Optional[Callable[[], object]] = None
+    """Run the command in this process instead: ``call()`` is its main, run under a fault the case set up
+    with ``ws.monkeypatch`` (a full disk, a Ctrl-C); ``argv`` then only names the command."""
+    cwd: Optional[Path] = None
+    """The folder the command runs in (default: the workspace's home/)."""
+    line: str = ": error: "
+    """A failure's one line is ``<command><line><message>`` (``: interrupted: `` for Ctrl-C)."""
 
 
 # One training step that votes, without the end-of-training foreground pass (it renders every view).
@@ -354,6 +369,199 @@ def truncated_label_image(ws, fixtures):
     )
 
 
+# transforms.json problems nerfstudio's dataparser asserts on (or scales the scene by zero for): (edit, needles)
+def _drop_splits(meta: dict) -> None:
+    for split in ("train", "val", "test"):
+        meta.pop(f"{split}_filenames", None)
+
+
+def _frame_size_beside_the_files(meta: dict) -> None:
+    meta["frames"][3].update(w=100, h=80)
+
+
+def _one_frame(meta: dict) -> None:
+    meta["frames"] = meta["frames"][:1]
+    _drop_splits(meta)
+
+
+def _fewer_frames_than_the_split_lists(meta: dict) -> None:
+    meta["frames"] = meta["frames"][:10]
+
+
+TRANSFORMS_PROBLEMS: Dict[str, tuple] = {
+    "no_focal_length": (
+        lambda meta: meta.pop("fl_x"),
+        ["no fl_x, neither for the whole file nor for frame 0 (images/frame_00001.png)", "34 of 34 frames lack it"],
+    ),
+    "frame_size_beside_another_file_size": (
+        _frame_size_beside_the_files,
+        ["frame 3 (images/frame_00004.png) gives w=100 but the file gives w=128", "nerfstudio reads only the file's"],
+    ),
+    "one_frame": (_one_frame, ["transforms.json lists one frame", "views from several places"]),
+    "split_list_naming_missing_frames": (
+        _fewer_frames_than_the_split_lists,
+        ["train_filenames lists images/frame_00011.png (and 20 more)", "which no frame lists"],
+    ),
+}
+
+
+def transforms_problem(problem: str):
+    edit, needles = TRANSFORMS_PROBLEMS[problem]
+
+    def make(ws, fixtures):
+        scene = ws.scene()
+        edit_transforms(scene, edit)
+        return Expect(
+            ns_train(ws, scene), needles=[str(scene / "transforms.json")] + needles, new_paths=NS_TRAIN_RUN_FILES
+        )
+
+    make.__name__ = f"transforms_json_{problem}"
+    return make
+
+
+for _problem in TRANSFORMS_PROBLEMS:
+    case(transforms_problem(_problem))
+
+
+@pytest.mark.parametrize("problem", sorted(TRANSFORMS_PROBLEMS))
+def test_transforms_problems_nerfstudio_asserts_on_are_refused_in_one_line(problem, tmp_path):
+    """The checks alone (no command): the catalogue runs the same edits through ns-train."""
+    from votesplat_ns.errors import VoteSplatInputError
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig, check_data_input
+
+    scene = tmp_path / "scene"
+    shutil.copytree(DEMO_SCENE, scene)
+    edit, needles = TRANSFORMS_PROBLEMS[problem]
+    edit_transforms(scene, edit)
+    with pytest.raises(VoteSplatInputError) as caught:
+        check_data_input(VoteDataManagerConfig(data=scene))
+    assert "\n" not in str(caught.value) and all(needle in str(caught.value) for needle in needles), caught.value
+
+
+def test_a_frame_repeating_the_files_camera_values_is_accepted(tmp_path):
+    from votesplat_ns.ns.datamanager import VoteDataManagerConfig, check_data_input
+
+    scene = tmp_path / "scene"
+    shutil.copytree(DEMO_SCENE, scene)
+    edit_transforms(scene, lambda meta: meta["frames"][3].update(w=meta["w"], h=meta["h"], fl_x=meta["fl_x"]))
+    check_data_input(VoteDataManagerConfig(data=scene))
+
+
+# ---- inputs that would train silently wrong (data_checks refuses them)
+@case
+def jpeg_label_image(ws, fixtures):
+    scene = ws.scene()
+    label = scene / "instances" / "frame_00002.png"
+    ids = np.array(Image.open(label))
+    Image.fromarray(ids.astype(np.uint8)).save(label, format="JPEG", quality=95)  # a JPEG under the .png name
+    return Expect(
+        ns_train(ws, scene), needles=[f"label image {label} is a JPEG file", "PNG"], new_paths=NS_TRAIN_RUN_FILES
+    )
+
+
+@case
+def cmyk_training_image(ws, fixtures):
+    scene = ws.scene()
+    image = scene / "images" / "frame_00003.png"
+    Image.open(image).convert("CMYK").save(image.with_suffix(".jpg"), format="JPEG", quality=100)
+    image.unlink()
+
+    def renamed(meta):
+        old, new = "images/frame_00003.png", "images/frame_00003.jpg"
+        meta["frames"][2]["file_path"] = new
+        for split in ("train", "val", "test"):
+            meta[f"{split}_filenames"] = [new if name == old else name for name in meta[f"{split}_filenames"]]
+
+    edit_transforms(scene, renamed)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"image {image.with_suffix('.jpg')} has PIL mode CMYK", "convert it to RGB"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def fisheye_camera_without_its_distortion(ws, fixtures):
+    scene = ws.scene()
+    edit_transforms(scene, lambda meta: meta.update(camera_model="OPENCV_FISHEYE"))  # k1..k4 all 0
+    return Expect(
+        ns_train(ws, scene),
+        needles=["camera_model OPENCV_FISHEYE with k1..k4 all 0", "trained as a pinhole camera"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def camera_model_splatfacto_cannot_render(ws, fixtures):
+    scene = ws.scene()
+    edit_transforms(scene, lambda meta: meta.update(camera_model="EQUIRECTANGULAR"))
+    return Expect(
+        ns_train(ws, scene), needles=["camera_model 'EQUIRECTANGULAR' is not supported"], new_paths=NS_TRAIN_RUN_FILES
+    )
+
+
+# ---- files that could run code (harmless payloads: they would only create a marker file)
+class Payload:
+    """Pickles as a call of os.system that makes ``marker``: what a planted checkpoint would do."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def no_marker(marker: Path) -> Callable[[], None]:
+    def check() -> None:
+        assert not marker.exists(), "the payload ran"
+
+    return check
+
+
+@case
+def config_yml_that_runs_code(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    marker = ws.root / "ran"
+    text = config.read_text()
+    config.write_text(
+        text.replace("experiment_name: demo", f"experiment_name: !!python/object/apply:os.system ['touch {marker}']")
+    )
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        needles=[f"--load-config {config}: refused to load tag !!python/object/apply:os.system", "could run code"],
+        after=no_marker(marker),
+    )
+
+
+@case
+def retrofit_from_a_checkpoint_that_runs_code(ws, fixtures):
+    marker = ws.root / "ran"
+    source = ws.root / "step-000000005.ckpt"
+    torch.save({"step": 5, "pipeline": Payload(marker)}, source)
+    return Expect(
+        ns_train(ws, DEMO_SCENE, "--pipeline.model.retrofit-from", str(source)),
+        needles=[f"--pipeline.model.retrofit-from {source}", "Python objects besides weights"],
+        forbidden=["weights_only"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),  # read once the masks are made
+        after=no_marker(marker),
+    )
+
+
+@case
+def resume_from_a_checkpoint_that_runs_code(ws, fixtures):
+    marker = ws.root / "ran"
+    models = ws.root / "models"
+    models.mkdir()
+    torch.save({"step": 5, "pipeline": Payload(marker)}, models / "step-000000005.ckpt")
+    return Expect(
+        ns_train(ws, DEMO_SCENE, "--load-dir", str(models)),
+        needles=[f"--load-dir {models}", "Python objects besides weights"],
+        forbidden=["weights_only"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),  # read once the masks are made
+        after=no_marker(marker),
+    )
+
+
 # ---- training that would run to the end for nothing
 @case
 def vote_start_after_the_last_step(ws, fixtures):
@@ -383,6 +591,65 @@ def masks_without_any_vote(ws, fixtures):
         exit_code=0,
         needles=["no mask of the 30 training views gives a vote", "votesplat masks --data"],
         new_paths=("runs", "runs/**", "cache", "cache/**"),
+    )
+
+
+@case
+def ctrl_c_during_training(ws, fixtures):
+    from nerfstudio.scripts.train import entrypoint
+
+    from votesplat_ns.ns.trainer import VoteSplatTrainer
+
+    scene = ws.scene()
+    train_iteration = VoteSplatTrainer.train_iteration
+
+    def press_ctrl_c_during_step_2(self, step):
+        result = train_iteration(self, step)
+        if step == 2:  # the signal arrives while the step ends
+            os.kill(os.getpid(), signal.SIGINT)
+        return result
+
+    ws.monkeypatch.setattr(VoteSplatTrainer, "train_iteration", press_ctrl_c_during_step_2)
+    argv = ns_train(ws, scene, *ONE_VOTE_STEP)
+    argv[argv.index("--max-num-iterations") + 1] = "20"
+
+    def the_last_finished_step_is_saved():
+        saved = sorted((ws.root / "runs").glob("*/votesplat/*/nerfstudio_models/step-*.ckpt"))
+        assert [path.name for path in saved] == ["step-000000002.ckpt"], saved
+        state = torch.load(saved[0], map_location="cpu", weights_only=True)
+        assert state["step"] == 2 and "_model.gauss_params.vote_offsets" in state["pipeline"]
+
+    return Expect(
+        argv,
+        call=entrypoint,
+        exit_code=130,
+        line=": interrupted: ",
+        needles=["stopped after step 2; saved", "nerfstudio_models/step-000000002.ckpt", "--load-dir"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),
+        after=the_last_finished_step_is_saved,
+    )
+
+
+@case
+def ctrl_c_while_the_masks_are_made(ws, fixtures):
+    from nerfstudio.scripts.train import entrypoint
+
+    from votesplat_ns.core.vote_cache import VoteCache
+
+    scene = ws.scene()
+
+    def press_ctrl_c(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # Python turns it into KeyboardInterrupt here
+        raise AssertionError("SIGINT did not interrupt")
+
+    ws.monkeypatch.setattr(VoteCache, "build_all", press_ctrl_c)
+    return Expect(
+        ns_train(ws, scene),
+        call=entrypoint,
+        exit_code=130,
+        line=": interrupted: ",
+        needles=["stopped while the run was set up", "nothing was saved"],
+        new_paths=NS_TRAIN_RUN_FILES,
     )
 
 
@@ -440,6 +707,25 @@ def damaged_cache_entry(ws, fixtures):
         new_paths=("runs", "runs/**"),
         changed_paths=("cache/*/*",),
         after=rebuilt_identical,
+    )
+
+
+@case
+def user_file_in_a_cache_folder_that_is_rebuilt(ws, fixtures):
+    from votesplat_ns.cli.masks_cli import MasksConfig, main as make_masks
+
+    scene = ws.scene()
+    cache = ws.root / "cache"
+    made = make_masks(MasksConfig(data=scene, cache_dir=cache))
+    entry_dir = made["entry_dir"]
+    config_json = entry_dir / "config.json"
+    config_json.write_text(json.dumps({**json.loads(config_json.read_text()), "levels": ["edited"]}))  # tampered
+    (entry_dir / "notes.txt").write_text("which view is which")
+    return Expect(
+        masks(scene, "--cache-dir", str(cache)),
+        exit_code=0,
+        needles=["was made with other arguments; rebuilding it (kept notes.txt, which the cache does not write)"],
+        changed_paths=("cache/*/*.npy", "cache/*/*.npz", "cache/*/config.json"),
     )
 
 
@@ -553,6 +839,63 @@ def sixteen_bit_grey_image_for_sam(ws, fixtures):
     )
 
 
+# ---- 3DGS PLY files from elsewhere (a retrofit's source)
+def write_ascii_ply(path: Path, columns: Dict[str, np.ndarray]) -> None:
+    """A PLY in the ASCII format (as some tools write them), every column a float property."""
+    count = len(next(iter(columns.values())))
+    header = ["ply", "format ascii 1.0", f"element vertex {count}"]
+    header += [f"property float {name}" for name in columns] + ["end_header"]
+    table = np.stack([np.asarray(column, np.float32) for column in columns.values()], axis=1)
+    with open(path, "w", encoding="ascii") as handle:
+        handle.write("\n".join(header) + "\n")
+        np.savetxt(handle, table, fmt="%.9g")
+
+
+def with_vote_offsets(columns: Dict[str, np.ndarray]) -> Dict[str, np.ndarray]:
+    """The columns plus the official VoteSplat code's per-Gaussian vote offsets."""
+    rng = np.random.default_rng(0)
+    count = len(next(iter(columns.values())))
+    return {**columns, **{f"vote_offset_{i}": rng.normal(size=count).astype(np.float32) for i in range(3)}}
+
+
+def test_ascii_big_endian_and_votesplat_plys_read_as_the_binary_one(tmp_path):
+    from votesplat_ns.core.ply_io import gaussian_property_names, read_3dgs_ply, read_vertex_ply, write_vertex_ply
+
+    rng = np.random.default_rng(1)
+    names = gaussian_property_names(15)
+    table = rng.normal(size=(50, len(names))).astype(np.float32)
+    columns = {name: table[:, index] for index, name in enumerate(names)}
+    write_vertex_ply(tmp_path / "binary.ply", columns)
+    expected, degree = read_3dgs_ply(tmp_path / "binary.ply")
+    write_ascii_ply(tmp_path / "ascii.ply", columns)
+    write_vertex_ply(tmp_path / "votesplat.ply", with_vote_offsets(columns))
+    big = (tmp_path / "binary.ply").read_bytes()
+    body = big.index(b"end_header\n") + len(b"end_header\n")
+    swapped = np.frombuffer(big[body:], "<f4").astype(">f4").tobytes()
+    (tmp_path / "big.ply").write_bytes(big[:body].replace(b"binary_little_endian", b"binary_big_endian") + swapped)
+    for name in ("ascii", "votesplat", "big"):
+        arrays, other_degree = read_3dgs_ply(tmp_path / f"{name}.ply")
+        assert other_degree == degree == 3
+        for key in expected:
+            np.testing.assert_allclose(arrays[key], expected[key], rtol=1e-6, err_msg=f"{name} {key}")
+    assert read_vertex_ply(tmp_path / "ascii.ply").keys() == columns.keys()
+
+
+@case
+def retrofit_from_an_ascii_votesplat_ply(ws, fixtures):
+    from votesplat_ns.core.ply_io import read_vertex_ply
+
+    source = ws.root / "votesplat_point_cloud.ply"  # a trained scene as the official VoteSplat code writes it, in ASCII
+    write_ascii_ply(source, with_vote_offsets(read_vertex_ply(fixtures.previous_export / "scene.ply")))
+    argv = ns_train(ws, DEMO_SCENE, *ONE_VOTE_STEP, "--pipeline.model.retrofit-from", str(source))
+    return Expect(
+        argv,
+        exit_code=0,
+        needles=[f"Note: {source} holds vote offsets (vote_offset_0..2", "they are not read"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),
+    )
+
+
 # ---- export
 @case
 def truncated_checkpoint(ws, fixtures):
@@ -567,6 +910,15 @@ def run_without_checkpoint(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")
     shutil.rmtree(config.parent / "nerfstudio_models")
     return Expect(ns_export(config, ws.root / "export"), needles=[f"--load-config {config}: the run has no checkpoint"])
+
+
+@case
+def viewer_on_a_run_without_checkpoint(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    for checkpoint in (config.parent / "nerfstudio_models").glob("*.ckpt"):  # stopped before its first save
+        checkpoint.unlink()
+    argv = [str(BIN / "ns-viewer"), "--load-config", str(config), "--viewer.websocket-port", "7999"]
+    return Expect(argv, needles=[f"--load-config {config}: the run has no checkpoint"], forbidden=["IndexError"])
 
 
 @case
@@ -597,6 +949,213 @@ def export_over_a_user_file(ws, fixtures):
     return Expect(
         ns_export(config, target),
         needles=[f"--output-dir {target} holds NOTES.txt", "would delete it", "move it out of that folder"],
+    )
+
+
+@case
+def output_dir_checked_before_the_run(ws, fixtures):
+    target = ws.root / "export.ply"
+    target.write_text("mine")
+    missing = ws.root / "outputs" / "config.yml"  # the run is read after the folder is checked
+    return Expect(ns_export(missing, target), needles=[f"--output-dir {target} is a file"])
+
+
+def edit_run_config(config_path: Path, edit: Callable[[object], None]) -> None:
+    """Change a copied run's config.yml (made by copy_run, so trusted) as ns-train would have written it."""
+    import yaml
+
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    edit(config)
+    config_path.write_text(yaml.dump(config))
+
+
+@case
+def export_into_the_folder_it_runs_in(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    # the default vote cache, outputs/<dataset>/votesplat_cache, lies under the folder the command runs in
+    edit_run_config(config, lambda run: setattr(run.pipeline.datamanager, "cache_dir", None))
+    target = ws.root / "export"
+    shutil.copytree(fixtures.previous_export, target)
+    return Expect(
+        ns_export(config, Path(".")),
+        cwd=target,
+        needles=[
+            f"--output-dir . is the folder this command runs in ({target})",
+            "run the command from another folder",
+        ],
+    )
+
+
+def relative_run(ws: Workspace, fixtures: "Fixtures") -> Path:
+    """A copy of the trained run as ns-train writes it when run in ws.root/project with ``--data data/demo``
+    (``--output-dir`` left at ``outputs``): every path in its config.yml is relative to that folder."""
+    project = ws.root / "project"
+    config = copy_run(fixtures.trained_demo, project / "outputs")
+    shutil.copytree(DEMO_SCENE, project / "data" / "demo", ignore=shutil.ignore_patterns("README.md"))
+
+    def relative(run):
+        run.output_dir = Path("outputs")
+        run.data = run.pipeline.datamanager.data = Path("data/demo")
+        run.pipeline.datamanager.cache_dir = None  # outputs/demo/votesplat_cache in the project
+
+    edit_run_config(config, relative)
+    return config
+
+
+@case
+def export_run_from_another_folder(ws, fixtures):
+    config = relative_run(ws, fixtures)
+
+    def nothing_written_where_it_ran():
+        assert not (ws.home / "outputs").exists(), "the vote cache was made again in the current folder"
+
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        exit_code=0,
+        needles=["Exported"],
+        forbidden=["the run has no checkpoint", "the training masks are unavailable"],
+        new_paths=(
+            "export",
+            "export/**",
+            "project/outputs/demo/votesplat_cache",  # the run's own vote cache, made where training made it
+            "project/outputs/demo/votesplat_cache/**",
+            "project/outputs/demo/votesplat/test/votesplat_instances",
+            "project/outputs/demo/votesplat/test/votesplat_instances/**",
+        ),
+        after=nothing_written_where_it_ran,
+    )
+
+
+def test_a_run_is_read_from_its_own_folder_whatever_the_current_folder(tmp_path, monkeypatch):
+    """No model is built: the config alone says where the checkpoints, the data and the vote cache are."""
+    import yaml
+
+    from votesplat_ns.ns.method import trainer_config_in_process
+    from votesplat_ns.ns.run_config import load_run_config
+
+    project = tmp_path / "project"
+    shutil.copytree(DEMO_SCENE, project / "data" / "demo", ignore=shutil.ignore_patterns("README.md"))
+    config = trainer_config_in_process(Path("data/demo"), Path("outputs"), 10, 5)
+    config.pipeline.datamanager.cache_dir = None
+    config.set_experiment_name()  # as ns-train's save_config does
+    run_dir = project / "outputs" / str(config.experiment_name) / "votesplat" / str(config.timestamp)
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.yml").write_text(yaml.dump(config))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    loaded = load_run_config(run_dir / "config.yml")
+    assert loaded.get_checkpoint_dir() == run_dir / "nerfstudio_models"
+    assert loaded.pipeline.datamanager.data == project / "data" / "demo"
+    assert loaded.pipeline.datamanager.cache_dir == project / "outputs" / "demo" / "votesplat_cache"
+    monkeypatch.chdir(project)  # where it was trained: the relative paths stay as they were written
+    loaded = load_run_config(
+        Path("outputs") / str(config.experiment_name) / "votesplat" / str(config.timestamp) / "config.yml"
+    )
+    assert loaded.pipeline.datamanager.data == Path("data/demo") and loaded.pipeline.datamanager.cache_dir is None
+    moved = tmp_path / "moved" / "run"  # a run folder copied elsewhere and renamed: its own checkpoints
+    shutil.copytree(run_dir, moved)
+    assert load_run_config(moved / "config.yml").get_checkpoint_dir() == moved / "nerfstudio_models"
+
+
+def moved_dataset_run(ws: Workspace, fixtures: "Fixtures") -> Path:
+    """A copy of the trained run whose dataset is no longer where its config.yml says."""
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+
+    def moved(run):
+        run.data = run.pipeline.datamanager.data = ws.root / "gone" / "demo"
+
+    edit_run_config(config, moved)
+    return config
+
+
+RUN_RECORD = ("run/*/*/*/votesplat_instances", "run/*/*/*/votesplat_instances/**")
+
+
+@case
+def export_without_the_dataset(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    gone = ws.root / "gone" / "demo"
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        exit_code=0,
+        needles=[
+            f"Warning: the training masks are unavailable (the run's dataset {gone} is not there; pass its folder "
+            "with --data); using the vote clustering without the mask check"
+        ],
+        new_paths=("export", "export/**"),  # the unchecked instances are not kept beside the run
+    )
+
+
+@case
+def export_without_the_dataset_or_the_mask_check(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    return Expect(
+        ns_export(config, ws.root / "export", "--mask-check", "False"),
+        exit_code=0,
+        needles=["Exported"],
+        forbidden=["Warning: the training masks", "error:", "Training views unavailable"],
+        new_paths=("export", "export/**") + RUN_RECORD,
+    )
+
+
+@case
+def click_on_a_run_whose_dataset_moved(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    argv = votesplat("click", config, "--view", "0", "--x", "64", "--y", "64", "--output-dir", str(ws.root / "sel"))
+    return Expect(
+        argv,
+        needles=[f"--load-config {config}: the run's dataset {ws.root / 'gone' / 'demo'} is not there", "with --data"],
+    )
+
+
+@case
+def click_with_the_moved_dataset_given(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    scene = ws.scene("moved_here")
+    output = ws.root / "sel"
+    argv = votesplat(
+        "click", config, "--view", "0", "--x", "64", "--y", "64", "--output-dir", str(output), "--data", str(scene)
+    )
+    return Expect(
+        argv + ["--no-mask-check"],
+        exit_code=0,
+        needles=["View 0, pixel (64.0, 64.0): instance"],
+        new_paths=("sel", "sel/*") + RUN_RECORD,
+    )
+
+
+@case
+def data_flag_to_a_missing_folder(ws, fixtures):
+    missing = ws.root / "nowhere"
+    argv = votesplat("click", fixtures.trained_demo, "--view", "0", "--x", "64", "--y", "64")
+    argv += ["--output-dir", str(ws.root / "sel"), "--data", str(missing)]
+    return Expect(argv, needles=[f"--data {missing}: folder not found"])
+
+
+@case
+def leftovers_of_a_killed_export(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    target = ws.root / "export"
+    killed = ws.root / ".export.partial.tmp-4242-0123456789ab"  # what kill -9 during an export leaves
+    (killed / "instances").mkdir(parents=True)
+    (killed / "scene.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n")
+    hour_ago = time.time() - 3600
+    for path in (killed / "scene.ply", killed / "instances", killed):
+        os.utime(path, (hour_ago, hour_ago))
+    running = ws.root / ".export.partial.tmp-4343-0123456789ab"  # an export in progress in another process
+    running.mkdir()
+
+    def only_the_old_one_is_swept():
+        assert not killed.exists() and running.is_dir()
+
+    return Expect(
+        ns_export(config, target, "--mask-check", "False"),
+        exit_code=0,
+        needles=["Exported"],
+        new_paths=("export", "export/**") + RUN_RECORD,
+        removed_paths=(".export.partial.tmp-4242-*", ".export.partial.tmp-4242-*/**"),
+        after=only_the_old_one_is_swept,
     )
 
 
@@ -633,6 +1192,129 @@ def non_finite_vote_offsets(ws, fixtures):
     )
 
 
+# ---- a full disk (simulated: a tmpfs cannot be mounted everywhere the tests run)
+class FullDisk:
+    """A disk that fills up: once ``room`` bytes have gone into files opened under ``folder``, a write there stores
+    what still fits and fails as write() does on a full disk (OSError ENOSPC, naming no file).
+
+    Installed with ``monkeypatch`` over ``os.fdopen``, which every atomic write of the plugin opens its file with
+    (``core/ply_io.atomic_write``)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, folder: Path, room: int = 0):
+        self.folder = Path(os.path.abspath(folder))
+        self.room = room
+        self.lock = threading.Lock()
+        real_fdopen = os.fdopen
+
+        def fdopen(fd, *args, **kwargs):
+            handle = real_fdopen(fd, *args, **kwargs)
+            with contextlib.suppress(OSError):
+                path = Path(os.readlink(f"/proc/self/fd/{fd}"))
+                if self.folder in path.parents:
+                    return _FillingFile(handle, self)
+            return handle
+
+        monkeypatch.setattr(os, "fdopen", fdopen)
+
+    def take(self, size: int) -> int:
+        """How many of ``size`` bytes still fit."""
+        with self.lock:
+            fits = min(size, self.room)
+            self.room -= fits
+            return fits
+
+
+class _FillingFile:
+    def __init__(self, handle, disk: FullDisk):
+        self._handle = handle
+        self._disk = disk
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        fits = self._disk.take(view.nbytes)
+        self._handle.write(view[:fits])
+        if fits < view.nbytes:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return fits
+
+    def __getattr__(self, name: str):
+        return getattr(self._handle, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._handle.close()
+
+
+def votesplat_in_process(*args: str) -> Callable[[], object]:
+    """The ``votesplat`` command's main on ``args``, for a case run in-process."""
+    from votesplat_ns.cli.main import main
+
+    return lambda: main(list(args))
+
+
+@case
+def disk_full_during_export(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    exports = ws.root / "exports"
+    target = exports / "export"
+    shutil.copytree(fixtures.previous_export, target)  # the previous export must survive
+    FullDisk(ws.monkeypatch, exports, room=100_000)  # scene.ply stops part-way
+    argv = ["votesplat", "export", "--load-config", str(config), "--output-dir", str(target), "--num-views", "0"]
+    return Expect(
+        argv,
+        call=votesplat_in_process(*argv[1:]),
+        needles=[f"--output-dir {target}: the disk is full", "scene.ply", "nothing was left half-written"],
+        new_paths=("run/*/*/*/votesplat_instances", "run/*/*/*/votesplat_instances/**"),
+    )
+
+
+@case
+def disk_full_during_the_vote_cache_build(ws, fixtures):
+    scene = ws.scene()
+    cache = ws.root / "cache"
+    FullDisk(ws.monkeypatch, cache, room=300_000)  # a few views' entries fit
+    argv = ["votesplat", "masks", "--data", str(scene), "--cache-dir", str(cache)]
+
+    def finished_entries_stay_usable():
+        records = sorted(cache.glob("*/*.votes.npz"))
+        assert records, "no entry was finished before the disk filled up"
+        for path in records:  # an entry is its record and the labels file the record describes
+            with np.load(path) as record:
+                shape = tuple(int(v) for v in record["labels_shape"])
+            assert np.load(path.with_name(path.name.replace(".votes.npz", ".labels.npy"))).shape == shape
+
+    return Expect(
+        argv,
+        call=votesplat_in_process(*argv[1:]),
+        needles=[f"--cache-dir {cache}: the disk is full", ".npy", "nothing was left half-written"],
+        new_paths=("cache", "cache/*", "cache/*/*"),
+        after=finished_entries_stay_usable,
+    )
+
+
+def test_a_short_write_is_named_as_a_full_disk_only_when_the_disk_is_full(tmp_path, monkeypatch):
+    """numpy's write onto a full disk (np.save: "32768 requested and 6080 written") has no errno and names no file."""
+    from types import SimpleNamespace
+
+    from votesplat_ns.core.ply_io import atomic_write
+    from votesplat_ns.errors import input_error_for_write
+
+    target = tmp_path / "entry.labels.npy"
+    for free_blocks, expected in ((0, errno.ENOSPC), (10**6, errno.EIO)):
+        monkeypatch.setattr(os, "statvfs", lambda path, free=free_blocks: SimpleNamespace(f_bavail=free, f_frsize=4096))
+        with pytest.raises(OSError) as raised:
+            with atomic_write(target) as handle:
+                handle.write(b"x" * 6080)
+                raise OSError("32768 requested and 6080 written")
+        assert (raised.value.errno, raised.value.filename) == (expected, str(target))
+        assert list(tmp_path.iterdir()) == []  # the temporary file is gone
+    disk_full = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(target))
+    line = str(input_error_for_write(disk_full, tmp_path, "--cache-dir"))
+    assert line.startswith(f"--cache-dir {tmp_path}: the disk is full") and str(target) in line
+
+
 # ---- query and click
 def votesplat(command: str, config: Path, *extra: str) -> List[str]:
     return [str(BIN / "votesplat"), command, "--load-config", str(config), *extra]
@@ -665,6 +1347,14 @@ def query_longer_than_clip_reads(ws, fixtures):
 
 
 @case
+def query_eval_labels_folder_missing(ws, fixtures):
+    missing = ws.root / "labels"
+    argv = votesplat("query-eval", fixtures.trained_demo, "--labels", str(missing))
+    argv += ["--clip-random-init", "--clip-model", "ViT-S-32-alt"]
+    return Expect(argv, needles=[f"--labels {missing}: folder not found"], forbidden=["frame_*.json label files"])
+
+
+@case
 def click_into_a_read_only_folder(ws, fixtures):
     shared = ws.read_only(ws.root / "shared")
     argv = votesplat(
@@ -679,10 +1369,19 @@ PROGRAMS = {"ns-train": "ns-train votesplat", "ns-export": "ns-export votesplat-
 
 def program_of(argv: Sequence[str]) -> str:
     name = Path(argv[0]).name
+    if name in ("ns-viewer",):  # a command without subcommands
+        return name
     return PROGRAMS.get(name, f"{name} {argv[1]}")
 
 
-def run_command(ws: Workspace, argv: Sequence[str]) -> subprocess.CompletedProcess:
+@dataclass
+class Ran:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_command(ws: Workspace, argv: Sequence[str], cwd: Optional[Path] = None) -> Ran:
     env = dict(
         os.environ,
         COLUMNS="200",
@@ -691,9 +1390,39 @@ def run_command(ws: Workspace, argv: Sequence[str]) -> subprocess.CompletedProce
         MPLCONFIGDIR=str(ws.home / ".matplotlib"),
     )
     prefix = DROP_ROOT_OVERRIDES if ws.drop_root_overrides else []
-    return subprocess.run(
-        prefix + list(argv), capture_output=True, check=False, text=True, cwd=ws.home, timeout=900, env=env
+    result = subprocess.run(
+        prefix + list(argv), capture_output=True, check=False, text=True, cwd=cwd or ws.home, timeout=900, env=env
     )
+    return Ran(result.returncode, result.stdout, result.stderr)
+
+
+def run_in_process(call: Callable[[], object], argv: Sequence[str], cwd: Path) -> Ran:
+    """``call()`` under ``argv`` with its stdout, stderr and warnings captured; an exception it lets out is printed
+    as Python would."""
+    out, err = io.StringIO(), io.StringIO()
+    returncode = 0
+    previous, previous_argv = os.getcwd(), sys.argv
+    os.chdir(cwd)
+    sys.argv = list(argv)
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        err.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = show
+            try:
+                call()
+            except SystemExit as exit:
+                returncode = exit.code if isinstance(exit.code, int) else 1
+            except BaseException:  # noqa: BLE001 - what escapes the command is what the user would see
+                err.write(traceback.format_exc())
+                returncode = 1
+    finally:
+        os.chdir(previous)
+        sys.argv = previous_argv
+    return Ran(returncode, out.getvalue(), err.getvalue())
 
 
 def matches(path: str, patterns: Sequence[str]) -> bool:
@@ -708,6 +1437,88 @@ def matches(path: str, patterns: Sequence[str]) -> bool:
         elif len(parts) == len(globs) and all(fnmatch.fnmatchcase(p, g) for p, g in zip(parts, globs)):
             return True
     return False
+
+
+# What a case can end in. The first two are right (which one a case expects is its exit code); the others are
+# what the probe counts as failures.
+ONE_LINE = "ended in one clear line"
+RAN_ON = "ran on with what it had to say"
+TRACEBACK = "traceback"
+SILENT_WRONG = "silent wrong"
+DATA_LOST = "data lost"
+UNCLEAR = "unclear or misleading message"
+LEFTOVERS = "left files behind"
+VERDICTS = (ONE_LINE, RAN_ON, TRACEBACK, SILENT_WRONG, DATA_LOST, UNCLEAR, LEFTOVERS)
+
+
+@dataclass
+class Outcome:
+    verdict: str
+    detail: str = ""
+
+
+def judge(name: str, expect: Expect, ran: Ran, before: Dict[str, str], after: Dict[str, str]) -> Outcome:
+    """What a case ended in (see VERDICTS), and why when it is wrong."""
+    output = ran.stdout + ran.stderr
+    tail = output[-4000:]
+    if "Traceback" in output:
+        return Outcome(TRACEBACK, tail)
+    changed = [
+        path
+        for path in before
+        if path in after and after[path] != before[path] and not matches(path, expect.changed_paths)
+    ]
+    removed = [path for path in before if path not in after and not matches(path, expect.removed_paths)]
+    if changed or removed:
+        return Outcome(DATA_LOST, f"{name} changed {changed} and removed {removed}")
+    if ran.returncode != expect.exit_code:
+        verdict = SILENT_WRONG if ran.returncode == 0 else UNCLEAR
+        return Outcome(verdict, f"exit code {ran.returncode}, expected {expect.exit_code}: {tail}")
+    forbidden = [text for text in expect.forbidden if text in output]
+    if forbidden:
+        return Outcome(UNCLEAR, f"says {forbidden}: {tail}")
+    if expect.exit_code != 0:
+        errors = [line for line in ran.stderr.splitlines() if expect.line in line]
+        lines = [line for line in ran.stderr.splitlines() if line.strip()]
+        if (
+            len(errors) != 1
+            or lines[-1] != errors[0]
+            or not errors[0].startswith(program_of(expect.argv) + expect.line)
+        ):
+            return Outcome(UNCLEAR, f"not one error line at the end: {ran.stderr[-4000:]}")
+        missing = [needle for needle in expect.needles if needle not in errors[0]]
+        if missing:
+            return Outcome(UNCLEAR, f"the line lacks {missing}: {errors[0]}")
+    else:
+        wrong = [needle for needle in expect.needles if output.count(needle) != 1]
+        if wrong:
+            return Outcome(SILENT_WRONG, f"not said once: {wrong}: {tail}")
+    unexpected = [path for path in after if path not in before and not matches(path, expect.new_paths)]
+    leftovers = [
+        path for path in after if path not in before and any(marker in Path(path).name for marker in TEMP_MARKERS)
+    ]
+    if unexpected or leftovers:
+        return Outcome(LEFTOVERS, f"{name} left {unexpected + leftovers}")
+    if expect.after is not None:
+        try:
+            expect.after()
+        except AssertionError as error:
+            return Outcome(SILENT_WRONG, f"{name}: {error}")
+    return Outcome(ONE_LINE if expect.exit_code != 0 else RAN_ON)
+
+
+def run_case(name: str, ws: Workspace, fixtures: "Fixtures") -> Outcome:
+    """Set up case ``name`` in ``ws``, run its command and judge what it did."""
+    expect = CASES[name](ws, fixtures)
+    before = snapshot(ws.root)
+    cwd = expect.cwd or ws.home
+    if expect.call is not None:
+        ran = run_in_process(expect.call, expect.argv, cwd)
+        ws.monkeypatch.undo()  # the fault ends with the command
+    else:
+        ran = run_command(ws, expect.argv, cwd)
+    ws.unlock()
+    return judge(name, expect, ran, before, snapshot(ws.root))
 
 
 @dataclass
@@ -735,46 +1546,44 @@ def fixtures(trained_demo, tmp_path_factory) -> Fixtures:
 
 
 @pytest.fixture
-def workspace(tmp_path):
-    ws = Workspace(tmp_path)
+def workspace(tmp_path, monkeypatch):
+    ws = Workspace(tmp_path, monkeypatch)
     yield ws
     ws.unlock()
 
 
+class Probe:
+    """The outcome of every case run in this session; conftest.py's ``pytest_terminal_summary`` prints :meth:`summary`."""
+
+    def __init__(self) -> None:
+        self.outcomes: Dict[str, Outcome] = {}
+
+    def summary(self) -> List[str]:
+        """Cases tried, and how many ended in each way; then each case that ended wrongly."""
+        outcomes = self.outcomes
+        counts = {verdict: sum(outcome.verdict == verdict for outcome in outcomes.values()) for verdict in VERDICTS}
+        lines = [
+            f"bad-input probe: {len(outcomes)} cases tried; {counts[ONE_LINE]} ended in one clear line, "
+            f"{counts[RAN_ON]} ran on with what they had to say; tracebacks {counts[TRACEBACK]}, "
+            f"silent wrong {counts[SILENT_WRONG]}, data lost {counts[DATA_LOST]}, "
+            f"unclear messages {counts[UNCLEAR]}, left files behind {counts[LEFTOVERS]}"
+        ]
+        wrong = [
+            (name, outcome) for name, outcome in sorted(outcomes.items()) if outcome.verdict not in (ONE_LINE, RAN_ON)
+        ]
+        return lines + [f"  {name}: {outcome.verdict}" for name, outcome in wrong]
+
+
+@pytest.fixture(scope="session")
+def probe(request) -> Probe:
+    found = Probe()
+    request.config.votesplat_bad_input_probe = found
+    return found
+
+
 @pytest.mark.slow  # every case starts a console script; several train a step or load a trained run
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_bad_input(name, workspace, fixtures):
-    expect = CASES[name](workspace, fixtures)
-    before = snapshot(workspace.root)
-    result = run_command(workspace, expect.argv)
-    output = result.stdout + result.stderr
-    assert result.returncode == expect.exit_code, output[-4000:]
-    assert "Traceback" not in output, output[-4000:]
-    for text in expect.forbidden:
-        assert text not in output, output[-4000:]
-    if expect.exit_code != 0:
-        errors = [line for line in result.stderr.splitlines() if ": error: " in line]
-        assert len(errors) == 1, result.stderr[-4000:]
-        last = [line for line in result.stderr.splitlines() if line.strip()][-1]
-        assert last == errors[0] and last.startswith(f"{program_of(expect.argv)}: error: "), result.stderr[-4000:]
-        for needle in expect.needles:
-            assert needle in last, last
-    else:
-        for needle in expect.needles:
-            assert output.count(needle) == 1, (needle, output[-4000:])
-
-    workspace.unlock()
-    after = snapshot(workspace.root)
-    changed = [
-        path
-        for path in before
-        if path in after and after[path] != before[path] and not matches(path, expect.changed_paths)
-    ]
-    assert not changed, f"{name} changed {changed}"
-    assert not [path for path in before if path not in after], f"{name} removed files"
-    unexpected = [path for path in after if path not in before and not matches(path, expect.new_paths)]
-    assert not unexpected, f"{name} left {unexpected}"
-    leftovers = [path for path in after if any(marker in Path(path).name for marker in TEMP_MARKERS)]
-    assert not leftovers, f"{name} left temporary files {leftovers}"
-    if expect.after is not None:
-        expect.after()
+def test_bad_input(name, workspace, fixtures, probe):
+    outcome = run_case(name, workspace, fixtures)
+    probe.outcomes[name] = outcome
+    assert outcome.verdict in (ONE_LINE, RAN_ON), f"{outcome.verdict}: {outcome.detail}"

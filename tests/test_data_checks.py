@@ -37,6 +37,17 @@ def edit_transforms(scene: Path, edit) -> None:
     path.write_text(json.dumps(meta))
 
 
+def rename_frame(meta: dict, old: str, new: str) -> None:
+    """A frame's image renamed in transforms.json: its file_path and the split lists that name it."""
+    for frame in meta["frames"]:
+        if frame["file_path"] == old:
+            frame["file_path"] = new
+    for split in ("train", "val", "test"):
+        names = meta.get(f"{split}_filenames")
+        if names is not None:
+            meta[f"{split}_filenames"] = [new if name == old else name for name in names]
+
+
 def refusal(config: VoteDataManagerConfig) -> str:
     with pytest.raises(VoteSplatInputError) as caught:
         check_data_input(config)
@@ -85,7 +96,7 @@ def test_cmyk_image_is_read_as_rgb_by_the_plugin_and_refused_for_nerfstudio(scen
     assert np.abs(read.astype(int) - rgb.astype(int)).mean() < 3.0
     # nerfstudio's loader (np.array of the image) would read CMYK as RGBA: refused before training
     path.unlink()
-    edit_transforms(scene, lambda meta: meta["frames"][2].update(file_path="images/frame_00003.jpg"))
+    edit_transforms(scene, lambda meta: rename_frame(meta, "images/frame_00003.png", "images/frame_00003.jpg"))
     message = refusal(VoteDataManagerConfig(data=scene))
     assert str(cmyk_path) in message and "mode CMYK" in message and "convert it to RGB" in message
 

@@ -19,6 +19,7 @@ def test_apply_installs_every_process_wide_patch_once():
         "checkpoint safe globals",
         "one-line input errors",
         "ns-export votesplat-instances",
+        "checkpoint checked first",
     }
 
 

@@ -160,12 +160,30 @@ def _bad_files(tmp_path):
     files["not_ply"] = (tmp_path / "image.ply", "is not a PLY file")
     (tmp_path / "cut_header.ply").write_bytes(good[: header_end // 2])
     files["cut_header"] = (tmp_path / "cut_header.ply", "no end_header line")
-    (tmp_path / "ascii.ply").write_bytes(good[:header_end].replace(b"binary_little_endian", b"ascii") + b"0 " * 62 * 8)
-    files["ascii"] = (tmp_path / "ascii.ply", "only binary_little_endian")
+    ascii_header = good[:header_end].replace(b"binary_little_endian", b"ascii")
+    (tmp_path / "ascii.ply").write_bytes(ascii_header + b"0 " * 62 * 7 + b"\n")  # 7 of 8 vertices, on one line
+    files["ascii"] = (tmp_path / "ascii.ply", "vertex lines hold 434 values, the header declares 62 properties")
+    (tmp_path / "ascii_cut.ply").write_bytes(ascii_header + b"0 " * 62 + b"\n" + b"1 " * 62 + b"\n")
+    files["ascii_cut"] = (tmp_path / "ascii_cut.ply", "is truncated: its header declares 8 Gaussians but only 2 follow")
+    (tmp_path / "ascii_text.ply").write_bytes(ascii_header + b"zero " * 62 + b"\n")
+    files["ascii_text"] = (tmp_path / "ascii_text.ply", "its vertex values cannot be read")
     return files
 
 
-BAD_FILES = ["missing", "extra", "rgb", "rest_count", "nan", "empty", "truncated", "not_ply", "cut_header", "ascii"]
+BAD_FILES = [
+    "missing",
+    "extra",
+    "rgb",
+    "rest_count",
+    "nan",
+    "empty",
+    "truncated",
+    "not_ply",
+    "cut_header",
+    "ascii",
+    "ascii_cut",
+    "ascii_text",
+]
 
 
 @pytest.mark.parametrize("case", BAD_FILES)

@@ -14,6 +14,7 @@ import pytest
 
 from votesplat_ns.core.clustering import ClusteringOptions
 from votesplat_ns.core.instances import InstanceSet
+from votesplat_ns.core.ply_io import LEFTOVER_AGE_S
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.ns import run_instances as record
 from votesplat_ns.ns.run_instances import RECORD_FOLDER, InstanceSettings, run_instances
@@ -151,7 +152,7 @@ def test_leftovers_of_a_killed_write_are_swept_and_a_damaged_record_is_rebuilt(t
     leftover = tmp_path / f".{RECORD_FOLDER}.partial.tmp-123-abc"  # what kill -9 mid-write leaves
     leftover.mkdir()
     (leftover / "instances.json").write_text("{")
-    old = time.time() - 2 * record.LEFTOVER_AGE_S
+    old = time.time() - 2 * LEFTOVER_AGE_S
     os.utime(leftover, (old, old))
     fresh = tmp_path / f".{RECORD_FOLDER}.partial.tmp-456-def"  # another process writing right now
     fresh.mkdir()

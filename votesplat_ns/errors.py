@@ -124,6 +124,7 @@ def one_line_errors(
 
 # errors that mean "this place cannot take our files", as opposed to a bug or a missing input
 _WRITE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.ENOTDIR, errno.EEXIST}
+_DISK_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -155,17 +156,25 @@ def check_writable_folder(folder: Union[str, Path], flag: str, given: Union[str,
 def input_error_for_write(error: OSError, folder: Union[str, Path], flag: str) -> Optional[VoteSplatInputError]:
     """The :class:`VoteSplatInputError` for an ``OSError`` raised while writing into ``folder``, else None.
 
-    Only errors about ``folder``, a path inside it or one of its parents, with an errno that
-    means "cannot put files here" (permission, read-only, disk full, not a folder), qualify;
-    anything else keeps its traceback.
+    Only errors about ``folder``, a path inside it or one of its parents, or inside a hidden sibling
+    that is built to replace it (``.<folder name>...``), with an errno that means "cannot put files
+    here" (permission, read-only, disk full, not a folder), qualify; anything else keeps its traceback.
     """
     if error.errno not in _WRITE_ERRNOS or not error.filename:
         return None
     target = Path(os.path.abspath(folder))
     failed = Path(os.path.abspath(os.fsdecode(error.filename)))
-    if failed != target and target not in failed.parents and failed not in target.parents:
+    related = failed == target or target in failed.parents or failed in target.parents
+    if not related and target.parent in failed.parents:  # a staging sibling, e.g. .export.partial.tmp-123-abc
+        related = failed.relative_to(target.parent).parts[0].startswith(f".{target.name}.")
+    if not related:
         return None
     reason = error.strerror or os.strerror(error.errno)
+    if error.errno in _DISK_FULL_ERRNOS:
+        return VoteSplatInputError(
+            f"{flag} {folder}: the disk is full ({reason} while writing {failed}); nothing was left half-written "
+            f"and what was there is unchanged: free some space and run again, or choose another {flag} on another disk"
+        )
     return VoteSplatInputError(
         f"{flag} {folder}: cannot write {failed} ({reason}); make it writable or choose another {flag}"
     )

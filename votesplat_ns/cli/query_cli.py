@@ -57,6 +57,8 @@ class _RunArgs:
     """Check the instances against the run's training masks, as votesplat export does (--mask-check)."""
     mask_check_views: int = DEFAULT_MASK_VIEWS
     """Training views the mask check looks through (as votesplat export)."""
+    data: Optional[Path] = None
+    """Dataset folder, if it moved since training (default: the one in the config); its cameras are the views."""
 
     def instance_settings(self) -> InstanceSettings:
         """The run's instances as votesplat export computes them with the same flags (one record per run)."""
@@ -66,7 +68,9 @@ class _RunArgs:
         return InstanceSettings.make(clustering, self.mask_check, self.mask_check_views)
 
     def load_scene(self) -> QueryScene:
-        return QueryScene.from_config(self.load_config, self.level, self.instances, self.instance_settings(), log=print)
+        return QueryScene.from_config(
+            self.load_config, self.level, self.instances, self.instance_settings(), log=print, data=self.data
+        )
 
 
 @dataclass
@@ -179,7 +183,7 @@ class QueryEval(_EncoderArgs):
     def run(self, encoder: Optional[EncoderProtocol] = None, scene: Optional[QueryScene] = None) -> Dict[str, Any]:
         if self.output is not None:
             check_writable_folder(Path(self.output).parent, "--output", given=self.output)
-        frames = load_scene_labels(self.labels)
+        frames = load_scene_labels(self.labels, "--labels")
         encoder = encoder or self.encoder()
         scene = scene or self.load_scene()
         cache = features_cache_path(scene, self.features_cache)

@@ -29,9 +29,13 @@ Only numpy is needed here (no nerfstudio import).
 from __future__ import annotations
 
 import contextlib
+import errno
+import glob
 import os
+import re
 import secrets
 import shutil
+import time
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, Optional, Sequence, Tuple, Union
 
@@ -85,6 +89,22 @@ def temp_sibling(path: PathLike, tag: str = "") -> Path:
     return path.parent / f".{path.name}{tag}{TEMP_MARKER}{os.getpid()}-{secrets.token_hex(6)}"
 
 
+LEFTOVER_AGE_S = 600.0
+"""A hidden temporary sibling older than this is the leftover of a killed process (a write in progress is younger)."""
+
+
+def sweep_leftovers(path: PathLike, max_age_s: float = LEFTOVER_AGE_S) -> None:
+    """Delete the hidden folders and files that writes of ``path`` left beside it when killed (``.<name>.partial``
+    or ``.old`` siblings, :func:`temp_sibling`), once they are older than ``max_age_s``, so that a write in progress
+    in another process is left alone."""
+    path = Path(path)
+    now = time.time()
+    for leftover in path.parent.glob(f".{glob.escape(path.name)}.*{TEMP_MARKER}*"):
+        with contextlib.suppress(OSError):
+            if now - leftover.lstat().st_mtime > max_age_s:
+                shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()
+
+
 def make_temp_dir(path: PathLike, tag: str = "") -> Path:
     """Create an empty folder with a fresh name next to ``path`` (to be renamed onto it later).
 
@@ -124,15 +144,44 @@ def atomic_write(path: PathLike, mode: str = "wb") -> Iterator:
     tmp_name = temp_sibling(path)
     fd = os.open(tmp_name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
-        with os.fdopen(fd, mode) as handle:
-            yield handle
-            handle.flush()
-            os.fsync(handle.fileno())
+        try:
+            with os.fdopen(fd, mode) as handle:
+                yield handle
+                handle.flush()
+                os.fsync(handle.fileno())
+        except OSError as error:
+            named = write_error_naming(error, path)
+            if named is error:
+                raise
+            raise named from error
         os.replace(tmp_name, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_name)
         raise
+
+
+def write_error_naming(error: OSError, path: PathLike) -> OSError:
+    """``error``, raised while writing ``path``, as an ``OSError`` that names ``path`` and its errno.
+
+    A failed ``write()`` names no file, and numpy's short write (``np.save`` onto a full disk: "32768
+    requested and 6080 written") has no errno either; such an error gets ``path`` and, for a short
+    write, ENOSPC when the disk has less room left than was asked for (EIO otherwise). An error that
+    already names a file is returned as it is.
+    """
+    if error.filename is not None:
+        return error
+    code = error.errno
+    if code is None:
+        short = re.search(r"(\d+) requested and (\d+) written", str(error))
+        if short is None:
+            return error
+        code = errno.EIO
+        with contextlib.suppress(OSError):
+            stats = os.statvfs(Path(path).parent)
+            if stats.f_bavail * stats.f_frsize < int(short.group(1)) - int(short.group(2)):
+                code = errno.ENOSPC
+    return OSError(code, os.strerror(code), os.fspath(path))
 
 
 def jsonable(value: Any) -> Any:
@@ -359,18 +408,42 @@ def read_ply_header(path: PathLike):
                     raise ValueError(f"{path}: unknown PLY property type {words[1]!r}")
                 props.append((words[2], _PLY_TO_NUMPY[words[1]]))
         offset = handle.tell()
-    if fmt != "binary_little_endian":
-        raise ValueError(f"{path}: PLY format {fmt!r} is not supported, only binary_little_endian")
+    if fmt not in PLY_FORMATS:
+        raise ValueError(f"{path}: PLY format {fmt!r} is not supported, only {', '.join(PLY_FORMATS)}")
     if count is None:
         raise ValueError(f"{path}: PLY header declares no vertex element")
     return fmt, count, props, comments, offset
 
 
+PLY_FORMATS = ("binary_little_endian", "binary_big_endian", "ascii")
+
+
+def _vertex_dtype(fmt: str, props) -> np.dtype:
+    order = ">" if fmt == "binary_big_endian" else "<"
+    return np.dtype([(name, order + code if code[1] != "1" else code) for name, code in props])
+
+
+def read_vertex_data(path: PathLike, fmt: str, count: int, props, offset: int) -> np.ndarray:
+    """The vertex records after a PLY header (:func:`read_ply_header`'s values) as a structured array; fewer than
+    ``count`` when the file is truncated. An ASCII value that is not a number raises ``ValueError``."""
+    dtype = _vertex_dtype(fmt, props)
+    if fmt != "ascii":
+        return np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    with open(path, "rb") as handle:
+        handle.seek(offset)
+        values = np.loadtxt(handle, dtype=np.float64, max_rows=count, ndmin=2) if count else np.zeros((0, len(props)))
+    if values.shape[0] and values.shape[1] != len(props):
+        raise ValueError(f"its vertex lines hold {values.shape[1]} values, the header declares {len(props)} properties")
+    data = np.empty(values.shape[0], dtype=dtype)
+    for column, (name, _) in enumerate(props):
+        data[name] = values[:, column]
+    return data
+
+
 def read_vertex_ply(path: PathLike) -> Dict[str, np.ndarray]:
-    """Every vertex property of a binary little-endian PLY as a dict of 1-D arrays (file order)."""
-    _, count, props, _, offset = read_ply_header(path)
-    dtype = np.dtype([(name, "<" + code if code[1] != "1" else code) for name, code in props])
-    data = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    """Every vertex property of a PLY (binary or ASCII) as a dict of 1-D arrays (file order)."""
+    fmt, count, props, _, offset = read_ply_header(path)
+    data = read_vertex_data(path, fmt, count, props, offset)
     if data.shape[0] != count:
         raise ValueError(f"{path}: file is truncated ({data.shape[0]} of {count} vertices)")
     return {name: data[name].copy() for name, _ in props}
@@ -382,6 +455,9 @@ _REQUIRED_GAUSSIAN_PROPERTIES = (
     + [f"rot_{i}" for i in range(4)]
 )
 _OPTIONAL_GAUSSIAN_PROPERTIES = ("nx", "ny", "nz")  # zeros in every writer; gsplat's export_splats leaves them out
+VOTESPLAT_OFFSET_PROPERTIES = ("vote_offset_0", "vote_offset_1", "vote_offset_2")
+"""Columns the official VoteSplat code adds to its 3DGS PLY (each Gaussian's vote offset): accepted and not read,
+as they do not change what the scene looks like (a retrofit learns its own offsets; ``ns/retrofit_source.py`` says so)."""
 MAX_SH_DEGREE = 4  # the highest degree gsplat renders
 
 
@@ -442,17 +518,18 @@ def _names_list(names: Sequence[str], limit: int = 6) -> str:
 def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
     """Read and check a standard 3DGS PLY written by any tool; returns (arrays as ``read_gaussian_ply``, SH degree).
 
-    Accepted: binary little-endian, one vertex element with exactly the properties x y z
+    Accepted: binary (little or big endian) or ASCII, one vertex element with exactly the properties x y z
     [nx ny nz] f_dc_0..2 f_rest_0..f_rest_{3((d+1)^2-1)-1} opacity scale_0..2 rot_0..3 in any
     order and any numeric type (the layout of the original 3DGS writer, gsplat's export_splats,
-    ``ns-export gaussian-splat`` and :func:`write_gaussian_table`). Anything else — not a PLY, a
+    ``ns-export gaussian-splat`` and :func:`write_gaussian_table`), plus the official VoteSplat code's
+    vote_offset_0..2 (:data:`VOTESPLAT_OFFSET_PROPERTIES`, not read). Anything else — not a PLY, a
     truncated file, no vertices, missing or extra properties (an extra one such as Mip-Splatting's
     filter_3D changes what the scene looks like), f_rest for no SH degree, a NaN or infinite
     value — raises :class:`GaussianPlyError` with a one-line message naming the file.
     """
-    what_to_do = "give a binary 3DGS PLY (ns-export gaussian-splat, the original 3DGS or gsplat's simple_trainer)"
+    what_to_do = "give a 3DGS PLY (ns-export gaussian-splat, the original 3DGS or gsplat's simple_trainer)"
     try:
-        _, count, props, _, offset = read_ply_header(path)
+        fmt, count, props, _, offset = read_ply_header(path)
     except FileNotFoundError:
         raise GaussianPlyError(f"{path} does not exist; {what_to_do}") from None
     except (ValueError, IndexError, UnicodeError) as err:
@@ -469,7 +546,12 @@ def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
     expected_rest = [f"f_rest_{i}" for i in range(num_rest)]
     missing = [name for name in _REQUIRED_GAUSSIAN_PROPERTIES if name not in names]
     missing += [name for name in expected_rest if name not in rest_names]
-    known = set(_REQUIRED_GAUSSIAN_PROPERTIES) | set(_OPTIONAL_GAUSSIAN_PROPERTIES) | set(expected_rest)
+    known = (
+        set(_REQUIRED_GAUSSIAN_PROPERTIES)
+        | set(_OPTIONAL_GAUSSIAN_PROPERTIES)
+        | set(expected_rest)
+        | set(VOTESPLAT_OFFSET_PROPERTIES)
+    )
     extra = [name for name in names if name not in known]
     if missing:
         hint = (
@@ -492,16 +574,26 @@ def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
         )
     if count == 0:
         raise GaussianPlyError(f"{path} holds no Gaussians (its vertex count is 0); export the trained scene again")
-    dtype = np.dtype([(name, "<" + code if code[1] != "1" else code) for name, code in props])
+    dtype = _vertex_dtype(fmt, props)
     size = os.path.getsize(path)
-    if size - offset < count * dtype.itemsize:
+    if fmt != "ascii" and size - offset < count * dtype.itemsize:
         raise GaussianPlyError(
             f"{path} is truncated: its header declares {count} Gaussians ({count * dtype.itemsize} bytes) but only "
             f"{max(size - offset, 0)} bytes follow; copy or export the file again"
         )
-    data = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    try:
+        data = read_vertex_data(path, fmt, count, props, offset)
+    except ValueError as err:  # an ASCII value that is not a number
+        raise GaussianPlyError(f"{path}: its vertex values cannot be read ({err}); {what_to_do}") from None
+    if data.shape[0] < count:
+        raise GaussianPlyError(
+            f"{path} is truncated: its header declares {count} Gaussians but only {data.shape[0]} follow; copy or "
+            "export the file again"
+        )
     columns = {name: data[name] for name in names}
-    bad_names = [name for name in names if not np.isfinite(columns[name]).all()]
+    bad_names = [
+        name for name in names if name not in VOTESPLAT_OFFSET_PROPERTIES and not np.isfinite(columns[name]).all()
+    ]
     if bad_names:
         bad_rows = ~np.all([np.isfinite(columns[name]) for name in bad_names], axis=0)
         raise GaussianPlyError(

@@ -116,11 +116,18 @@ class VoteCache:
                 stored = None
             if stored == json.loads(config_text):
                 return True
-            # same folder name but other arguments: the entries cannot be trusted
-            warnings.warn(f"vote cache {self.entry_dir} was made with other arguments; rebuilding it")
-            for path in self.entry_dir.iterdir():
-                if path.is_file():
+            # same folder name but other arguments: the entries cannot be trusted; files the cache does not
+            # write (a user's, dropped into the folder) are kept
+            kept = []
+            for path in sorted(self.entry_dir.iterdir()):
+                if path.is_file() and not path.is_symlink() and is_cache_file(path.name):
                     path.unlink()
+                elif not path.name.startswith("."):
+                    kept.append(path.name)
+            also = f" (kept {', '.join(kept[:3])}{' ...' if len(kept) > 3 else ''}, which the cache does not write)"
+            warnings.warn(
+                f"vote cache {self.entry_dir} was made with other arguments; rebuilding it{also if kept else ''}"
+            )
         return False
 
     # ------------------------------------------------------------------ keys and paths
@@ -319,6 +326,11 @@ class VoteCache:
                         path.unlink()
                 except FileNotFoundError:
                     pass
+
+
+def is_cache_file(name: str) -> bool:
+    """Whether a file name in an entry folder is one the cache writes (config.json, entries, their temporary files)."""
+    return name == "config.json" or name.endswith((".labels.npy", ".votes.npz")) or _TEMP_MARKER in name
 
 
 def _check_label_ids(labels: np.ndarray, centroids: Sequence[np.ndarray]) -> None:

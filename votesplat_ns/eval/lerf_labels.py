@@ -34,6 +34,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from votesplat_ns.core.ply_io import atomic_write
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.eval.lerf_masks import as_bool_mask
 
 Polygon = Tuple[Tuple[float, float], ...]
@@ -259,12 +260,20 @@ def load_label_frame(path: Union[str, os.PathLike]) -> LabelFrame:
     return parse_label_frame(data, source=str(path))
 
 
-def load_scene_labels(scene_dir: Union[str, os.PathLike]) -> List[LabelFrame]:
-    """All ``frame_*.json`` labels of one scene folder, ordered by frame number."""
+def load_scene_labels(scene_dir: Union[str, os.PathLike], flag: str = "label folder") -> List[LabelFrame]:
+    """All ``frame_*.json`` labels of one scene folder, ordered by frame number (``flag`` names the folder in errors)."""
     scene_dir = Path(scene_dir)
-    paths = sorted(scene_dir.glob("frame_*.json")) if scene_dir.is_dir() else []
+    if not scene_dir.exists():
+        raise VoteSplatInputError(f"{flag} {scene_dir}: folder not found; point at one scene's label folder")
+    if not scene_dir.is_dir():
+        raise VoteSplatInputError(
+            f"{flag} {scene_dir} is a file, not a folder; point at the folder that holds one scene's frame_*.json files"
+        )
+    paths = sorted(scene_dir.glob("frame_*.json"))
     if not paths:
-        raise ValueError(f"no frame_*.json label files in {scene_dir}; point at one scene's label folder")
+        raise VoteSplatInputError(
+            f"{flag} {scene_dir}: no frame_*.json label files in this folder; point at one scene's label folder"
+        )
     frames = [load_label_frame(path) for path in paths]
     return sorted(frames, key=lambda frame: frame.frame_number)
 

@@ -212,6 +212,9 @@ def check_frames(
                 f"COLMAP failed to register); fix or remove that frame, {remake}"
             )
         check_camera_values(frame, _frame_name(number, frame))
+    check_intrinsics_given(transforms, meta)
+    check_camera_spread(transforms, frames)
+    check_split_lists(transforms, meta)
     seen: Dict[str, int] = {}
     for number, frame in enumerate(frames):
         path = os.path.normpath(str(frame["file_path"]))
@@ -264,7 +267,8 @@ def check_frames(
                 f"(CMYK as inverted RGBA, palette indices as grey); convert it to RGB, or RGBA to keep transparency (e.g. PIL's "
                 f"Image.open(path).convert('RGB').save(path))"
             )
-        width, height = frame.get("w", meta.get("w")), frame.get("h", meta.get("h"))
+        # nerfstudio's dataparser reads a top-level value for every frame, a frame's only without one
+        width, height = meta.get("w", frame.get("w")), meta.get("h", frame.get("h"))
         if width is None or height is None:
             continue
         if abs(actual_w - width / scale) > 1 or abs(actual_h - height / scale) > 1:
@@ -274,6 +278,72 @@ def check_frames(
                 f"{expected}{f' at --downscale-factor {downscale_factor}' if downscaled else ''}; "
                 f"replace the image with one of the camera's size, or fix w/h and the intrinsics in {name}"
             )
+
+
+def check_intrinsics_given(transforms: Path, meta: dict) -> None:
+    """Every frame must get each camera value (fl_x, fl_y, cx, cy, w, h) from the file's top level or its own entry,
+    and a frame's own value must agree with the top-level one, which nerfstudio's dataparser reads for every frame
+    (the frame's is ignored: the camera would not be the one the frame says)."""
+    frames = meta["frames"]
+    remake = "or make the dataset again with ns-process-data"
+    for key in CAMERA_KEYS:
+        if key in meta:
+            differing = [n for n, frame in enumerate(frames) if key in frame and frame[key] != meta[key]]
+            if differing:
+                first = differing[0]
+                raise VoteSplatInputError(
+                    f"{transforms}: {_frame_name(first, frames[first])} gives {key}={frames[first][key]!r} but the file "
+                    f"gives {key}={meta[key]!r} for every frame ({len(differing)} frames differ), and nerfstudio reads "
+                    f"only the file's; make them agree (or keep {key} in the frames only), {remake}"
+                )
+            continue
+        lacking = [n for n, frame in enumerate(frames) if key not in frame]
+        if lacking:
+            first = lacking[0]
+            raise VoteSplatInputError(
+                f"{transforms}: no {key}, neither for the whole file nor for {_frame_name(first, frames[first])} "
+                f"({len(lacking)} of {len(frames)} frames lack it); give {key} once at the top of {transforms.name} or "
+                f"in every frame, {remake}"
+            )
+
+
+def check_camera_spread(transforms: Path, frames: list) -> None:
+    """Refuse a dataset whose cameras all stand at one place (one frame, say): nerfstudio scales the scene by the
+    cameras' spread, which would then be zero (a scale of millions, or NaN)."""
+    positions = np.array([np.asarray(frame["transform_matrix"], dtype=np.float64)[:3, 3] for frame in frames])
+    if len(frames) < 2 or float(np.ptp(positions, axis=0).max()) == 0.0:
+        what = "lists one frame" if len(frames) < 2 else f"places all {len(frames)} cameras at one point"
+        raise VoteSplatInputError(
+            f"{transforms} {what}; a scene needs views from several places (nerfstudio scales the scene by how far "
+            "the cameras spread): make the dataset from more images taken while moving around the scene"
+        )
+
+
+def check_split_lists(transforms: Path, meta: dict) -> None:
+    """The ``train/val/test_filenames`` lists, when given, must name listed frames, and ns-train needs both the train
+    and the val list (nerfstudio's dataparser raises for an unknown name or a missing list)."""
+    given = [split for split in ("train", "val", "test") if f"{split}_filenames" in meta]
+    if not given:
+        return
+    listed = {os.path.normpath(str(frame["file_path"])) for frame in meta["frames"]}
+    for split in given:
+        names = meta[f"{split}_filenames"]
+        unknown = (
+            [name for name in names if os.path.normpath(str(name)) not in listed]
+            if isinstance(names, list)
+            else [names]
+        )
+        if unknown:
+            raise VoteSplatInputError(
+                f"{transforms}: {split}_filenames lists {unknown[0]}{f' (and {len(unknown) - 1} more)' if len(unknown) > 1 else ''}, "
+                f"which no frame lists; remove it from {split}_filenames or give it a frame"
+            )
+    missing = [split for split in ("train", "val") if split not in given]
+    if missing:
+        raise VoteSplatInputError(
+            f"{transforms} gives {', '.join(f'{split}_filenames' for split in given)} but no {missing[0]}_filenames, "
+            "which nerfstudio then needs too; give it, or remove the split lists to let nerfstudio split the frames"
+        )
 
 
 def check_label_files(transforms: Path, frames: list, levels: Tuple[str, ...]) -> None:

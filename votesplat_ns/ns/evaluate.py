@@ -261,13 +261,7 @@ def evaluate_run(
         raise ValueError(f"output_dir {output_dir} is a file; pass a folder path (it is created if missing)")
     transform, scale = read_dataparser_transform(load_config)
 
-    def update(cfg):
-        if data is not None:
-            cfg.data = data_path
-            cfg.pipeline.datamanager.data = data_path
-        return cfg
-
-    pipeline, scene, step = load_run(load_config, test_mode="test", update_config_callback=update)
+    pipeline, scene, step = load_run(load_config, test_mode="test", data=Path(data) if data is not None else None)
     pairs = _levels_to_score(scene.level_names, dataset.levels, level, gt_level)
 
     datamanager = pipeline.datamanager

@@ -21,7 +21,7 @@ from votesplat_ns.core.clustering import DEFAULT_MAX_POINTS, ClusteringOptions
 from votesplat_ns.errors import one_line_errors, writing_into
 from votesplat_ns.ns.instance_export import check_output_dir, export_instances
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS
-from votesplat_ns.ns.run import camera_view, evenly_spaced, load_run
+from votesplat_ns.ns.run import DatasetMissing, camera_view, evenly_spaced, load_run, load_run_scene
 from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
 
@@ -97,6 +97,9 @@ class ExportVoteSplatInstances:
     in no mask. Needs the run's dataset and masks (as at training); off: the vote clustering alone."""
     mask_check_views: int = DEFAULT_MASK_VIEWS
     """Training views the mask check looks through (evenly spaced)."""
+    data: Optional[Path] = None
+    """Dataset folder, if it moved since training (default: the one in the config). Without the dataset the
+    export still writes the PLY files: the vote clustering without the mask check, and no instances.png."""
 
     def clustering(self) -> ClusteringOptions:
         """The HDBSCAN flags as :func:`cluster_levels` settings."""
@@ -114,12 +117,21 @@ class ExportVoteSplatInstances:
         # bad input (ValueError, VoteSplatInputError) ends the command with one line, exit 1
         with one_line_errors(catch=(ValueError,)), writing_into(self.output_dir, "--output-dir"):
             check_output_dir(self.output_dir, "--output-dir")  # before the checkpoint is loaded
-            pipeline, scene, _ = load_run(self.load_config)
+            missing: Optional[str] = None
+            try:
+                pipeline, scene, _ = load_run(self.load_config, data=self.data)
+            except DatasetMissing as error:  # the PLY files need the checkpoint alone
+                pipeline, missing = None, error.reason
+                scene, _ = load_run_scene(self.load_config)
             device = torch.device(scene.device)
             views: List[PinholeView] = []
             rasterize_fn = default_rasterizer() if self.num_views > 0 else None
             if rasterize_fn is None and self.num_views > 0:
                 CONSOLE.print("[yellow]No rasterizer available on this device; instances.png is skipped.")
+            elif missing is not None and self.num_views > 0:
+                CONSOLE.print(
+                    f"Training views unavailable ({missing}); instances.png is skipped.", markup=False, soft_wrap=True
+                )
             elif rasterize_fn is not None:
                 try:
                     views = training_views(pipeline, self.num_views, self.picture_width)
@@ -137,6 +149,7 @@ class ExportVoteSplatInstances:
                 pipeline=pipeline,
                 rasterize_fn=rasterize_fn or default_rasterizer(),
                 log=log,
+                masks_unavailable=missing,
             )
             manifest = export_instances(
                 scene,

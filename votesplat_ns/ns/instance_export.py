@@ -46,7 +46,13 @@ from votesplat_ns.core.instances import (
     save_instance_picture,
     vote_level_index,
 )
-from votesplat_ns.core.ply_io import make_temp_dir, temp_sibling, write_gaussian_table, write_instance_id_file
+from votesplat_ns.core.ply_io import (
+    make_temp_dir,
+    sweep_leftovers,
+    temp_sibling,
+    write_gaussian_table,
+    write_instance_id_file,
+)
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.errors import VoteSplatInputError, check_writable_folder
 
@@ -112,7 +118,18 @@ def _foreign_entries(folder: Path) -> List[str]:
 
 
 def check_output_dir(output_dir: Path, flag: str = "output_dir") -> None:
-    """Fail before any work if ``output_dir`` cannot be (re)placed: see the module docstring."""
+    """Fail before any work if ``output_dir`` cannot be (re)placed: see the module docstring.
+
+    The folder the command runs in (``--output-dir .`` inside a previous export), or one that holds it, is
+    refused too: it cannot be renamed away while a process works in it, and the shell would be left in a
+    deleted folder.
+    """
+    here = Path.cwd().resolve()
+    if output_dir.resolve() == here or output_dir.resolve() in here.parents:
+        raise VoteSplatInputError(
+            f"{flag} {output_dir} is the folder this command runs in ({here}){' or holds it' if output_dir.resolve() != here else ''}, "
+            f"which the export would replace; run the command from another folder (e.g. cd ..) or choose another {flag}"
+        )
     if output_dir.exists() and not output_dir.is_dir():
         raise VoteSplatInputError(f"{flag} {output_dir} is a file; pass a folder path (it is created if missing)")
     if output_dir.is_dir() and any(output_dir.iterdir()):
@@ -260,6 +277,7 @@ def export_instances(
             )
 
         output_dir.parent.mkdir(parents=True, exist_ok=True)
+        sweep_leftovers(output_dir)  # what exports killed mid-write left beside it
         staging = make_temp_dir(output_dir, ".partial")  # umask permissions: it becomes the export folder
         try:
             manifest = _write_export(

@@ -14,6 +14,10 @@ Process-wide, applied by :func:`apply` when nerfstudio imports the method (every
 * ``ns-export votesplat-instances`` (:func:`install_ns_export_hook`): a meta-path finder that adds our
   subcommand to ``nerfstudio.scripts.exporter``'s command union while it is imported (nerfstudio
   has no plugin point for exporters).
+* ``checkpoint checked first`` (:func:`install_checkpoint_check`): ``nerfstudio.utils.eval_utils.eval_setup``
+  (``ns-viewer``, ``ns-eval``, ``ns-render``) first reads the run's config.yml with the plugin's safe loader and
+  checks its checkpoint as the plugin's commands do, so a run without one ends in one line instead of nerfstudio's
+  IndexError; a config.yml the safe loader refuses (another plugin's classes) is left to nerfstudio, as before.
 
 Scoped, applied where they are needed (listed here so that an upgrade checks them too):
 
@@ -30,7 +34,9 @@ Scoped, applied where they are needed (listed here so that an upgrade checks the
   not patched.
 * ``safe resume`` (``ns/trainer.py`` ``VoteSplatTrainer``, the method's ``TrainerConfig._target``): a subclass
   whose ``_load_checkpoint`` reads with ``weights_only=True``, skips a half-written newest checkpoint and fails
-  in one line; not a patch of ``Trainer``, so other methods keep nerfstudio's.
+  in one line, and whose ``train`` saves a checkpoint at Ctrl-C and exits 130 (nerfstudio's ``launch`` prints
+  the ``KeyboardInterrupt`` and exits 0 with nothing saved); not a patch of ``Trainer``, so other methods keep
+  nerfstudio's.
 
 Left unpatched on purpose: nerfstudio's own reads of a config.yml with ``yaml.Loader`` (``eval_setup``, used
 by ``ns-viewer``, ``ns-eval``, ``ns-render`` and ``ns-export``'s other exporters; ``ns-train --load-config``).
@@ -137,25 +143,27 @@ class _ExporterBeingImported(types.ModuleType):
 
 
 class _PatchingLoader(importlib.abc.Loader):
-    def __init__(self, inner):
+    def __init__(self, inner, patch: Callable[[types.ModuleType], bool]):
         self._inner = inner
+        self._patch = patch
 
     def create_module(self, spec):
         return self._inner.create_module(spec)
 
     def exec_module(self, module) -> None:
         self._inner.exec_module(module)
-        _extend_commands(module)
+        self._patch(module)
 
     def __getattr__(self, name: str):
         return getattr(self._inner, name)
 
 
-class _ExporterFinder(importlib.abc.MetaPathFinder):
-    """Wraps the loader of the exporter module so Commands is extended right after it executes."""
+class _PatchingFinder(importlib.abc.MetaPathFinder):
+    """Wraps the loader of module ``module_name`` so that ``patch(module)`` runs right after it executes."""
 
-    def __init__(self, module_name: str):
+    def __init__(self, module_name: str, patch: Callable[[types.ModuleType], bool]):
         self.module_name = module_name
+        self.patch = patch
 
     def find_spec(self, fullname, path, target=None):
         if fullname != self.module_name:
@@ -165,9 +173,16 @@ class _ExporterFinder(importlib.abc.MetaPathFinder):
                 continue
             spec = finder.find_spec(fullname, path, target)
             if spec is not None and spec.loader is not None:
-                spec.loader = _PatchingLoader(spec.loader)
+                spec.loader = _PatchingLoader(spec.loader, self.patch)
                 return spec
         return None
+
+
+class _ExporterFinder(_PatchingFinder):
+    """Wraps the loader of the exporter module so Commands is extended right after it executes."""
+
+    def __init__(self, module_name: str):
+        super().__init__(module_name, _extend_commands)
 
 
 def install_ns_export_hook(module_name: str = EXPORTER_MODULE) -> None:
@@ -188,6 +203,68 @@ def install_ns_export_hook(module_name: str = EXPORTER_MODULE) -> None:
         return
     if not any(isinstance(f, _ExporterFinder) and f.module_name == module_name for f in sys.meta_path):
         sys.meta_path.insert(0, _ExporterFinder(module_name))
+
+
+# ----------------------------------------------------------------------------- checkpoint checked first
+
+EVAL_UTILS_MODULE = "nerfstudio.utils.eval_utils"
+
+
+def _check_run_first(eval_utils: types.ModuleType) -> bool:
+    """Rebind ``eval_utils.eval_setup`` to check the run's checkpoint before nerfstudio's. False if not defined yet."""
+    original = eval_utils.__dict__.get("eval_setup")
+    if original is None:
+        return False
+    if getattr(original, "_votesplat_checked", False):
+        return True
+    from pathlib import Path
+
+    def eval_setup(config_path, *args, **kwargs):
+        from votesplat_ns.errors import VoteSplatInputError
+        from votesplat_ns.ns.run import checked_checkpoint
+        from votesplat_ns.ns.run_config import load_run_config
+
+        path = Path(config_path)
+        if path.is_file():
+            try:
+                config = load_run_config(path)  # without running code: nerfstudio reads it again its own way
+            except VoteSplatInputError:  # another plugin's config classes, or a file nerfstudio will judge itself
+                config = None
+            if config is not None:
+                checked_checkpoint(config, path)  # one line for a run without a (loadable) checkpoint
+        return original(config_path, *args, **kwargs)
+
+    eval_setup._votesplat_checked = True  # type: ignore[attr-defined]
+    eval_setup.__wrapped__ = original  # type: ignore[attr-defined]
+    eval_utils.eval_setup = eval_setup
+    return True
+
+
+class _EvalUtilsBeingImported(types.ModuleType):
+    """Module class swapped onto a half-imported eval_utils (it imports the method configs, which import us, before
+    it defines eval_setup): rebinds eval_setup on the first attribute read from outside, once it exists."""
+
+    def __getattribute__(self, name: str):
+        namespace = types.ModuleType.__getattribute__(self, "__dict__")
+        if not name.startswith("__") and "eval_setup" in namespace:
+            object.__setattr__(self, "__class__", types.ModuleType)
+            _check_run_first(self)
+        return types.ModuleType.__getattribute__(self, name)
+
+
+def install_checkpoint_check(module_name: str = EVAL_UTILS_MODULE) -> None:
+    """Make ``ns-viewer`` (and every command on nerfstudio's ``eval_setup``: ``ns-eval``, ``ns-render``, ...) check
+    the run's checkpoint before building the model, as the plugin's commands do: a run without one (training stopped
+    before its first save) ends in one line instead of an IndexError. The same three cases as
+    :func:`install_ns_export_hook`: eval_utils imported, half imported (the usual one: its import of the method
+    configs imports the plugin), not imported yet."""
+    eval_utils = sys.modules.get(module_name)
+    if eval_utils is not None:
+        if not _check_run_first(eval_utils) and type(eval_utils) is types.ModuleType:
+            eval_utils.__class__ = _EvalUtilsBeingImported
+        return
+    if not any(isinstance(f, _PatchingFinder) and f.module_name == module_name for f in sys.meta_path):
+        sys.meta_path.insert(0, _PatchingFinder(module_name, _check_run_first))
 
 
 # ----------------------------------------------------------------------------- splatfacto rasterization
@@ -299,6 +376,7 @@ PATCHES: Tuple[Patch, ...] = (
         "nerfstudio.scripts.exporter's Commands (meta-path finder)",
         install_ns_export_hook,
     ),
+    Patch("checkpoint checked first", "nerfstudio.utils.eval_utils.eval_setup", install_checkpoint_check),
 )
 
 _version_warned = False

@@ -10,7 +10,7 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.core.ply_io import GaussianPlyError, read_3dgs_ply
+from votesplat_ns.core.ply_io import VOTESPLAT_OFFSET_PROPERTIES, GaussianPlyError, read_3dgs_ply, read_ply_header
 from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.rasterizer import rasterize
 from votesplat_ns.ns.retrofit import resolve_frame
@@ -62,6 +62,13 @@ def _gaussians_from_ply(
         arrays, ply_sh_degree = read_3dgs_ply(source)
     except GaussianPlyError as err:
         raise VoteSplatInputError(f"{FLAG} {err}") from None
+    if set(VOTESPLAT_OFFSET_PROPERTIES) & {name for name, _ in read_ply_header(source)[2]}:
+        CONSOLE.print(
+            f"Note: {source} holds vote offsets (vote_offset_0..2, as the official VoteSplat code writes them); they "
+            "are not read: the retrofit learns its own (--pipeline.model.retrofit-init)",
+            soft_wrap=True,
+            markup=False,
+        )
     if ply_sh_degree != sh_degree:
         raise VoteSplatInputError(
             f"{FLAG} {source} has SH degree {ply_sh_degree} ({arrays['features_rest'].shape[1] * 3} f_rest properties), "

@@ -10,6 +10,7 @@ and :func:`load_gaussians` read only the Gaussians of a run's checkpoint (a retr
 
 from __future__ import annotations
 
+import contextlib
 import zipfile
 from pathlib import Path
 from typing import Any, Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
@@ -80,6 +81,62 @@ def checked_checkpoint(config: Any, load_config: Path, flag: str = "--load-confi
     return checkpoint
 
 
+class DatasetMissing(VoteSplatInputError):
+    """The run's dataset is not where its config.yml says (moved or deleted), and no ``--data`` gave its new place."""
+
+    def __init__(self, message: str, dataset: Path, data_flag: str):
+        super().__init__(message)
+        self.dataset = dataset
+        self.data_flag = data_flag
+
+    @property
+    def reason(self) -> str:
+        """What is missing and what to do, for a command that goes on without the dataset."""
+        return f"the run's dataset {self.dataset} is not there; pass its folder with {self.data_flag}"
+
+
+def run_dataset(config: Any) -> Optional[Path]:
+    """The dataset a run config reads (its datamanager's data, else its dataparser's), or None."""
+    datamanager = config.pipeline.datamanager
+    data = getattr(datamanager, "data", None) or getattr(getattr(datamanager, "dataparser", None), "data", None)
+    return Path(data) if data is not None else None
+
+
+def use_dataset(config: Any, data: Optional[Path], load_config: Path, flag: str, data_flag: str = "--data") -> None:
+    """Point ``config`` at ``data`` (given: checked first) and check that the run's dataset is there.
+
+    A dataset that moved raises :class:`DatasetMissing` naming ``data_flag``; one that is there but is not a
+    dataset (no transforms.json) raises :class:`VoteSplatInputError` naming it too."""
+    from votesplat_ns.ns.data_checks import check_data_input
+
+    if data is not None:
+        data = Path(data)
+        if not data.exists():
+            raise VoteSplatInputError(
+                f"{data_flag} {data}: folder not found; give the folder of the run's dataset (it holds transforms.json)"
+            )
+        config.data = data
+        config.pipeline.datamanager.data = data
+    dataset = run_dataset(config)
+    datamanager = config.pipeline.datamanager
+    if dataset is None or not hasattr(datamanager, "dataset_path"):  # not a votesplat run: said later
+        return
+    if data is None and not dataset.exists():
+        raise DatasetMissing(
+            f"{flag} {load_config}: the run's dataset {dataset} is not there (moved or deleted); "
+            f"pass its folder with {data_flag}",
+            dataset,
+            data_flag,
+        )
+    where = f"{data_flag} {data}" if data is not None else f"the run's dataset {dataset}"
+    try:
+        check_data_input(datamanager, check_images=False, where=where)
+    except VoteSplatInputError as error:
+        if data is not None:
+            raise
+        raise VoteSplatInputError(f"{error}; if the dataset moved, pass its folder with {data_flag}") from None
+
+
 class LoadedRun(NamedTuple):
     pipeline: Any  # nerfstudio Pipeline (model, datamanager)
     scene: TrainedScene
@@ -91,6 +148,8 @@ def load_run(
     flag: str = "--load-config",
     test_mode: str = "inference",
     update_config_callback: Optional[Callable[[Any], Any]] = None,
+    data: Optional[Path] = None,
+    data_flag: str = "--data",
 ) -> LoadedRun:
     """Load a run's newest checkpoint as nerfstudio's ``eval_setup`` does, without running code from its files.
 
@@ -98,11 +157,14 @@ def load_run(
     and tuples only; nerfstudio's ``eval_setup`` reads it with ``yaml.Loader``, which builds anything) and the
     checkpoint with ``weights_only=True``. A missing config file, one that names anything else, a run without
     checkpoints or a damaged checkpoint raise :class:`VoteSplatInputError` naming the file, before the model is
-    built where possible; a checkpoint without votes raises ``ValueError`` (not a votesplat run).
+    built where possible; a checkpoint without votes raises ``ValueError`` (not a votesplat run). ``data``
+    (the command's ``data_flag``) replaces the run's dataset, which moved; without it, a dataset that is not
+    there raises :class:`DatasetMissing` naming ``data_flag``.
     """
     load_config = Path(load_config)
     config = load_run_config(load_config, flag)
     checked_checkpoint(config, load_config, flag)  # before any model is built
+    use_dataset(config, data, load_config, flag, data_flag)
     pipeline, _, step = setup_run(config, load_config, flag, test_mode, update_config_callback)
     return LoadedRun(pipeline, TrainedScene.from_model(pipeline.model), step)
 
@@ -138,7 +200,18 @@ def setup_run(
             f"{flag} {load_config}: the run has no checkpoint (looked in {config.load_dir}); "
             "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
         )
-    try:  # before the model is built
+    state = read_run_checkpoint(checkpoint, load_config, flag)  # before the model is built
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    pipeline = config.pipeline.setup(device=device, test_mode=test_mode)
+    pipeline.eval()
+    pipeline.load_pipeline(state["pipeline"], state["step"])
+    CONSOLE.print(f":white_check_mark: Done loading checkpoint from {checkpoint}")
+    return pipeline, checkpoint, int(state["step"])
+
+
+def read_run_checkpoint(checkpoint: Path, load_config: Path, flag: str = "--load-config") -> Dict[str, Any]:
+    """A run's checkpoint read with ``weights_only=True``; one line naming it when it cannot be used."""
+    try:
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a damaged or foreign file
         reason = checkpoint_failure_reason(error, checkpoint)
@@ -151,12 +224,51 @@ def setup_run(
             f"checkpoint {checkpoint} (of {flag} {load_config}) is not a nerfstudio checkpoint (no step and pipeline); "
             f"{DAMAGED_HINT}"
         )
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    pipeline = config.pipeline.setup(device=device, test_mode=test_mode)
-    pipeline.eval()
-    pipeline.load_pipeline(state["pipeline"], state["step"])
-    CONSOLE.print(f":white_check_mark: Done loading checkpoint from {checkpoint}")
-    return pipeline, checkpoint, int(state["step"])
+    return state
+
+
+def run_level_names(config: Any, count: int) -> Tuple[str, ...]:
+    """The names of a run's ``count`` vote levels, from its config alone (the model resolves them from the dataset).
+
+    The model's ``vote_levels`` or the datamanager's ``mask_levels`` when set; else those of its mask source
+    (``auto``: the dataset's or SAM's, whichever has ``count``); ``level_<i>`` when none fits."""
+    from votesplat_ns.core.mask_sources import FolderMaskSource
+    from votesplat_ns.core.sam_masks import SAM_LEVELS
+    from votesplat_ns.ns.data_checks import DATASET_LEVELS
+
+    datamanager = config.pipeline.datamanager
+    candidates = [getattr(config.pipeline.model, "vote_levels", None), getattr(datamanager, "mask_levels", None)]
+    source = getattr(datamanager, "mask_source", "auto")
+    if source in ("dataset", "auto"):
+        candidates.append(DATASET_LEVELS)
+    if source in ("sam", "auto"):
+        candidates.append(SAM_LEVELS)
+    folder = getattr(datamanager, "mask_folder", None)
+    if source == "folder" and folder is not None:
+        with contextlib.suppress(OSError, ValueError):  # the folder moved with the dataset
+            candidates.append(FolderMaskSource(Path(folder)).levels)
+    for names in candidates:
+        if names and len(names) == count:
+            return tuple(str(name) for name in names)
+    return tuple(f"level_{index}" for index in range(count))
+
+
+def load_run_scene(load_config: Union[str, Path], flag: str = "--load-config") -> Tuple[TrainedScene, int]:
+    """(scene, step) of a run from its checkpoint alone: no model is built and no dataset read, so it works once the
+    dataset has moved. The same checks as :func:`load_run`; the level names come from :func:`run_level_names`."""
+    from votesplat_ns.core.scene import VOTE_OFFSETS_KEY
+
+    load_config = Path(load_config)
+    config = load_run_config(load_config, flag)
+    checkpoint = checked_checkpoint(config, load_config, flag)
+    state = read_run_checkpoint(checkpoint, load_config, flag)
+    prefix = "_model.gauss_params."
+    params = {key[len(prefix) :]: value for key, value in state["pipeline"].items() if key.startswith(prefix)}
+    offsets = params.get(VOTE_OFFSETS_KEY)
+    count = int(offsets.shape[1]) if offsets is not None and offsets.ndim == 3 else 1
+    model = config.pipeline.model
+    scene = TrainedScene.from_params(params, run_level_names(config, count), getattr(model, "sh_degree", None))
+    return scene, int(state["step"])
 
 
 def latest_checkpoint(path: Path, flag: str = "--pipeline.model.retrofit-from") -> Path:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import importlib
+import os
 import pathlib
 from pathlib import Path
 from typing import Any, Dict, Iterator, Optional, Tuple, Union
@@ -201,7 +202,79 @@ def load_run_config(load_config: Union[str, Path], flag: str = "--load-config") 
         raise not_a_run_config(load_config, flag, error) from None
     if not isinstance(config, TrainerConfig):
         raise not_a_run_config(load_config, flag, TypeError(type(config).__name__))
+    anchor_to_run_folder(config, load_config)
     return config
+
+
+# paths of a run config that ns-train keeps as given, relative to the folder it ran in: (owner, field)
+RELATIVE_INPUTS = (
+    ("", "data"),
+    ("pipeline.datamanager", "data"),
+    ("pipeline.datamanager", "mask_folder"),
+    ("pipeline.datamanager", "sam_checkpoint"),
+    ("pipeline.model", "retrofit_from"),
+)
+
+
+def _owner(config: Any, dotted: str) -> Any:
+    for name in filter(None, dotted.split(".")):
+        config = getattr(config, name, None)
+    return config
+
+
+def training_folder(config: Any, load_config: Union[str, Path]) -> Optional[Path]:
+    """The folder ns-train ran in, when the run's ``output_dir`` is relative and its config.yml lies where
+    ns-train put it (``<that folder>/<output_dir>/<experiment>/<method>/<timestamp>/config.yml``); else None."""
+    run_dir = Path(os.path.abspath(Path(load_config).parent))
+    output_dir = Path(config.output_dir)
+    tail = (str(config.experiment_name), str(config.method_name), str(config.timestamp))
+    if output_dir.is_absolute() or ".." in output_dir.parts or run_dir.parts[-3:] != tail:
+        return None
+    root = run_dir.parents[2]
+    count = len(output_dir.parts)
+    if count and root.parts[-count:] != output_dir.parts:
+        return None
+    return Path(*root.parts[: len(root.parts) - count]) if count else root
+
+
+def anchor_to_run_folder(config: Any, load_config: Union[str, Path]) -> None:
+    """Point a run config at the run its config.yml belongs to, from whatever folder the command runs in.
+
+    * The checkpoints are those beside the config.yml: ``output_dir`` becomes the folder above the run's
+      ``<experiment>/<method>/<timestamp>`` (or, in a folder that was renamed, ``relative_model_dir`` becomes the
+      run folder's own). ns-train often writes ``output_dir`` relative (``outputs``), which nerfstudio reads from the
+      current folder; a moved run's absolute one names where it was.
+    * Inputs given relative to the folder ns-train ran in (``--data data/scene``), found from there but not from
+      the current folder, are made absolute; so is the default vote cache (``outputs/<dataset>/votesplat_cache``
+      under that folder), so that the command reads the run's cache instead of making another one here.
+    """
+    run_dir = Path(os.path.abspath(Path(load_config).parent))
+    if config.experiment_name is not None and run_dir.parts[-3:] == (
+        str(config.experiment_name),
+        str(config.method_name),
+        str(config.timestamp),
+    ):
+        trained_in = training_folder(config, load_config)
+        config.output_dir = run_dir.parents[2]
+    else:
+        trained_in = None
+        config.relative_model_dir = run_dir / config.relative_model_dir
+    if trained_in is None or trained_in == Path.cwd().resolve():
+        return
+    for owner_name, field in RELATIVE_INPUTS:
+        owner = _owner(config, owner_name)
+        value = getattr(owner, field, None)
+        if isinstance(value, Path) and not value.is_absolute() and not value.exists() and (trained_in / value).exists():
+            setattr(owner, field, trained_in / value)
+    datamanager = _owner(config, "pipeline.datamanager")
+    if hasattr(datamanager, "cache_dir"):
+        cache_dir = datamanager.cache_dir
+        if cache_dir is None and datamanager.data is not None:
+            from votesplat_ns.ns.data_checks import default_cache_dir
+
+            datamanager.cache_dir = trained_in / default_cache_dir(Path(datamanager.data))
+        elif isinstance(cache_dir, Path) and not cache_dir.is_absolute():
+            datamanager.cache_dir = trained_in / cache_dir
 
 
 def not_a_run_config(load_config: Path, flag: str, error: BaseException) -> VoteSplatInputError:

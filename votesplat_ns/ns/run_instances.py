@@ -28,13 +28,14 @@ call that can run the check does not read the unchecked instances.
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import hashlib
 import importlib
 import json
+import os
 import re
 import shutil
-import time
 from pathlib import Path
 from typing import Any, Callable, Dict, Mapping, Optional, Tuple
 
@@ -42,7 +43,7 @@ import numpy as np
 
 from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import MANIFEST_NAME, InstanceSet
-from votesplat_ns.core.ply_io import TEMP_MARKER, jsonable, make_temp_dir, replace_folder
+from votesplat_ns.core.ply_io import jsonable, make_temp_dir, replace_folder, sweep_leftovers
 from votesplat_ns.core.scene import TrainedScene
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 
@@ -61,8 +62,6 @@ INSTANCE_CODE_MODULES = (
     "votesplat_ns.ns.run_instances",
 )
 # The parts of a key, in the order a changed one is named.
-# Hidden folders of a write older than this are leftovers of a killed process.
-LEFTOVER_AGE_S = 600.0
 KEY_PARTS = ("gaussians", "settings", "masks", "code")
 _WHAT_CHANGED = {
     "gaussians": "another checkpoint",
@@ -156,11 +155,18 @@ def code_digest() -> str:
 def masks_fingerprint(pipeline: Any) -> Optional[str]:
     """The run's datamanager settings (data, mask source, levels, downscale, ...) as text; None without one.
 
-    Function reprs carry memory addresses, which differ between processes; they are cut out.
+    The data path is made absolute and the cache folder left out, so that a command run from another folder
+    (``ns/run_config.py`` ``anchor_to_run_folder``) keys alike. Function reprs carry memory addresses, which
+    differ between processes; they are cut out.
     """
     config = getattr(getattr(pipeline, "datamanager", None), "config", None)
     if config is None:
         return None
+    config = copy.copy(config)
+    if getattr(config, "data", None) is not None:
+        config.data = Path(os.path.abspath(config.data))
+    if hasattr(config, "cache_dir"):
+        config.cache_dir = None  # where the masks are cached does not change them
     return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(config))
 
 
@@ -193,17 +199,19 @@ def compute_instances(
     rasterize_fn: Optional[Callable[..., tuple]] = None,
     on_level: Optional[Callable[[int, str], None]] = None,
     log: Optional[Log] = None,
+    masks_unavailable: Optional[str] = None,
 ) -> Tuple[InstanceSet, bool]:
     """The instances of every level of ``scene``; returns them and whether the mask check ran.
 
     Without a ``pipeline`` whose datamanager has the training masks, or without ``rasterize_fn``, the
-    check cannot run: ``log`` says so once and the vote clustering alone is returned.
+    check cannot run: ``log`` says so once (with ``masks_unavailable``, the caller's reason) and the vote
+    clustering alone is returned.
     """
     refine = None
     if settings.mask_check:
         reason = None
         if pipeline is None or rasterize_fn is None:
-            reason = "no training views or rasterizer in this process"
+            reason = masks_unavailable or "no training views or rasterizer in this process"
         else:
             try:
                 options = {"max_views": settings.mask_check_views, **dict(settings.mask_check_options)}
@@ -229,20 +237,10 @@ def compute_instances(
     return instances, refine is not None or not settings.mask_check
 
 
-def _sweep_leftovers(run_dir: Path) -> None:
-    """Delete hidden staging/replaced folders that earlier writes left (a kill mid-write), once they are
-    older than :data:`LEFTOVER_AGE_S`, so a write in progress in another process is left alone."""
-    now = time.time()
-    for leftover in run_dir.glob(f".{RECORD_FOLDER}.*{TEMP_MARKER}*"):
-        with contextlib.suppress(OSError):
-            if now - leftover.lstat().st_mtime > LEFTOVER_AGE_S:
-                shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
-
-
 def _write_record(instances: InstanceSet, run_dir: Path, key: Dict[str, str], settings: InstanceSettings) -> Path:
     """Write the record into a hidden sibling and rename it onto ``run_dir/RECORD_FOLDER``."""
     target = run_dir / RECORD_FOLDER
-    _sweep_leftovers(run_dir)
+    sweep_leftovers(target)  # what killed writes left
     staging = make_temp_dir(target, ".partial")
     try:
         instances.save(
@@ -271,6 +269,7 @@ def run_instances(
     rasterize_fn: Optional[Callable[..., tuple]] = None,
     on_level: Optional[Callable[[int, str], None]] = None,
     log: Optional[Log] = None,
+    masks_unavailable: Optional[str] = None,
 ) -> InstanceSet:
     """The instances of a trained run: read from ``run_dir``'s record when its key matches, else computed and kept.
 
@@ -280,9 +279,11 @@ def run_instances(
     pipeline: the loaded nerfstudio pipeline (its datamanager gives the mask check its training views
         and masks); rasterize_fn: gsplat's ``rasterization`` signature (the check renders with it).
     on_level: called before each level is clustered (progress); log: one-line messages (rebuilds, warnings).
+    masks_unavailable: why there is no ``pipeline`` (said in the warning that the mask check cannot run).
     """
-    if run_dir is None:  # nothing is kept, so no key is needed (hashing 5M Gaussians costs about a second)
-        return compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log)[0]
+    # nothing is kept (no folder, or the mask check cannot run), so no key is needed (5M Gaussians hash in ~1 s)
+    if run_dir is None or (pipeline is None and settings.mask_check):
+        return compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log, masks_unavailable)[0]
     key = record_key(scene, settings, pipeline)
     target = Path(run_dir) / RECORD_FOLDER
     if target.is_dir():
@@ -300,7 +301,7 @@ def run_instances(
                 " and ".join(_WHAT_CHANGED[part] for part in changed) if found is not None else "an unreadable record"
             )
             log(f"The instances kept in {target} were computed for {what}; computing them again")
-    instances, checked = compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log)
+    instances, checked = compute_instances(scene, settings, pipeline, rasterize_fn, on_level, log, masks_unavailable)
     if checked:
         try:
             _write_record(instances, target.parent, key, settings)

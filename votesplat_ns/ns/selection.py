@@ -86,12 +86,14 @@ class QueryScene:
         instances: Optional[Path] = None,
         settings: Optional[InstanceSettings] = None,
         log: Optional[Callable[[str], None]] = None,
+        data: Optional[Path] = None,
     ) -> "QueryScene":
         """Load a run's checkpoint (``ns/run.load_run``: read safely, errors as one line) and get the instances of
         ``level``: the run's instances (:func:`~votesplat_ns.ns.run_instances.run_instances`, as the export and the
-        viewer read them) or, with ``instances``, those of an export folder."""
+        viewer read them) or, with ``instances``, those of an export folder. ``data``: the run's dataset, which
+        moved (``--data``)."""
         load_config = Path(load_config)
-        pipeline, params, _ = load_run(load_config)
+        pipeline, params, _ = load_run(load_config, data=data)
         model = pipeline.model
         device = torch.device(params.device)
         level_instances, source = instances_of_level(

@@ -17,19 +17,29 @@ The rest of the load (pipeline, optimizers, schedulers, gradient scaler) is nerf
 On several processes (``--machine.num-devices N`` or torchrun; a retrofit only) the pipeline is built as for one
 process and the ranks meet in the optimizers, which average the offsets' gradients before each step
 (:mod:`votesplat_ns.ns.data_parallel` says why nerfstudio's DistributedDataParallel cannot serve).
+
+Ctrl-C: nerfstudio's ``launch`` catches ``KeyboardInterrupt``, prints its traceback and exits 0 with nothing saved.
+:class:`VoteSplatTrainer` takes SIGINT itself while it trains: the step under way finishes, a checkpoint of the
+last finished step is saved (resume with ``--load-dir``), one line says where, and the command exits 130 (as a
+shell does for Ctrl-C). A second Ctrl-C stops at once without saving, also in one line and with 130; so does one
+while the run is set up (masks being made), where there is nothing to save yet.
 """
 
 from __future__ import annotations
 
+import signal
+import sys
+import threading
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
 
 import torch
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from votesplat_ns.errors import VoteSplatInputError
+from votesplat_ns.errors import VoteSplatInputError, program_name
 from votesplat_ns.ns.data_parallel import (
     COUNTED_GROUPS,
     TRAINED_GROUPS,
@@ -107,6 +117,16 @@ def resume_state(load_dir: Optional[Path], load_step: Optional[int], load_checkp
     return None  # unreachable: the loop returns or raises on its last candidate
 
 
+INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT, what a shell reports for a command stopped by Ctrl-C
+
+
+def interrupted(message: str) -> SystemExit:
+    """Print ``<command>: interrupted: <message>`` on stderr; the exit to raise."""
+    sys.stderr.write(f"{program_name()}: interrupted: {message}\n")
+    sys.stderr.flush()
+    return SystemExit(INTERRUPTED_EXIT_CODE)
+
+
 def _share_run_folder(config: TrainerConfig) -> None:
     """Under torchrun every rank's ns-train named its own run folder by the second it started and saved its
     config.yml there: take rank 0's, and remove a folder of this rank's that holds nothing else."""
@@ -121,8 +141,12 @@ def _share_run_folder(config: TrainerConfig) -> None:
 
 
 class VoteSplatTrainer(Trainer):
-    """nerfstudio's ``Trainer`` whose checkpoint loading reads with ``weights_only=True`` and fails in one line, and
-    which trains a retrofit on several processes by averaging the offsets' gradients (module docstring)."""
+    """nerfstudio's ``Trainer`` whose checkpoint loading reads with ``weights_only=True`` and fails in one line,
+    which trains a retrofit on several processes by averaging the offsets' gradients, and which saves a checkpoint
+    at Ctrl-C (module docstring)."""
+
+    _interrupted = False
+    _last_trained_step: Optional[int] = None
 
     def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         launched = join_launched_group(config.machine.device_type) if world_size == 1 else None
@@ -141,6 +165,10 @@ class VoteSplatTrainer(Trainer):
         self.world_size = 1
         try:
             super().setup(test_mode)
+        except KeyboardInterrupt:
+            raise interrupted(
+                "stopped while the run was set up, before any step was trained; nothing was saved"
+            ) from None
         finally:
             self.world_size = self.ranks
         if self.ranks > 1:
@@ -152,6 +180,58 @@ class VoteSplatTrainer(Trainer):
             return super().setup_optimizers()
         config, groups = self.config.optimizers.copy(), self.pipeline.get_param_groups()
         return DataParallelOptimizers(config, groups, TRAINED_GROUPS, self.ranks, counted=COUNTED_GROUPS)
+
+    def train_iteration(self, step: int):
+        result = super().train_iteration(step)
+        self._last_trained_step = step
+        return result
+
+    def train(self) -> None:
+        if threading.current_thread() is not threading.main_thread():  # signal handlers live in the main thread
+            super().train()
+            return
+
+        def stop_after_this_step(signum, frame) -> None:
+            if self._interrupted:  # a second Ctrl-C
+                raise KeyboardInterrupt
+            self._interrupted = True
+            self.stop_training = True
+            CONSOLE.print(
+                "Ctrl-C: saving a checkpoint once this step is done (press Ctrl-C again to stop at once, without saving)",
+                style="bold yellow",
+                markup=False,
+            )
+
+        previous = signal.signal(signal.SIGINT, stop_after_this_step)
+        try:
+            super().train()
+        except KeyboardInterrupt:
+            self.shutdown()
+            raise interrupted(
+                "stopped at once by a second Ctrl-C; no checkpoint was saved for the steps since the last one"
+            ) from None
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        if self._interrupted:
+            self.shutdown()
+            step = self._last_trained_step
+            if step is None:
+                raise interrupted("stopped before the first step was trained; nothing was saved")
+            raise interrupted(
+                f"stopped after step {step}; saved {self.checkpoint_dir / f'step-{step:09d}.ckpt'}: continue with "
+                f"ns-train votesplat ... --load-dir {self.checkpoint_dir}"
+            )
+
+    def _after_train(self) -> None:
+        if not self._interrupted:
+            super()._after_train()
+            return
+        # interrupted: save the last finished step, and skip the end of training (its callbacks, the viewer's wait)
+        self.training_state = "completed"
+        if self._last_trained_step is not None:
+            self.step = self._last_trained_step
+            self.save_checkpoint(self.step)
+        writer.write_out_storage()
 
     def _load_checkpoint(self) -> None:
         found = resume_state(self.config.load_dir, self.config.load_step, self.config.load_checkpoint)
