@@ -236,7 +236,7 @@ def _check_run_first(eval_utils: types.ModuleType) -> bool:
 
     eval_setup._votesplat_checked = True  # type: ignore[attr-defined]
     eval_setup.__wrapped__ = original  # type: ignore[attr-defined]
-    eval_utils.eval_setup = eval_setup
+    setattr(eval_utils, "eval_setup", eval_setup)  # noqa: B010  (typed as a plain module, whose import may be under way)
     return True
 
 
