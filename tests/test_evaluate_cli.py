@@ -31,6 +31,14 @@ from votesplat_ns.eval.ground_truth import (
 )
 from votesplat_ns.eval.mask_noise import MaskNoise, write_noisy_masks
 from votesplat_ns.eval.synthetic.render import read_views
+from votesplat_ns.eval.synthetic.scenes.primitives import (
+    Box,
+    Revolved,
+    primitive_solid_distance,
+    solid_frustum,
+    sphere,
+    translate,
+)
 from votesplat_ns.ns.evaluate import evaluate_run, select_views
 
 DEMO_INSTANCES = {1, 2, 3, 4, 5}
@@ -101,6 +109,70 @@ def test_geometric_and_projected_gaussian_labels_agree_on_the_demo_surface(demo_
     # occluders do not lend their label: a point hidden behind another surface in every view counts nothing
     hidden = projected_majority_labels(np.array([[0.0, 0.0, -1.0]]), labelled, depth_tolerance=0.01)
     assert hidden.tolist() == [0]
+
+
+def test_closed_primitives_have_an_inside_and_open_ones_do_not():
+    box = Box((0.1, 0.2, 0.3))
+    assert box.local_inside(np.array([[0.0, 0.0, 0.0], [0.09, -0.19, 0.29], [0.11, 0.0, 0.0]])).tolist() == [
+        True,
+        True,
+        False,
+    ]
+    ball = sphere(0.5, np.eye(4))
+    frustum = solid_frustum(0.3, 0.2, 0.4, np.eye(4))
+    centre_and_out = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.6]])
+    assert ball.local_inside(centre_and_out).tolist() == [True, False]
+    assert frustum.local_inside(np.array([[0.1, 0.1, 0.2], [0.1, 0.1, -0.01]])).tolist() == [True, False]
+    # a bowl (open profile) and a partial sweep enclose nothing
+    bowl = Revolved((np.array([[0.0, 0.0], [0.3, 0.0], [0.4, 0.2]]),))
+    wedge = Revolved(ball.pieces, angle_range=(0.0, 1.0))
+    assert not bowl.local_inside(np.array([[0.0, 0.0, 0.1]])).any()
+    assert not wedge.local_inside(np.array([[0.01, 0.001, 0.0]])).any()
+    # world frame: inside is 0 away from the solid, outside the surface distance
+    posed = Box((0.1, 0.1, 0.1), pose=translate(1.0, 0.0, 0.0))
+    np.testing.assert_allclose(
+        primitive_solid_distance(posed, np.array([[1.0, 0.0, 0.0], [1.3, 0.0, 0.0]])), [0.0, 0.2], atol=1e-12
+    )
+
+
+def test_points_inside_an_object_take_its_label():
+    dataset = GroundTruthDataset.open(DEMO_SCENE)
+    scene = dataset.scene()
+    # the box's centre lies half its smallest extent from every face: far beyond the tolerance
+    box_object = next(o for o in scene.objects if isinstance(o.parts[0].primitives[0], Box))
+    box = box_object.parts[0].primitives[0]
+    centre = box.pose[:3, 3][None, :]
+    assert scene.part_surface_distance(box_object.parts[0], centre)[0] > 5 * 0.01
+    assert surface_labels(scene, centre, "instance", tolerance=0.01).tolist() == [box_object.id]
+    assert surface_labels(scene, centre, "part", tolerance=0.01).tolist() == [box_object.parts[0].id]
+
+
+def test_objects_no_training_view_shows_are_left_out_of_the_3d_scores(tmp_path, demo_points):
+    """An object that one training view shows gets label -1 (not scored) and is listed as unseen."""
+    data = tmp_path / "demo"
+    shutil.copytree(DEMO_SCENE, data)
+    dataset = GroundTruthDataset.open(data)
+    hidden = 5
+    for name in dataset.train_names()[1:]:  # every training view but the first loses object 5
+        path = data / dataset.frame(name)["instance_mask_path"]
+        labels = np.asarray(Image.open(path))
+        Image.fromarray(np.where(labels == hidden, 0, labels).astype(labels.dtype)).save(path)
+    labels, info = gaussian_ground_truth(dataset, demo_points, ["instance"], method="geometry")
+    assert info["unseen_objects"] == {"instance": [hidden]} and info["min_training_views_scored"] == 2
+    on_hidden = labels["instance"] == -1
+    assert on_hidden.any() and not (labels["instance"] == hidden).any()
+    # scoring: a perfect prediction of the seen objects plus one instance made of the hidden object's points
+    gt = labels["instance"]
+    pred = np.where(gt > 0, gt - 1, -1)
+    pred[on_hidden] = gt.max()  # its own instance, listed but matched to nothing scored
+    maps = [np.ones((4, 4), np.int64)]  # 2D scores are not under test here
+    result = score_level(maps, [m - 1 for m in maps], gt, pred, dataset.named_ids("instance"))
+    assert result["mean_completeness_3d"] == 1.0 and result["mean_purity_3d"] == 1.0
+    assert result["num_gt_objects"] == len(DEMO_INSTANCES) - 1
+    assert result["num_predicted"] == len(DEMO_INSTANCES)  # the hidden object's instance is still in the list
+    assert result["list_precision"] == pytest.approx((len(DEMO_INSTANCES) - 1) / len(DEMO_INSTANCES))
+    entry = next(e for e in result["per_instance"] if e["id"] == hidden)
+    assert entry["scored_3d"] is False and entry["gaussians"] == 0
 
 
 def test_score_level_repeats_the_2d_scores_over_the_valid_views():

@@ -10,7 +10,7 @@ the 2D and 3D scores of ``votesplat eval``. Pure numpy/torch.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Sequence, Tuple, Union
 
@@ -24,6 +24,11 @@ from votesplat_ns.eval.evaluation import gaussian_purity, match_instances, objec
 DATAPARSER_TRANSFORMS_NAME = "dataparser_transforms.json"
 DEPTH_UNIT_METRES = 1e-3
 GT_LEVELS = ("instance", "part")
+# A GT object (or part) that fewer training views than this show cannot be found from them: no
+# mask ever separates it (fruit inside a closed box, the underside of a mug). Its Gaussians are
+# left out of the 3D scores (label -1) and the object is listed as unseen instead.
+MIN_TRAINING_VIEWS_SCORED = 2
+NOT_SCORED = -1
 
 
 def mask_key(level: str) -> str:
@@ -69,11 +74,13 @@ def read_dataparser_transform(config_path: Union[str, Path]) -> Tuple[np.ndarray
 
 
 def surface_labels(scene, points_world, level: str, tolerance: float) -> np.ndarray:
-    """Exact GT label per point from the scene's geometry: the label of the nearest surface.
+    """Exact GT label per point from the scene's geometry: the label of the nearest solid.
 
     The candidates are every object part (label: its instance id at level ``instance``, its part
-    id at level ``part``) and the background pieces (label 0). A point farther than
-    ``tolerance`` (world units) from every surface, e.g. a floater, gets 0.
+    id at level ``part``) and the background pieces (label 0). A point inside a closed primitive
+    (a box, a full sweep of a closed profile) is at distance 0 from it: splatting fills solids
+    with Gaussians that a removal of the object must take along. A point farther than
+    ``tolerance`` (world units) from every solid, e.g. a floater, gets 0.
     """
     if level not in GT_LEVELS:
         raise ValueError(f"no geometric ground truth for level {level!r}; use one of {list(GT_LEVELS)}")
@@ -88,7 +95,7 @@ def surface_labels(scene, points_world, level: str, tolerance: float) -> np.ndar
     finite = np.isfinite(points).all(axis=1)
     if not finite.any() or not owners:
         return labels
-    distances = np.stack([scene.part_surface_distance(part, points[finite]) for _, part in owners], axis=1)
+    distances = np.stack([scene.part_solid_distance(part, points[finite]) for _, part in owners], axis=1)
     nearest = distances.argmin(axis=1)
     ids = np.array([label for label, _ in owners], dtype=np.int64)[nearest]
     close = distances[np.arange(len(nearest)), nearest] <= tolerance
@@ -230,7 +237,11 @@ def gaussian_ground_truth(
     method: Literal["auto", "geometry", "projection"] = "auto",
     surface_tolerance_px: float = 3.0,
 ) -> Tuple[Dict[str, np.ndarray], Dict[str, object]]:
-    """GT label per Gaussian for each level (means in the dataset's world frame) and how it was made."""
+    """GT label per Gaussian for each level (means in the dataset's world frame) and how it was made.
+
+    Labels: the object (or part) id, 0 for none, :data:`NOT_SCORED` (-1) for the Gaussians of an
+    object that fewer than :data:`MIN_TRAINING_VIEWS_SCORED` training views show (listed in
+    ``info["unseen_objects"]``); :func:`score_level` leaves those out of the 3D scores."""
     from votesplat_ns.eval.synthetic.dataset_files import read_views
 
     meta, views = read_views(dataset.root)
@@ -259,10 +270,27 @@ def gaussian_ground_truth(
                 LabelledView(v.viewmat, v.K, dataset.labels(v.name, level), dataset.depth(v.name)) for v in train_views
             ]
             labels[level] = projected_majority_labels(means_world, labelled, depth_tolerance=footprint)
+    unseen: Dict[str, List[int]] = {}
+    for level in levels:
+        shown = training_view_counts(dataset, level)
+        present = np.unique(labels[level][labels[level] > 0])
+        unseen[level] = [int(g) for g in present if shown.get(int(g), 0) < MIN_TRAINING_VIEWS_SCORED]
+        labels[level] = np.where(np.isin(labels[level], unseen[level]), NOT_SCORED, labels[level])
+    info["unseen_objects"] = unseen
+    info["min_training_views_scored"] = MIN_TRAINING_VIEWS_SCORED
     info["fraction_on_objects"] = {
         level: float((labels[level] > 0).mean()) if len(labels[level]) else 0.0 for level in levels
     }
     return labels, info
+
+
+def training_view_counts(dataset: GroundTruthDataset, level: str) -> Dict[int, int]:
+    """GT id -> how many training views' label images show it (at least one pixel)."""
+    counts: Dict[int, int] = {}
+    for name in dataset.train_names():
+        for gid in np.unique(dataset.labels(name, level)).tolist():
+            counts[int(gid)] = counts.get(int(gid), 0) + 1
+    return counts
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -297,10 +325,13 @@ def score_level(
     shifted_maps = [np.asarray(m).astype(np.int64) + 1 for m in pred_maps]
     gt_maps = [np.asarray(m).astype(np.int64) for m in gt_maps]
     scores2d = match_instances(gt_maps, shifted_maps, iou_threshold=iou_threshold)
-    scores3d = gaussian_purity(
-        np.asarray(pred_gaussians).astype(np.int64) + 1, np.asarray(gt_gaussians).astype(np.int64)
-    )
+    gt_all = np.asarray(gt_gaussians).astype(np.int64)
     pred_ids = np.asarray(pred_gaussians).astype(np.int64)
+    if gt_all.shape != pred_ids.shape:
+        raise ValueError(f"gt_gaussians has shape {gt_all.shape} but pred_gaussians {pred_ids.shape}")
+    scored = gt_all != NOT_SCORED  # the Gaussians of objects no training view shows stay out
+    gt_scored, pred_scored = gt_all[scored], pred_ids[scored]
+    scores3d = gaussian_purity(pred_scored + 1, gt_scored)
     pred_count = int(pred_ids.max()) + 1 if pred_ids.size else 0
     if confidence is None:
         counts = np.bincount(pred_ids[pred_ids >= 0], minlength=max(pred_count, 0))
@@ -312,18 +343,21 @@ def score_level(
                 f"confidence has {confidence_values.shape[0]} entries for {pred_count} predicted instances"
             )
     objects = object_scores(
-        pred_ids + 1,
-        np.asarray(gt_gaussians).astype(np.int64),
+        pred_scored + 1,
+        gt_scored,
         {k + 1: float(confidence_values[k]) for k in range(max(pred_count, 0))},
         iou_threshold,
     )
+    listed = int(np.unique(pred_ids[pred_ids >= 0]).size)
+    if listed > objects.num_predicted:  # instances made only of unscored Gaussians are still listed
+        objects = replace(objects, num_predicted=listed, list_precision=objects.num_matched / listed)
     names = dict(names or {})
     gt_area = {int(g): 0 for g in scores2d.gt_ids}
     for m in gt_maps:
         values, counts = np.unique(m[m > 0], return_counts=True)
         for v, c in zip(values.tolist(), counts.tolist()):
             gt_area[v] = gt_area.get(v, 0) + c
-    on_gt = np.bincount(np.asarray(gt_gaussians).astype(np.int64))
+    on_gt = np.bincount(gt_all[gt_all > 0]) if (gt_all > 0).any() else np.zeros(1, dtype=np.int64)
     all_ids = sorted(set(names) | set(gt_area) | {int(g) for g in np.flatnonzero(on_gt) if g > 0})
     per_instance = []
     for gid in all_ids:
@@ -337,6 +371,7 @@ def score_level(
                 "iou": scores2d.per_gt_iou.get(gid) if gid in gt_area else None,
                 "matched_prediction": None if matched is None else int(matched) - 1,
                 "gaussians": int(on_gt[gid]) if gid < len(on_gt) else 0,
+                "scored_3d": gid in scores3d.per_gt_completeness,
                 "completeness_3d": scores3d.per_gt_completeness.get(gid),
                 "purity_3d": scores3d.per_gt_purity.get(gid),
                 "iou_3d": scores3d.per_gt_iou.get(gid),

@@ -19,10 +19,12 @@ dataset's exact label images:
   label of a Gaussian comes from the scene's exact geometry when the dataset was written by
   ``votesplat synth`` (see :func:`surface_labels`): its mean is mapped back from nerfstudio's
   normalised frame to the dataset's world frame with the run's ``dataparser_transforms.json``, and
-  takes the label of the nearest surface if that surface lies within ``surface_tolerance_px``
-  pixels (at the typical camera distance). Otherwise it falls back to the majority label under the
+  takes the label of the nearest solid if it lies inside a closed one or within
+  ``surface_tolerance_px`` pixels (at the typical camera distance) of its surface. Otherwise it falls back to the majority label under the
   projected mean in the training views where the mean is not hidden behind the GT depth
-  (:func:`projected_majority_labels`).
+  (:func:`projected_majority_labels`). An object that fewer than two training views show cannot
+  be found from them; its Gaussians stay out of the 3D scores and ``gaussian_gt.unseen_objects``
+  lists it.
 
 * What a user sees (:func:`~votesplat_ns.eval.ground_truth.score_level`): per GT object the 3D
   completeness and purity over Gaussians and their means, list precision (instances matched at

@@ -12,6 +12,7 @@ import numpy as np
 from votesplat_ns.eval.synthetic.scenes.primitives import (
     Primitive,
     primitive_mesh,
+    primitive_solid_distance,
     primitive_surface_distance,
     rigid_inverse,
 )
@@ -114,6 +115,10 @@ class Scene:
 
     def part_surface_distance(self, part: Part, points_world: np.ndarray) -> np.ndarray:
         return np.min([primitive_surface_distance(p, points_world) for p in part.primitives], axis=0)
+
+    def part_solid_distance(self, part: Part, points_world: np.ndarray) -> np.ndarray:
+        """0 inside a closed primitive of the part, else the distance to its surface."""
+        return np.min([primitive_solid_distance(p, points_world) for p in part.primitives], axis=0)
 
     def object_surface_distance(self, obj: SceneObject, points_world: np.ndarray) -> np.ndarray:
         return np.min([self.part_surface_distance(part, points_world) for part in obj.parts], axis=0)

@@ -198,6 +198,20 @@ class Revolved:
         dist[outside] = end_dist
         return dist
 
+    def local_inside(self, points: np.ndarray) -> np.ndarray:
+        """Points inside the solid: only for a full sweep of a profile that is closed (its ends meet,
+        or both lie on the axis); an open profile (a bowl, a lampshade) encloses no volume."""
+        pieces = [np.asarray(p, dtype=np.float64) for p in self.pieces]
+        outline = np.concatenate([pieces[0]] + [p[1:] for p in pieces[1:]])
+        ends_meet = np.allclose(outline[0], outline[-1])
+        ends_on_axis = abs(outline[0, 0]) < 1e-9 and abs(outline[-1, 0]) < 1e-9
+        if self.angle_range is not None or not (ends_meet or ends_on_axis):
+            return np.zeros(len(points), dtype=bool)
+        if ends_on_axis:  # exactly on it, so that a point on the axis is not counted across the closing edge
+            outline[[0, -1], 0] = 0.0
+        rho = np.hypot(points[:, 0], points[:, 1])
+        return _inside_polygon_2d(np.stack([rho, points[:, 2]], axis=-1), outline)
+
 
 @dataclass(frozen=True)
 class Box:
@@ -229,6 +243,9 @@ class Box:
         inside = np.minimum(q.max(axis=1), 0.0)
         return np.abs(outside + inside)
 
+    def local_inside(self, points: np.ndarray) -> np.ndarray:
+        return (np.abs(points) <= np.asarray(self.half_extents)).all(axis=1)
+
 
 @dataclass(frozen=True)
 class Quad:
@@ -256,6 +273,9 @@ class Quad:
         dx = np.maximum(np.abs(points[:, 0]) - self.half_size[0], 0.0)
         dy = np.maximum(np.abs(points[:, 1]) - self.half_size[1], 0.0)
         return np.sqrt(dx * dx + dy * dy + points[:, 2] ** 2)
+
+    def local_inside(self, points: np.ndarray) -> np.ndarray:
+        return np.zeros(len(points), dtype=bool)  # a sheet encloses nothing
 
 
 # What a part is made of: a surface with a pose in the part's frame.
@@ -290,6 +310,13 @@ def primitive_surface_distance(primitive, points_world: np.ndarray) -> np.ndarra
     """Unsigned distance (metres) from world points to the primitive's ideal surface."""
     local = transform_points(rigid_inverse(primitive.pose), np.asarray(points_world, dtype=np.float64))
     return primitive.local_surface_distance(local)
+
+
+def primitive_solid_distance(primitive, points_world: np.ndarray) -> np.ndarray:
+    """Distance (metres) from world points to the primitive's solid: 0 inside a closed primitive,
+    the distance to its surface elsewhere."""
+    local = transform_points(rigid_inverse(primitive.pose), np.asarray(points_world, dtype=np.float64))
+    return np.where(primitive.local_inside(local), 0.0, primitive.local_surface_distance(local))
 
 
 def _arc(centre: Tuple[float, float], radius: float, start: float, stop: float, n: int) -> np.ndarray:
