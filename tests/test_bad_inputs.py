@@ -1134,6 +1134,28 @@ def data_flag_to_a_missing_folder(ws, fixtures):
 
 
 @case
+def eval_on_a_run_whose_dataset_moved(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    argv = votesplat("eval", config, "--output-dir", str(ws.root / "scores"))
+    return Expect(
+        argv,
+        needles=[
+            f"--load-config {config}: the run's dataset {ws.root / 'gone' / 'demo'} is not there",
+            "pass its folder with --data",
+        ],
+        forbidden=["written by votesplat synth"],
+    )
+
+
+@case
+def eval_data_flag_to_a_missing_folder(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    missing = ws.root / "nowhere"
+    argv = votesplat("eval", config, "--output-dir", str(ws.root / "scores"), "--data", str(missing))
+    return Expect(argv, needles=[f"--data {missing}: folder not found"])
+
+
+@case
 def leftovers_of_a_killed_export(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")
     target = ws.root / "export"
