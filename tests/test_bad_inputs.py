@@ -81,6 +81,15 @@ class Workspace:
         self.drop_root_overrides = bool(DROP_ROOT_OVERRIDES)
         return path
 
+    def unreadable(self, path: Path) -> Path:
+        """Make the file ``path`` unreadable for the command (mode 000)."""
+        if os.geteuid() == 0 and shutil.which("setpriv") is None:
+            pytest.skip("running as root without setpriv: an unreadable file cannot be made here")
+        path.chmod(0o000)
+        self._locked.append(path)
+        self.drop_root_overrides = bool(DROP_ROOT_OVERRIDES)
+        return path
+
     def unlock(self) -> None:
         for path in self._locked:
             path.chmod(0o755)
@@ -130,8 +139,15 @@ def snapshot(root: Path) -> Dict[str, str]:
             state[os.path.relpath(os.path.join(folder, name), root)] = "dir"
         for name in files:
             path = os.path.join(folder, name)
-            with open(path, "rb") as handle:
-                state[os.path.relpath(path, root)] = hashlib.sha256(handle.read()).hexdigest()
+            if os.path.islink(path):  # a link's target, which may be a loop or missing
+                state[os.path.relpath(path, root)] = f"link to {os.readlink(path)}"
+                continue
+            try:
+                with open(path, "rb") as handle:
+                    state[os.path.relpath(path, root)] = hashlib.sha256(handle.read()).hexdigest()
+            except PermissionError:  # a file a case made unreadable: its size and time instead
+                stat = os.stat(path)
+                state[os.path.relpath(path, root)] = f"unreadable {stat.st_size} {stat.st_mtime_ns}"
     return {path: value for path, value in state.items() if path != "home" and not path.startswith("home/")}
 
 
@@ -1134,6 +1150,28 @@ def data_flag_to_a_missing_folder(ws, fixtures):
 
 
 @case
+def eval_on_a_run_whose_dataset_moved(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    argv = votesplat("eval", config, "--output-dir", str(ws.root / "scores"))
+    return Expect(
+        argv,
+        needles=[
+            f"--load-config {config}: the run's dataset {ws.root / 'gone' / 'demo'} is not there",
+            "pass its folder with --data",
+        ],
+        forbidden=["written by votesplat synth"],
+    )
+
+
+@case
+def eval_data_flag_to_a_missing_folder(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    missing = ws.root / "nowhere"
+    argv = votesplat("eval", config, "--output-dir", str(ws.root / "scores"), "--data", str(missing))
+    return Expect(argv, needles=[f"--data {missing}: folder not found"])
+
+
+@case
 def leftovers_of_a_killed_export(ws, fixtures):
     config = copy_run(fixtures.trained_demo, ws.root / "run")
     target = ws.root / "export"
@@ -1189,6 +1227,260 @@ def non_finite_vote_offsets(ws, fixtures):
         ],
         # the run's instances are kept beside it (ns/run_instances.py)
         new_paths=("export", "export/**", "run/*/*/*/votesplat_instances", "run/*/*/*/votesplat_instances/**"),
+    )
+
+
+# ---- more of what a clumsy user (or an attacker) gives: empty, unreadable or mismatched files, out-of-range flags
+@case
+def empty_transforms_json(ws, fixtures):
+    scene = ws.scene()
+    (scene / "transforms.json").write_text("")
+    return Expect(ns_train(ws, scene), needles=[f"{scene / 'transforms.json'} is empty"], new_paths=NS_TRAIN_RUN_FILES)
+
+
+@case
+def transforms_json_without_frames(ws, fixtures):
+    scene = ws.scene()
+
+    def no_frames(meta):
+        meta["frames"] = []
+        _drop_splits(meta)
+
+    edit_transforms(scene, no_frames)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"{scene / 'transforms.json'} lists no frames", "ns-process-data"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def transforms_json_that_is_a_list(ws, fixtures):
+    scene = ws.scene()
+    meta = json.loads((scene / "transforms.json").read_text())
+    (scene / "transforms.json").write_text(json.dumps(meta["frames"]))
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"{scene / 'transforms.json'} lists no frames (a 'frames' list"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def transforms_json_not_utf8(ws, fixtures):
+    scene = ws.scene()
+    path = scene / "transforms.json"
+    text = path.read_text().replace('"frames"', '"note": "caf\\u00e9", "frames"', 1)
+    path.write_bytes(text.replace("caf\\u00e9", "caf\u00e9").encode("latin-1"))  # Windows-1252 from an editor
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"{path} is not UTF-8 text (byte 0xe9", "save it as UTF-8"],
+        forbidden=["codec can't decode"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def unreadable_transforms_json(ws, fixtures):
+    scene = ws.scene()
+    path = ws.unreadable(scene / "transforms.json")
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"{path} cannot be read (Permission denied)", "make it readable"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def empty_image_file(ws, fixtures):
+    scene = ws.scene()
+    image = scene / "images" / "frame_00004.png"
+    image.write_bytes(b"")
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"image {image} is empty (0 bytes)", "replace it"],
+        forbidden=["not an image format"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def unreadable_training_image(ws, fixtures):
+    scene = ws.scene()
+    image = ws.unreadable(scene / "images" / "frame_00004.png")
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"image {image} cannot be read (Permission denied)", "make it readable"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def image_that_is_a_symlink_loop(ws, fixtures):
+    scene = ws.scene()
+    image = scene / "images" / "frame_00006.png"
+    image.unlink()
+    image.symlink_to(image.name)  # points at itself
+    return Expect(
+        ns_train(ws, scene),
+        needles=[f"(first: {image}, a symbolic link to frame_00006.png that leads to no file)"],
+        new_paths=NS_TRAIN_RUN_FILES,
+    )
+
+
+@case
+def label_image_of_another_size(ws, fixtures):
+    scene = ws.scene()
+    label = scene / "instances" / "frame_00002.png"
+    Image.fromarray(np.array(Image.open(label))).resize((64, 64), Image.NEAREST).save(label)
+    # found while the masks are made (the views before it stay cached for the next run)
+    return Expect(
+        ns_train(ws, scene),
+        needles=[
+            f"label image {label} of the same view is 64x64",
+            "save every level's label image of a view at one size",
+        ],
+        new_paths=NS_TRAIN_RUN_FILES + ("cache", "cache/*", "cache/*/*"),
+    )
+
+
+@case
+def mask_folder_with_fewer_masks_than_images(ws, fixtures):
+    scene = ws.scene()
+    mask_folder = ws.root / "masks"
+    shutil.copytree(scene / "instances", mask_folder / "instance")
+    for number in (3, 4, 5):
+        (mask_folder / "instance" / f"frame_{number:05d}.png").unlink()
+    argv = masks(scene, "--source", "folder", "--mask-folder", str(mask_folder), "--cache-dir", str(ws.root / "cache"))
+    # found while the masks are made: the views before it are complete cache entries, kept for the next run
+    return Expect(
+        argv,
+        needles=[f"missing label image {mask_folder / 'instance' / 'frame_00003.png'}", "one PNG per image"],
+        new_paths=("cache", "cache/**"),
+    )
+
+
+@case
+def votesplat_masks_on_an_empty_folder(ws, fixtures):
+    empty = ws.root / "empty"
+    empty.mkdir()
+    return Expect(
+        masks(empty, "--cache-dir", str(ws.root / "cache")),
+        needles=[f"--data {empty}: this folder holds no transforms.json", "ns-process-data"],
+    )
+
+
+@case
+def export_into_the_run_folder(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    return Expect(
+        ns_export(config, config.parent),
+        needles=[f"--output-dir {config.parent} is a non-empty folder that is not a previous instance export"],
+    )
+
+
+@case
+def export_with_zero_mask_check_views(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    return Expect(
+        ns_export(config, ws.root / "export", "--mask-check-views", "0"),
+        needles=["--mask-check-views 0: the mask check needs 1 or more training views", "--mask-check False"],
+    )
+
+
+@case
+def export_with_negative_mask_check_views(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    return Expect(
+        ns_export(config, ws.root / "export", "--mask-check-views", "-3"),
+        needles=["--mask-check-views -3: the mask check needs 1 or more training views"],
+    )
+
+
+@case
+def unreadable_checkpoint(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    checkpoint = ws.unreadable(checkpoint_of(config))
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        needles=[f"checkpoint {checkpoint} (of --load-config {config}) cannot be read (Permission denied)", "chmod"],
+    )
+
+
+@case
+def empty_run_config(ws, fixtures):
+    config = copy_run(fixtures.trained_demo, ws.root / "run")
+    config.write_text("")
+    return Expect(ns_export(config, ws.root / "export"), needles=[f"--load-config {config}: the file is empty"])
+
+
+@case
+def unreadable_run_config(ws, fixtures):
+    config = ws.unreadable(copy_run(fixtures.trained_demo, ws.root / "run"))
+    return Expect(
+        ns_export(config, ws.root / "export"),
+        needles=[f"--load-config {config}: cannot be read (Permission denied)", "make it readable"],
+        forbidden=["not a nerfstudio run config"],
+    )
+
+
+@case
+def click_outside_the_image(ws, fixtures):
+    argv = votesplat(
+        "click", fixtures.trained_demo, "--view", "0", "--x", "1000", "--y", "64", "--output-dir", str(ws.root / "sel")
+    )
+    return Expect(argv, needles=["--x 1000.0 --y 64.0 is outside training view 0", "give --x in [0, 128)"])
+
+
+@case
+def click_on_a_view_that_does_not_exist(ws, fixtures):
+    argv = votesplat(
+        "click", fixtures.trained_demo, "--view", "999", "--x", "64", "--y", "64", "--output-dir", str(ws.root / "sel")
+    )
+    return Expect(argv, needles=["view 999 is out of range: this run has 30 training views", "--view"])
+
+
+@case
+def query_with_blank_text(ws, fixtures):
+    argv = votesplat("query", fixtures.trained_demo, "   ", "--clip-random-init", "--clip-model", "ViT-S-32-alt")
+    return Expect(argv, needles=["the text query is empty"])
+
+
+@case
+def data_flag_to_the_run_config(ws, fixtures):
+    config = moved_dataset_run(ws, fixtures)
+    argv = votesplat("click", config, "--view", "0", "--x", "64", "--y", "64", "--output-dir", str(ws.root / "sel"))
+    return Expect(argv + ["--data", str(config)], needles=[f"--data {config} is a file, not a dataset"])
+
+
+@case
+def retrofit_from_a_ply_without_gaussians(ws, fixtures):
+    from votesplat_ns.core.ply_io import read_vertex_ply, write_vertex_ply
+
+    source = ws.root / "point_cloud.ply"
+    columns = read_vertex_ply(fixtures.previous_export / "scene.ply")
+    write_vertex_ply(source, {name: column[:0] for name, column in columns.items()})
+    argv = ns_train(ws, DEMO_SCENE, *ONE_VOTE_STEP, "--pipeline.model.retrofit-from", str(source))
+    return Expect(
+        argv,
+        needles=[f"--pipeline.model.retrofit-from {source}", "no Gaussians"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),
+    )
+
+
+@case
+def retrofit_from_a_ply_with_nan_positions(ws, fixtures):
+    from votesplat_ns.core.ply_io import read_vertex_ply, write_vertex_ply
+
+    source = ws.root / "point_cloud.ply"
+    columns = read_vertex_ply(fixtures.previous_export / "scene.ply")
+    columns["x"][:5] = np.nan
+    write_vertex_ply(source, columns)
+    argv = ns_train(ws, DEMO_SCENE, *ONE_VOTE_STEP, "--pipeline.model.retrofit-from", str(source))
+    return Expect(
+        argv,
+        needles=[f"--pipeline.model.retrofit-from {source}", "NaN"],
+        new_paths=("runs", "runs/**", "cache", "cache/**"),
     )
 
 

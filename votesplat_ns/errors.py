@@ -194,10 +194,13 @@ def writing_into(folder: Union[str, Path], flag: str) -> Iterator[None]:
 
 def file_format_problem(path: Union[str, Path]) -> Optional[str]:
     """What is wrong with a file torch.load should read, judged from its bytes alone (None: looks fine)."""
-    if not os.path.isfile(path) or zipfile.is_zipfile(path):  # torch.save writes a zip
-        return None
-    with open(path, "rb") as handle:
-        head = handle.read(4)
+    try:
+        if not os.path.isfile(path) or zipfile.is_zipfile(path):  # torch.save writes a zip
+            return None
+        with open(path, "rb") as handle:
+            head = handle.read(4)
+    except OSError as error:  # no permission to read it, ...
+        return f"it cannot be read ({error.strerror or type(error).__name__}; make it readable, e.g. chmod a+r)"
     if head.startswith(b"PK\x03\x04"):  # a zip that lost its end (central directory)
         return "the file is truncated or damaged"
     if not head.startswith(b"\x80"):  # nor a pickle (torch's legacy format)

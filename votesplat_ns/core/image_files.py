@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Tuple, Union
+from typing import Sequence, Tuple, Union
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -36,9 +36,15 @@ def load_image_file(path: PathLike, what: str = "image") -> Image.Image:
     path = Path(path)
     if not path.is_file():
         raise VoteSplatInputError(f"{what} {path} does not exist")
+    if path.stat().st_size == 0:
+        raise VoteSplatInputError(f"{what} {path} is empty (0 bytes); replace it with an intact file")
     try:
         with Image.open(path) as image:
             image.load()
+    except PermissionError as error:
+        raise VoteSplatInputError(
+            f"{what} {path} cannot be read ({error.strerror}); make it readable (e.g. chmod a+r)"
+        ) from None
     except Exception as error:  # PIL raises OSError, ValueError, SyntaxError, ... for broken files
         text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         if isinstance(error, UnidentifiedImageError):
@@ -121,6 +127,19 @@ def check_label_format(path: PathLike, file_format: str) -> None:
             f"label image {path} is a {file_format} file, whose lossy compression changes mask ids at every "
             "edge and invents new ones; write label images as PNG (lossless)"
         )
+
+
+def check_label_sizes_agree(shapes: Sequence[Tuple[int, ...]], paths: Sequence[PathLike]) -> None:
+    """The label images of one view's levels (``paths``, read as ``shapes``) must share one size: each may be a
+    scaled copy of the image, but the vote maps stack the levels pixel by pixel."""
+    first_h, first_w = (int(v) for v in shapes[0][:2])
+    for shape, path in zip(shapes[1:], paths[1:]):
+        height, width = (int(v) for v in shape[:2])
+        if (height, width) != (first_h, first_w):
+            raise VoteSplatInputError(
+                f"label image {path} is {width}x{height} but label image {paths[0]} of the same view is "
+                f"{first_w}x{first_h}; save every level's label image of a view at one size (the image's)"
+            )
 
 
 def check_label_size(label_hw: Tuple[int, ...], image_hw: Tuple[int, ...], what: str) -> None:

@@ -22,6 +22,7 @@ import numpy as np
 from votesplat_ns.core.image_files import (
     PathLike as PathLike,
     check_label_size as check_label_size,
+    check_label_sizes_agree as check_label_sizes_agree,
     file_digest as file_digest,
     image_file_size as image_file_size,
     load_image_file as load_image_file,
@@ -90,6 +91,9 @@ class FolderMaskSource(MaskSource):
             labels = read_label_png(path)
             check_label_size(labels.shape, image.shape[:2], f"label image {path}")
             label_images.append(labels)
+        check_label_sizes_agree(
+            [labels.shape for labels in label_images], [self.label_path(image_path, level) for level in self.levels]
+        )
         return label_images
 
     def config_key(self) -> Dict[str, Any]:
@@ -174,6 +178,7 @@ class DatasetMaskSource(MaskSource):
             labels = read_label_png(entry[level])
             check_label_size(labels.shape, image.shape[:2], f"label image {entry[level]}")
             label_images.append(labels)
+        check_label_sizes_agree([labels.shape for labels in label_images], [entry[level] for level in self.levels])
         return label_images
 
     def config_key(self) -> Dict[str, Any]:

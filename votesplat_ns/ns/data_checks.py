@@ -139,9 +139,18 @@ def check_data_input(
         )
     try:
         meta = json.loads(transforms.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+    except UnicodeDecodeError as err:
         raise VoteSplatInputError(
-            f"{transforms} is not valid JSON ({err}); fix it or make it again with ns-process-data"
+            f"{transforms} is not UTF-8 text (byte 0x{err.object[err.start]:02x} at position {err.start}); "
+            "save it as UTF-8 (JSON's encoding), or make it again with ns-process-data"
+        ) from None
+    except json.JSONDecodeError as err:
+        problem = "is empty" if not err.doc.strip() else f"is not valid JSON ({err})"
+        raise VoteSplatInputError(f"{transforms} {problem}; fix it or make it again with ns-process-data") from None
+    except OSError as err:  # unreadable (permissions), a folder named transforms.json, a symlink loop, ...
+        raise VoteSplatInputError(
+            f"{transforms} cannot be read ({err.strerror or err}); make it readable (e.g. chmod a+r), "
+            "or copy the dataset somewhere you can read it"
         ) from None
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) and "file_path" in f for f in frames):
@@ -248,8 +257,11 @@ def check_frames(
             fix = f"put the downscaled images in images_{downscale_factor}/ (--downscale-factor {downscale_factor})"
         else:
             fix = f"put the images where the file_path entries of {name} point"
+        link = (
+            f", a symbolic link to {os.readlink(missing[0])} that leads to no file" if missing[0].is_symlink() else ""
+        )
         raise VoteSplatInputError(
-            f"{where}: {len(missing)} of {len(images)} images listed in {name} are missing (first: {missing[0]}); "
+            f"{where}: {len(missing)} of {len(images)} images listed in {name} are missing (first: {missing[0]}{link}); "
             f"{fix}, {remake}"
         )
     scale = float(downscale_factor) if downscale_factor is not None and downscaled else 1.0

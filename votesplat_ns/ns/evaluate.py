@@ -72,7 +72,7 @@ from votesplat_ns.eval.ground_truth import (
     write_json_atomic,
 )
 from votesplat_ns.eval.removal import ghost_fractions, mean_ghost_percent
-from votesplat_ns.ns.run import dataset_views, load_run
+from votesplat_ns.ns.run import dataset_views, load_run, use_dataset
 from votesplat_ns.ns.run_config import load_run_config
 from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
@@ -256,6 +256,8 @@ def evaluate_run(
     _check_reconstruction_options(max_psnr_drop_db, min_gain_db)
     load_config = Path(load_config)
     config = load_votesplat_config(load_config)
+    # a dataset that moved names --data, one that is not a dataset is said before any model is built
+    use_dataset(config, Path(data) if data is not None else None, load_config, "--load-config")
     data_path = Path(data) if data is not None else _dataset_of(config)
     dataset = GroundTruthDataset.open(data_path)
     output_dir = Path(output_dir) if output_dir is not None else load_config.parent / DEFAULT_OUTPUT_FOLDER

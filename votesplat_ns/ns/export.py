@@ -117,6 +117,7 @@ class ExportVoteSplatInstances:
         # bad input (ValueError, VoteSplatInputError) ends the command with one line, exit 1
         with one_line_errors(catch=(ValueError,)), writing_into(self.output_dir, "--output-dir"):
             check_output_dir(self.output_dir, "--output-dir")  # before the checkpoint is loaded
+            settings = self.instance_settings()  # its flags too
             missing: Optional[str] = None
             try:
                 pipeline, scene, _ = load_run(self.load_config, data=self.data)
@@ -145,7 +146,7 @@ class ExportVoteSplatInstances:
             instances = run_instances(
                 scene,
                 Path(self.load_config).parent,
-                self.instance_settings(),
+                settings,
                 pipeline=pipeline,
                 rasterize_fn=rasterize_fn or default_rasterizer(),
                 log=log,

@@ -40,6 +40,7 @@ from votesplat_ns.core.semantics import (
     remove,
     select_instances,
 )
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.eval.lerf_ovs import SILHOUETTE_THRESHOLD, LabelFrame, SceneScore, evaluate_scene, silhouette_mask
 from votesplat_ns.ns.selection import QueryScene, evenly_spaced
 
@@ -297,6 +298,11 @@ def run_click(
     if mode not in ("isolate", "remove"):
         raise ValueError(f"mode must be 'isolate' or 'remove', got {mode!r}")
     camera = scene.train_camera(view)
+    if not (0 <= x < camera.width and 0 <= y < camera.height):  # NaN fails too
+        raise VoteSplatInputError(
+            f"--x {x} --y {y} is outside training view {view}, which is {camera.width}x{camera.height} pixels; "
+            f"give --x in [0, {camera.width}) and --y in [0, {camera.height})"
+        )
     output_dir = Path(output_dir)
     if output_dir.exists() and not output_dir.is_dir():
         raise ValueError(f"output_dir {output_dir} is a file; pass a folder path")

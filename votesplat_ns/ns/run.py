@@ -72,6 +72,14 @@ def checked_checkpoint(config: Any, load_config: Path, flag: str = "--load-confi
             f"{flag} {load_config}: the run has no checkpoint (looked in {folder}); "
             "train it (checkpoints are written every --steps-per-save steps and at the end) or pass another run"
         )
+    try:
+        with open(checkpoint, "rb"):
+            pass
+    except OSError as error:
+        raise VoteSplatInputError(
+            f"checkpoint {checkpoint} (of {flag} {load_config}) cannot be read ({error.strerror or error}); "
+            "make it readable (e.g. chmod a+r), or pass another run"
+        ) from None
     problem = file_format_problem(checkpoint)  # before the model is built
     if problem is not None:
         raise VoteSplatInputError(

@@ -195,10 +195,23 @@ def load_run_config(load_config: Union[str, Path], flag: str = "--load-config") 
             f"{flag} {load_config}: file not found; pass the config.yml of a votesplat run (outputs/.../config.yml)"
         )
     try:
-        config = parse_run_config(load_config.read_text(encoding="utf-8"))
+        text = load_config.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise not_a_run_config(load_config, flag, error) from None
+    except OSError as error:  # no permission to read it, ...
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: cannot be read ({error.strerror or type(error).__name__}); "
+            "make it readable (e.g. chmod a+r), or pass another run"
+        ) from None
+    if not text.strip():
+        raise VoteSplatInputError(
+            f"{flag} {load_config}: the file is empty; pass the config.yml that ns-train wrote (or train the run again)"
+        )
+    try:
+        config = parse_run_config(text)
     except RefusedTag as refused:
         raise VoteSplatInputError(refusal_message(load_config, flag, refused)) from None
-    except (yaml.YAMLError, UnicodeDecodeError, OSError) as error:
+    except yaml.YAMLError as error:
         raise not_a_run_config(load_config, flag, error) from None
     if not isinstance(config, TrainerConfig):
         raise not_a_run_config(load_config, flag, TypeError(type(config).__name__))

@@ -45,6 +45,7 @@ from votesplat_ns.core.clustering import ClusteringOptions, cluster_levels
 from votesplat_ns.core.instances import MANIFEST_NAME, InstanceSet
 from votesplat_ns.core.ply_io import jsonable, make_temp_dir, replace_folder, sweep_leftovers
 from votesplat_ns.core.scene import TrainedScene
+from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.mask_views import DEFAULT_MASK_VIEWS, mask_check
 
 RECORD_FOLDER = "votesplat_instances"
@@ -98,6 +99,12 @@ class InstanceSettings:
         mask_check_options: Optional[Mapping[str, Any]] = None,
         cluster_options: Optional[Mapping[str, Any]] = None,
     ) -> "InstanceSettings":
+        """The settings of a command's flags; a mask check through no view is refused (it would check nothing)."""
+        if mask_check and int(mask_check_views) < 1:
+            raise VoteSplatInputError(
+                f"--mask-check-views {mask_check_views}: the mask check needs 1 or more training views "
+                f"(default {DEFAULT_MASK_VIEWS}); give a positive number, or --mask-check False to skip the check"
+            )
         return cls(
             clustering or ClusteringOptions(),
             bool(mask_check),
