@@ -5,6 +5,8 @@ two views per step and averages their gradients the same way."""
 from __future__ import annotations
 
 import math
+import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -155,3 +157,35 @@ def test_ranks_share_the_training_views_and_several_train_only_a_retrofit(retrof
     config = trainer_config_in_process(DEMO_SCENE, tmp_path, 2, 0, "cpu", "run")
     with pytest.raises(VoteSplatInputError, match="train a retrofit only"):
         config.setup(local_rank=0, world_size=RANKS)
+
+
+def _torchrun_rank(rank: int, port: int, config, result: str) -> None:
+    """One rank as torchrun starts ns-train: its environment names the group, and nerfstudio's train_loop, which
+    sees one process, seeds it as rank 0 before the trainer is made."""
+    from nerfstudio.scripts.train import _set_random_seed
+
+    os.environ.update(
+        RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(RANKS), MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port)
+    )
+    torch.set_num_threads(1)
+    _set_random_seed(config.machine.seed)  # train_loop's seeding: global rank 0 on every torchrun rank
+    try:
+        trainer = config.setup(local_rank=0, world_size=1)
+        assert trainer.ranks == RANKS and training_ranks() == (rank, RANKS)
+        torch.save({"seed": torch.initial_seed(), "draw": torch.rand(4)}, f"{result}.{rank}")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_torchrun_ranks_join_the_group_seeded_as_nerfstudio_seeds_its_ranks(retrofit_source, tmp_path):
+    """A rank started by torchrun is seeded with --machine.seed + its rank, as nerfstudio's own launch seeds it, so
+    the ranks draw different vote pixels."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    config = retrofit_config(tmp_path / "runs", retrofit_source, tmp_path / "cache")
+    result = str(tmp_path / "seeds.pt")
+    torch.multiprocessing.spawn(_torchrun_rank, args=(port, config, result), nprocs=RANKS)
+    ranks = [torch.load(f"{result}.{rank}", weights_only=True) for rank in range(RANKS)]
+    assert [state["seed"] for state in ranks] == [SEED + rank for rank in range(RANKS)]
+    assert not torch.equal(ranks[0]["draw"], ranks[1]["draw"])

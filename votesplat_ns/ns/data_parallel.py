@@ -16,7 +16,8 @@ Launch, on one host with N GPUs (NCCL):
 
 and on the CPU (gloo), with torchrun and ``--machine.device-type cpu``. ``--machine.num-devices`` is
 nerfstudio's own launch (one process per GPU, a process group over NCCL); under torchrun the trainer joins
-the group torchrun describes (:func:`join_launched_group`).
+the group torchrun describes (:func:`join_launched_group`) and seeds rank r with ``--machine.seed`` + r, as
+nerfstudio's launch does.
 
 nerfstudio's own data-parallel path cannot train the votes: its pipeline wraps the model in
 ``DistributedDataParallel``, whose forward must produce every output a loss is taken from, while the vote

@@ -140,6 +140,14 @@ def _share_run_folder(config: TrainerConfig) -> None:
         own.rmdir()
 
 
+def _seed_rank(seed: int) -> None:
+    """Seed Python, NumPy and torch as nerfstudio's launch seeds rank r (``--machine.seed`` + r): under torchrun its
+    ``train_loop`` sees one process and seeds every rank as rank 0, so all ranks would draw the same vote pixels."""
+    from nerfstudio.scripts.train import _set_random_seed
+
+    _set_random_seed(seed)
+
+
 class VoteSplatTrainer(Trainer):
     """nerfstudio's ``Trainer`` whose checkpoint loading reads with ``weights_only=True`` and fails in one line,
     which trains a retrofit on several processes by averaging the offsets' gradients, and which saves a checkpoint
@@ -151,7 +159,8 @@ class VoteSplatTrainer(Trainer):
     def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         launched = join_launched_group(config.machine.device_type) if world_size == 1 else None
         if launched is not None:  # torchrun
-            _, world_size, local_rank = launched
+            rank, world_size, local_rank = launched
+            _seed_rank(config.machine.seed + rank)
             _share_run_folder(config)
         elif world_size > 1 and config.machine.device_type == "cuda":
             torch.cuda.set_device(local_rank)  # nerfstudio's launch leaves every rank's current device at 0
