@@ -6,13 +6,9 @@ time, vote error and instance mIoU of each, and their ratios and differences.
     python benchmarks/bench_retrofit_ranks.py --device cpu                # toy size on the CPU (gloo, torchrun)
 
 The first command is the measurement on a host with two H100s, after ``bash scripts/gpu/run.sh setup`` (carry
-``.whl``, ``.gpu/gsplat_build.tar.gz`` and ``build/family_test``). Expected: about 4 minutes. The base scene takes
-~35 s (1500 steps at 256x192), the 2M-Gaussian PLY ~10 s, 1 rank x 2400 steps ~85 s, 2 ranks x 1200 steps ~50 s,
-and scoring both runs side by side ~60-80 s. These figures are extrapolated from single-H100 retrofits: 500 steps
-took 7-9 s at 200k Gaussians and 53 s at 5.2M. A 2-rank run has a few seconds more set-up than a 1-rank run: the
-spawned ranks import nerfstudio again, join NCCL, and each reads the PLY and does the end-of-training foreground
-pass. The 1-rank steps must therefore take about 80 s for the wall-time ratio to reach 0.6. ``setup_s``,
-``step_ms`` and ``tail_s`` show where the time went.
+``.whl``, ``.gpu/gsplat_build.tar.gz`` and ``build/family_test``); BENCHMARKS.md "Several GPUs" has its figures.
+``setup_s``, ``step_ms`` and ``tail_s`` show where each run's time went: the ranks of a multi-GPU run each import
+nerfstudio, read the PLY and join NCCL, so the steps must outweigh that set-up for the wall time to fall.
 
 Steps:
 
