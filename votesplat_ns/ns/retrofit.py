@@ -205,6 +205,9 @@ def transform_gaussians(gaussians: Dict[str, Tensor], matrix: Tensor) -> Dict[st
 # ----------------------------------------------------------------------------------------
 
 
+IN_VIEW_SAMPLE = 1 << 18
+
+
 def in_view(means: Tensor, views: Sequence[PinholeView], near: float = 0.01, chunk: int = 1 << 18) -> Tensor:
     """[N] bool: the centre is in front of (depth > ``near``) and inside the image of at least one view."""
     seen = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
@@ -341,7 +344,10 @@ def resolve_frame(
             continue
         probes[name] = placed
         moved[name] = transform_gaussians(gaussians, matrix)
-        share = float(in_view(moved[name]["means"], all_views).float().mean())
+        # the share from an even sample: 2^18 Gaussians give it to within 0.3 percentage points (3 sigma), and a
+        # retrofit of millions of Gaussians then does not project every one of them into every training view
+        sample = moved[name]["means"][:: max(1, count // IN_VIEW_SAMPLE)]
+        share = float(in_view(sample, all_views).float().mean())
         fits.append(FrameFit(name, [], share, None))
     for fit in fits:
         if fit.in_view_share >= MIN_IN_VIEW_SHARE:
