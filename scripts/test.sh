@@ -17,6 +17,8 @@ fi
 # The Triton kernels' tests once more under Triton's interpreter, their only run without a GPU (TRITON_INTERPRET
 # must be set before triton is imported, hence a second run). The vote kernels are the fused losses' only
 # (core/vote_fused.py, with the walk helpers of core/vote_kernel.py), all tested in test_vote_fused.py.
+# The interpreter takes seconds per pixel a kernel walks, so this pass runs the cases marked ``interpreter``
+# (test_vote_fused.py's INTERPRETER_CASES, which says what they cover), not every parametrization.
 # Left out when particular test files or tests were named.
 for arg in "$@"; do case $arg in tests*|*.py|*::*) exit 0 ;; esac; done
-TRITON_INTERPRET=1 exec .venv/bin/python -m pytest "$@" tests/test_vote_fused.py
+TRITON_INTERPRET=1 exec .venv/bin/python -m pytest "$@" -m interpreter tests/test_vote_fused.py

@@ -7,6 +7,7 @@ import torch
 from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from nerfstudio.utils.eval_utils import eval_setup
 
+from votesplat_ns.ns import vote_init
 from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 from votesplat_ns.ns.vote_init import lifted_offsets
 
@@ -22,8 +23,9 @@ def splatfacto_checkpoint(trained_demo, tmp_path_factory):
 
 
 def test_retrofit_trains_only_the_offsets(splatfacto_checkpoint, tmp_path):
+    # 30 steps, as test_retrofit_ply.py's retrofits: every level supervised, offsets that beat zero
     config_path = train_votesplat(
-        DEMO_SCENE, tmp_path, steps=60, vote_start=0, retrofit_from=splatfacto_checkpoint, vote_pixels_per_step=1024
+        DEMO_SCENE, tmp_path, steps=30, vote_start=0, retrofit_from=splatfacto_checkpoint, vote_pixels_per_step=1024
     )
     _, pipeline, _, _ = eval_setup(config_path, test_mode="val")
     model = pipeline.model
@@ -40,7 +42,15 @@ def test_retrofit_trains_only_the_offsets(splatfacto_checkpoint, tmp_path):
     assert_offsets_beat_zero(pipeline)
 
 
-def test_retrofit_can_start_from_the_lifted_mask_centroids(splatfacto_checkpoint, tmp_path):
+def test_retrofit_can_start_from_the_lifted_mask_centroids(splatfacto_checkpoint, tmp_path, monkeypatch):
+    # the lifted start the retrofit computes (one render per mask view: kept, not computed a second time)
+    lifted = []
+
+    def recorded(*args, **kwargs):
+        lifted.append(lifted_offsets(*args, **kwargs))
+        return lifted[-1]
+
+    monkeypatch.setattr(vote_init, "lifted_offsets", recorded)
     # vote losses weighted 0: the steps leave the offsets where the lifted start put them
     config_path = train_votesplat(
         DEMO_SCENE,
@@ -57,7 +67,7 @@ def test_retrofit_can_start_from_the_lifted_mask_centroids(splatfacto_checkpoint
     model = pipeline.model
     offsets = model.gauss_params["vote_offsets"].data
     support = model.gauss_params["vote_support"].data
-    expected = lifted_offsets(model, pipeline.datamanager)
+    (expected,) = lifted
     assert torch.allclose(offsets, expected.offsets.to(offsets.device), atol=1e-6)
     seen = expected.views > 0
     assert seen.any(dim=0).all(), "every level must have Gaussians seen in a mask"

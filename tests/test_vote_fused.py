@@ -157,6 +157,44 @@ def both_paths(scene, votes, pixel_xy, target, valid, lists, options, weights=(1
     return results
 
 
+# The cases scripts/test.sh runs a second time under Triton's interpreter (TRITON_INTERPRET=1, ``-m interpreter``;
+# conftest.py marks them): the kernels' only run without a GPU, and a slow one (seconds per sampled pixel), so
+# one or two cases of each test that launches them rather than every parametrization. Kept: every distortion
+# mode at least once, one level and several levels (one level: the scalar-loss shapes too), float32 and
+# float64, pixels outside the tile grid and empty tiles, voting sets longer than the scratch row (the slow
+# exact path, forward and backward) and ones the rows hold whole, ties in depth, nothing used, the sampled
+# (training-step) kernels at full and half vote-map scale, the compact vote maps, kept scratch rows, the
+# one-Gaussian warm-up scene, the model's fused step and the one-line errors. Left to the main pass: tests
+# that launch no kernel (test_member_bound_holds_the_deepest_voting_set, test_model_flag_selects_the_backend).
+# On CUDA every case runs; ``TRITON_INTERPRET=1 pytest tests/test_vote_fused.py`` runs them all on CPU.
+INTERPRETER_CASES = (
+    "test_fused_matches_separate_path[1-none-cpu]",
+    "test_fused_matches_separate_path[2-l1-cpu]",
+    "test_fused_matches_separate_path[4-squared-cpu]",
+    "test_fused_more_members_than_the_scratch_row[4-l1_pixels-cpu]",
+    "test_fused_more_members_than_the_scratch_row[None-squared-cpu]",
+    "test_fused_ties_in_depth[l1-2-cpu]",
+    "test_fused_ties_in_depth[squared-None-cpu]",
+    "test_fused_empty_tiles_and_pixels_without_members[cpu]",
+    "test_fused_nothing_used[cpu]",
+    "test_fused_float32[cpu]",
+    "test_use_fused_only_for_its_options",
+    "test_fused_errors[cpu]",
+    "test_fused_launches_and_host_reads[l1_pixels-cpu]",
+    "test_kept_scratch_rows_carry_nothing_into_the_next_call[cpu]",
+    "test_warm_up_process_runs_the_training_steps_call[cpu]",
+    "test_warm_up_parts_split_the_kernels[forward-cpu]",
+    "test_warm_up_parts_split_the_kernels[backward-cpu]",
+    "test_model_vote_step_takes_the_fused_losses[cpu]",
+    "test_training_step_takes_the_offsets_gradient_at_once[cpu]",
+    "test_model_stops_on_diverged_votes_with_the_fused_losses[cpu]",
+    "test_sampled_losses_equal_the_lookup_then_fused_losses[1.0-l1_pixels-4-cpu]",
+    "test_sampled_losses_equal_the_lookup_then_fused_losses[0.5-squared-None-cpu]",
+    "test_sampled_losses_read_the_compact_vote_maps[cpu]",
+    "test_sampled_losses_reject_bad_inputs",
+)
+
+
 # DEVICES' CUDA entry (with its skip mark): the entries are pytest.param objects, which never equal "cuda"
 CUDA_ONLY = [d for d in DEVICES if d.values == ("cuda",)]
 assert len(CUDA_ONLY) == 1
@@ -520,7 +558,8 @@ def test_kept_scratch_rows_carry_nothing_into_the_next_call(device, monkeypatch)
     means = torch.zeros(len(offsets), 3, device=device)
 
     def call(seed):
-        sample = torch.randint(voting.numel(), (40,), generator=torch.Generator().manual_seed(seed)).to(device)
+        # a dozen pixels: each call walks every sampled pixel's run (slow under the interpreter)
+        sample = torch.randint(voting.numel(), (12,), generator=torch.Generator().manual_seed(seed)).to(device)
         counts = torch.zeros(len(offsets), 2, device=device)
         support = (counts, torch.full_like(counts, -1, dtype=torch.int32), 1)
         offsets.grad = None
@@ -759,7 +798,7 @@ def test_sampled_losses_equal_the_lookup_then_fused_losses(scale, distortion, ca
     centroids[0, 2] = float("nan")  # a mask without a vote (cut by the border)
     voting = voting_pixels(labels.reshape(levels, map_height, map_width), centroids)
     assert 0 < voting.numel() < labels.shape[1]
-    sample = torch.cat([torch.tensor([0, voting.numel() - 1]), torch.randint(voting.numel(), (40,), generator=g)])
+    sample = torch.cat([torch.tensor([0, voting.numel() - 1]), torch.randint(voting.numel(), (16,), generator=g)])
     labels, centroids, voting, sample = (t.to(device) for t in (labels, centroids, voting, sample))
     options = VoteRenderOptions(distortion=distortion)
     means = (0.5 * votes[:, 0]).contiguous()
@@ -862,7 +901,7 @@ def test_sampled_losses_read_the_compact_vote_maps(device, monkeypatch):
     assert compact.dtype == torch.int16 and torch.equal(compact.int(), labels)
     voting = voting_pixels(compact, centroids)
     assert voting.dtype == torch.int32 and torch.equal(voting, voting_pixels(labels, centroids))
-    sample = torch.randint(voting.numel(), (40,), generator=g).to(device)
+    sample = torch.randint(voting.numel(), (16,), generator=g).to(device)
     means = torch.zeros(len(level_votes), 3, device=device)
 
     def call(flat_labels, voting_pixel_list):
