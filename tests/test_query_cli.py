@@ -342,7 +342,10 @@ def test_bad_input_is_one_clear_line(demo_scene, trained_demo, tmp_path, capsys)
         run_click(demo_scene, views, 1.0, 1.0, tmp_path / "out")
     with pytest.raises(ValueError, match="out of range"):
         run_query(demo_scene, "ball", ColourNameEncoder(), tmp_path / "q", views=[-1])
-    with pytest.raises(ValueError, match="outside the 128x128 image"):
+    with pytest.raises(
+        ValueError,
+        match=r"--x 200.0 --y 5.0 is outside training view 0, which is 128x128 pixels; give --x in \[0, 128\)",
+    ):
         run_click(demo_scene, 0, 200.0, 5.0, tmp_path / "out")
     camera = demo_scene.train_camera(0)
     background = np.argwhere((demo_scene.id_map(camera) < 0) & (ground_truth_labels(camera) == 0))
