@@ -1530,6 +1530,8 @@ class _FillingFile:
         return fits
 
     def __getattr__(self, name: str):
+        if name in ("_handle", "_disk"):  # not set yet (an object made without __init__): no endless recursion
+            raise AttributeError(name)
         return getattr(self._handle, name)
 
     def __enter__(self):
