@@ -49,6 +49,9 @@ FRAMES = ("dataparser", "dataset", "colmap")
 MIN_IN_VIEW_SHARE = 0.5
 """A frame must put at least this share of the Gaussian centres inside some training view."""
 
+IN_VIEW_SAMPLE = 1 << 18
+"""The share is measured on an even sample of at most about this many Gaussians (within 0.3 points, 3 sigma)."""
+
 PSNR_MARGIN_DB = 3.0
 """The chosen frame must render the training views better than any other candidate by this much."""
 
@@ -205,9 +208,6 @@ def transform_gaussians(gaussians: Dict[str, Tensor], matrix: Tensor) -> Dict[st
 # ----------------------------------------------------------------------------------------
 
 
-IN_VIEW_SAMPLE = 1 << 18
-
-
 def in_view(means: Tensor, views: Sequence[PinholeView], near: float = 0.01, chunk: int = 1 << 18) -> Tensor:
     """[N] bool: the centre is in front of (depth > ``near``) and inside the image of at least one view."""
     seen = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
@@ -344,8 +344,7 @@ def resolve_frame(
             continue
         probes[name] = placed
         moved[name] = transform_gaussians(gaussians, matrix)
-        # the share from an even sample: 2^18 Gaussians give it to within 0.3 percentage points (3 sigma), and a
-        # retrofit of millions of Gaussians then does not project every one of them into every training view
+        # an even sample: a retrofit of millions of Gaussians does not project each one into every training view
         sample = moved[name]["means"][:: max(1, count // IN_VIEW_SAMPLE)]
         share = float(in_view(sample, all_views).float().mean())
         fits.append(FrameFit(name, [], share, None))

@@ -143,9 +143,13 @@ def _share_run_folder(config: TrainerConfig) -> None:
 def _seed_rank(seed: int) -> None:
     """Seed Python, NumPy and torch as nerfstudio's launch seeds rank r (``--machine.seed`` + r): under torchrun its
     ``train_loop`` sees one process and seeds every rank as rank 0, so all ranks would draw the same vote pixels."""
-    from nerfstudio.scripts.train import _set_random_seed
+    import random
 
-    _set_random_seed(seed)
+    import numpy as np
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
 
 
 class VoteSplatTrainer(Trainer):
