@@ -1582,7 +1582,8 @@ def disk_full_during_the_vote_cache_build(ws, fixtures):
     return Expect(
         argv,
         call=votesplat_in_process(*argv[1:]),
-        needles=[f"--cache-dir {cache}: the disk is full", ".npy", "nothing was left half-written"],
+        # the file that filled the disk is named: a labels .npy or a .votes.npz record, whichever write came first
+        needles=[f"--cache-dir {cache}: the disk is full", f"while writing {cache}/", "nothing was left half-written"],
         new_paths=("cache", "cache/*", "cache/*/*"),
         after=finished_entries_stay_usable,
     )
