@@ -90,9 +90,10 @@ def test_instance_no_view_sees_dissolves_into_the_object_it_lies_in() -> None:
     scene = Scene()
     cube = scene.add(box_surface([0, 0, 0], [2, 2, 2]), 0, [1, 1, 2, 2, 3, 3])
     # a cluster of Gaussians hidden inside the cube in every view (they voted, so the vote
-    # clustering made an instance of them), and one behind it, touching, in no view either
+    # clustering made an instance of them), and one behind it, in no view either: within contact
+    # (3 spacings) of the cube, beyond the hidden rule's reach (1.5 spacings)
     inner = scene.add(box_interior([0, 0, 0], [2, 2, 2])[::7], 1, [-1] * 6)
-    behind = scene.add(box_surface([2.1, 0.8, 0.8], [2.3, 1.2, 1.2]), 2, [-1] * 6)
+    behind = scene.add(box_surface([2.25, 0.8, 0.8], [2.45, 1.2, 1.2]), 2, [-1] * 6)
     # seen in one view only: too little evidence to stand as an instance
     glimpsed = scene.add(box_surface([-0.3, 0.8, 0.8], [-0.1, 1.2, 1.2]), 3, [4, -1, -1, -1, -1, -1])
     means, labels, table = scene.build()
@@ -145,6 +146,31 @@ def test_hidden_gaussian_inside_an_object_joins_it_and_the_table_under_it_does_n
     # switched off, the interior stays background
     off, _, _ = run(means, labels, table, hidden=False)
     assert (off[inside] == -1).all()
+
+
+def test_unseen_fuzz_within_reach_of_an_object_joins_it_and_farther_stays_background() -> None:
+    scene = Scene()
+    cube = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    # no view sees these: a layer a spacing off the cube's side (its fuzz, outside the hull of the cube's
+    # Gaussians), and one three spacings off the opposite side (beyond the reach of 1.5 spacings)
+    fuzz = scene.add(box_surface([1.1, 0.2, 0.2], [1.1, 0.8, 0.8]), -1, [-1] * 6)
+    far = scene.add(box_surface([-0.3, 0.2, 0.2], [-0.3, 0.8, 0.8]), -1, [-1] * 6)
+    # a spacing above the middle of the top, but one view saw it outside every mask: settled background
+    above = scene.add(box_surface([0.4, 0.4, 1.1], [0.6, 0.6, 1.1]), -1, [0, -1, -1, -1, -1, -1])
+    means, labels, table = scene.build()
+    out, _, stats = run(means, labels, table)
+    assert (out[fuzz] == out[cube[0]]).all()
+    assert (out[far] == -1).all() and (out[above] == -1).all()
+    assert stats["hidden"]["hidden_reached"] == len(fuzz)
+    # without the reach only the hull counts: the fuzz stays background
+    hull_only, _, stats = run(means, labels, table, hidden_reach=0.0)
+    assert (hull_only[fuzz] == -1).all() and stats["hidden"]["hidden_reached"] == 0
+    # a neighbour of the fuzz seen as background (settled, not of the cube) keeps it out
+    table[0, far] = 0
+    moved = means.copy()
+    moved[far, 0] = 1.2  # the seen layer right behind the fuzz
+    mixed, _, _ = run(moved, labels, table)
+    assert (mixed[fuzz] == -1).any()
 
 
 def test_background_seen_outside_every_mask_stays_background() -> None:
