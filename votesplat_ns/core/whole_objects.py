@@ -287,8 +287,7 @@ def take_hidden(
         return out, stats
     k = min(hidden_neighbours, settled.size)
     _, near = cKDTree(means[settled]).query(means[candidates], k=k)
-    seen_background = np.flatnonzero(confirmed)
-    background_tree = cKDTree(means[seen_background]) if seen_background.size else None
+    background_tree = cKDTree(means[confirmed]) if confirmed.any() else None
     near_labels = out[settled[np.asarray(near).reshape(candidates.size, k)]]
     # the label held by more than half of the k neighbours (k compares of k columns, no per-label pass)
     counts = np.stack([(near_labels == near_labels[:, [j]]).sum(axis=1) for j in range(k)], axis=1)
@@ -314,18 +313,18 @@ def take_hidden(
         margin = np.where(confirmed_in_mask, 0.0, hidden_margin * spacing)
         keep = _inside_hull(means[chosen], means[members], margin) & (agree >= 0.5 * masked)
         # outside the hull: hidden from every view, every settled neighbour of this instance, and close to it
-        # (the hull of the visible members misses an object's underside and the fuzz around its surface)
+        # (the hull of the visible members misses the fuzz just off an object's surface)
         reach = np.flatnonzero(~keep & unanimous[picked] & never_seen[picked])
         if hidden_reach > 0 and reach.size:
             distance, _ = cKDTree(means[members]).query(means[chosen[reach]])
-            near = reach[distance <= hidden_reach * spacing]
+            within = reach[distance <= hidden_reach * spacing]
             # and clear of the background that views saw: the table under an object continues the table seen
             # around it, within the contact distance at the object's foot
-            if near.size and background_tree is not None:
-                clearance, _ = background_tree.query(means[chosen[near]])
-                near = near[clearance > contact_factor * spacing]
-            keep[near] = True
-            stats["hidden_reached"] += int(near.size)
+            if within.size and background_tree is not None:
+                clearance, _ = background_tree.query(means[chosen[within]])
+                within = within[clearance > contact_factor * spacing]
+            keep[within] = True
+            stats["hidden_reached"] += int(within.size)
         out[chosen[keep]] = label
         stats["hidden_taken"] += int(keep.sum())
     return out, stats
