@@ -72,7 +72,7 @@ from votesplat_ns.eval.ground_truth import (
     write_json_atomic,
 )
 from votesplat_ns.eval.removal import ghost_fractions, mean_ghost_percent
-from votesplat_ns.ns.run import dataset_views, load_run, use_dataset
+from votesplat_ns.ns.run import dataset_views, load_run, run_dataset, use_dataset
 from votesplat_ns.ns.run_config import load_run_config
 from votesplat_ns.ns.run_instances import InstanceSettings, run_instances
 
@@ -123,18 +123,6 @@ def load_votesplat_config(config_path: Union[str, Path]):
             f"no checkpoint in {config_path.parent / config.relative_model_dir}; the run saved no model yet"
         )
     return config
-
-
-def _dataset_of(config) -> Path:
-    datamanager = config.pipeline.datamanager
-    data = (
-        getattr(datamanager, "data", None)
-        or getattr(config, "data", None)
-        or getattr(datamanager.dataparser, "data", None)
-    )
-    if data is None:
-        raise ValueError("the run's config names no dataset (pipeline.datamanager.data); pass --data")
-    return Path(data)
 
 
 def _views_of(dataset) -> List[PinholeView]:
@@ -258,7 +246,9 @@ def evaluate_run(
     config = load_votesplat_config(load_config)
     # a dataset that moved names --data, one that is not a dataset is said before any model is built
     use_dataset(config, Path(data) if data is not None else None, load_config, "--load-config")
-    data_path = Path(data) if data is not None else _dataset_of(config)
+    data_path = run_dataset(config)  # --data when given: use_dataset pointed the config at it
+    if data_path is None:
+        raise ValueError("the run's config names no dataset (pipeline.datamanager.data); pass --data")
     dataset = GroundTruthDataset.open(data_path)
     output_dir = Path(output_dir) if output_dir is not None else load_config.parent / DEFAULT_OUTPUT_FOLDER
     if output_dir.exists() and not output_dir.is_dir():
