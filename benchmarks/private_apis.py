@@ -1,11 +1,10 @@
-"""What the two private-API paths of a training step buy, in whole trainings.
+"""What the Gaussians' optimizer path of a training step buys, in whole trainings.
 
 One process trains one scene several times, the same steps and seed each time, and times every step
 (the host and the GPU run in lock step in these trainings, so a step's wall time is its cost):
 
-* ``votesplat``: the defaults (``core/triton_launch.py`` launches the vote kernels without Triton's
-  dispatch; ``ns/lean_adam.py`` ``LeanFusedAdam`` runs ``torch._fused_adam_`` itself);
-* ``jit-launch``: every vote-kernel launch through ``kernel[grid]`` (``triton_launch.DIRECT = False``);
+* ``votesplat``: the defaults (``ns/lean_adam.py`` ``LeanFusedAdam`` runs torch's private ``_fused_adam_``
+  itself on the Gaussians' groups);
 * ``public-fused-adam``: the Gaussians' groups step with ``torch.optim.Adam(fused=True)``;
 * ``multi-tensor-adam``: torch's default multi-tensor Adam (``fused=False``), splatfacto's own optimizer;
 * ``splatfacto``: nerfstudio's own splatfacto on the same data and steps, with its multi-tensor Adam. (With
@@ -30,7 +29,6 @@ from typing import Callable, Dict, List
 
 VARIANTS = (
     "votesplat",
-    "jit-launch",
     "public-fused-adam",
     "multi-tensor-adam",
     "splatfacto",
@@ -46,11 +44,9 @@ def _configure(variant: str, data: Path, out: Path, steps: int, vote_start: int,
 
     import torch
 
-    from votesplat_ns.core import triton_launch
     from votesplat_ns.ns.lean_adam import LeanFusedAdam
     from votesplat_ns.ns.method import trainer_config_in_process
 
-    triton_launch.DIRECT = variant != "jit-launch"
     config = trainer_config_in_process(data, out, steps, vote_start, device, variant, num_downscales=0)
     if variant == "splatfacto":
         from nerfstudio.configs.method_configs import method_configs

@@ -70,7 +70,7 @@ STEPS=${STEPS:-7000}
 METHODS=${METHODS:-"splatfacto votesplat"}
 CALL_BUDGET_S=${CALL_BUDGET_S:-570}
 EVAL_RESERVE_S=${EVAL_RESERVE_S:-45}
-GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_vote_fused.py tests/test_triton_launch.py tests/test_rasterize_torch.py tests/test_viewer.py"}
+GPU_TESTS=${GPU_TESTS:-"tests/test_vote_render.py tests/test_vote_fused.py tests/test_rasterize_torch.py tests/test_viewer.py"}
 # Triton kernel variants (walk block width x warps per program) that bench-vote times next to the torch vote pass
 KERNEL_CONFIGS=${KERNEL_CONFIGS:-"32x2 32x4 16x1 64x4"}
 # the vote pass implementations bench-vote times: the training step's path (triton-sampled) by default
