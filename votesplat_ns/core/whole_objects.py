@@ -295,7 +295,7 @@ def take_hidden(
     rows = np.arange(candidates.size)
     winner = np.where(counts[rows, top] > 0.5 * k, near_labels[rows, top], -1)
     unanimous = counts[rows, top] == k
-    never_seen = ~(table[:, candidates] >= 0).any(axis=0)
+    never_seen = (outside + inside)[candidates] == 0  # no view saw it, in a mask or outside every mask
     for label in np.unique(winner[winner >= 0]):
         picked = winner == label
         chosen = candidates[picked]
