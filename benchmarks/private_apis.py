@@ -35,10 +35,6 @@ VARIANTS = (
 )
 
 
-# the Gaussians' parameter groups (splatfacto's); votesplat adds its vote groups
-GAUSSIAN_GROUPS = ("means", "features_dc", "features_rest", "opacities", "scales", "quats")
-
-
 def _configure(variant: str, data: Path, out: Path, steps: int, vote_start: int, device: str):
     import copy
 
@@ -46,6 +42,7 @@ def _configure(variant: str, data: Path, out: Path, steps: int, vote_start: int,
 
     from votesplat_ns.ns.lean_adam import LeanFusedAdam
     from votesplat_ns.ns.method import trainer_config_in_process
+    from votesplat_ns.ns.run import SPLAT_PARAM_NAMES  # splatfacto's Gaussian groups
 
     config = trainer_config_in_process(data, out, steps, vote_start, device, variant, num_downscales=0)
     if variant == "splatfacto":
@@ -60,7 +57,7 @@ def _configure(variant: str, data: Path, out: Path, steps: int, vote_start: int,
         stock.pipeline.datamanager.data = data
         stock.pipeline.model.num_downscales = 0
         config = stock
-    for name in GAUSSIAN_GROUPS:
+    for name in SPLAT_PARAM_NAMES:
         optimizer = config.optimizers[name]["optimizer"]
         if variant in ("multi-tensor-adam", "splatfacto"):  # splatfacto's own optimizer
             target, fused = torch.optim.Adam, False
