@@ -47,6 +47,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 import pytest
 import torch
+from conftest import STARTED_ENV
 from PIL import Image
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
@@ -1676,17 +1677,28 @@ class Ran:
     stderr: str
 
 
+def command_env(home: Optional[Path] = None) -> Dict[str, str]:
+    """The environment a command runs under: the one this session started with (conftest.py ``STARTED_ENV``, not
+    what this process's imports have set since), pytest's name of the running test, a wide console, and the home
+    folder ``home``."""
+    env = dict(STARTED_ENV, COLUMNS="200")
+    if "PYTEST_CURRENT_TEST" in os.environ:
+        env["PYTEST_CURRENT_TEST"] = os.environ["PYTEST_CURRENT_TEST"]
+    if home is not None:
+        env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), MPLCONFIGDIR=str(home / ".matplotlib"))
+    return env
+
+
 def run_command(ws: Workspace, argv: Sequence[str], cwd: Optional[Path] = None) -> Ran:
-    env = dict(
-        os.environ,
-        COLUMNS="200",
-        HOME=str(ws.home),
-        XDG_CACHE_HOME=str(ws.home / ".cache"),
-        MPLCONFIGDIR=str(ws.home / ".matplotlib"),
-    )
     prefix = DROP_ROOT_OVERRIDES if ws.drop_root_overrides else []
     result = subprocess.run(
-        prefix + list(argv), capture_output=True, check=False, text=True, cwd=cwd or ws.home, timeout=900, env=env
+        prefix + list(argv),
+        capture_output=True,
+        check=False,
+        text=True,
+        cwd=cwd or ws.home,
+        timeout=900,
+        env=command_env(ws.home),
     )
     return Ran(result.returncode, result.stdout, result.stderr)
 
@@ -1834,7 +1846,7 @@ def fixtures(trained_demo, tmp_path_factory) -> Fixtures:
         check=False,
         text=True,
         timeout=900,
-        env=dict(os.environ, COLUMNS="200"),
+        env=command_env(),
     )
     assert result.returncode == 0, result.stderr[-3000:]
     return Fixtures(trained_demo=config, previous_export=export)
