@@ -2,9 +2,11 @@
 that sums up how every case ended.
 
 Every case runs one console script (ns-train votesplat, ns-export votesplat-instances, ns-viewer, votesplat
-export/query/click/query-eval/masks) in a workspace of its own. Most run it in a subprocess; a case whose
-fault cannot be made from outside (a full disk, Ctrl-C at a given step) runs the command's main in this
-process under a monkeypatched fault (``Expect.call``). Each case is judged (``judge``) into one verdict:
+export/query/click/query-eval/masks) in a workspace of its own. Most run it in a process of its own, forked
+from a runner that has already imported what the script imports (tests/preloaded_runner.py: the same process a
+new interpreter would be once its imports are done, without their seconds of start-up); a case whose fault
+cannot be made from outside (a full disk, Ctrl-C at a given step) runs the command's main in this process under
+a monkeypatched fault (``Expect.call``). Each case is judged (``judge``) into one verdict:
   - ended in one clear line: the exit code expected, one line ``<command>: error: ...`` (``: interrupted: ``
     for Ctrl-C) last on stderr, naming the file or flag, and no traceback;
   - ran on with what it had to say: exit 0, each expected warning said once, the result checked;
@@ -19,7 +21,7 @@ that let root ignore file permissions (setpriv).
 ``test_bad_input`` runs every case (``pytest tests/test_bad_inputs.py -m slow``); at the end of the session
 conftest.py prints the probe's report: cases tried, how many ended in one clear line or ran on, and the
 counts of tracebacks, silent wrong, data lost, unclear messages and files left behind, with each case that
-ended wrongly. Most cases fail before training or loading starts, so each costs about the command's start-up.
+ended wrongly. Most cases fail before training or loading starts, so each costs little more than a fork.
 The cases that need a trained run copy the session's ``trained_demo`` (tests/conftest.py).
 """
 
@@ -49,6 +51,7 @@ import pytest
 import torch
 from conftest import STARTED_ENV
 from PIL import Image
+from preloaded_runner import PreloadedScripts
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
 BIN = Path(sys.executable).parent
@@ -1689,17 +1692,28 @@ def command_env(home: Optional[Path] = None) -> Dict[str, str]:
     return env
 
 
-def run_command(ws: Workspace, argv: Sequence[str], cwd: Optional[Path] = None) -> Ran:
-    prefix = DROP_ROOT_OVERRIDES if ws.drop_root_overrides else []
-    result = subprocess.run(
-        prefix + list(argv),
-        capture_output=True,
-        check=False,
-        text=True,
-        cwd=cwd or ws.home,
-        timeout=900,
-        env=command_env(ws.home),
-    )
+def run_script(
+    argv: Sequence[str], env: Dict[str, str], cwd: Path, preloaded: Optional[PreloadedScripts]
+) -> subprocess.CompletedProcess:
+    """``argv`` in a process of its own: a fork of its console script's preloaded runner (tests/preloaded_runner.py)
+    where there is one that can run it, else a new interpreter."""
+    if preloaded is not None:
+        done = preloaded.run(argv, env, cwd, timeout=900)
+        if done is not None:
+            return done
+    return subprocess.run(list(argv), capture_output=True, check=False, text=True, cwd=cwd, timeout=900, env=env)
+
+
+def run_command(ws: Workspace, argv: Sequence[str], cwd: Path, preloaded: Optional[PreloadedScripts]) -> Ran:
+    env = command_env(ws.home)
+    if ws.drop_root_overrides:
+        # setpriv drops the capabilities that let root ignore file permissions and then executes the command,
+        # whose capabilities are set as it executes: a fork of the runner would keep the runner's
+        result = subprocess.run(
+            DROP_ROOT_OVERRIDES + list(argv), capture_output=True, check=False, text=True, cwd=cwd, timeout=900, env=env
+        )
+    else:
+        result = run_script(argv, env, cwd, preloaded)
     return Ran(result.returncode, result.stdout, result.stderr)
 
 
@@ -1814,7 +1828,7 @@ def judge(name: str, expect: Expect, ran: Ran, before: Dict[str, str], after: Di
     return Outcome(ONE_LINE if expect.exit_code != 0 else RAN_ON)
 
 
-def run_case(name: str, ws: Workspace, fixtures: "Fixtures") -> Outcome:
+def run_case(name: str, ws: Workspace, fixtures: "Fixtures", preloaded: Optional[PreloadedScripts] = None) -> Outcome:
     """Set up case ``name`` in ``ws``, run its command and judge what it did."""
     expect = CASES[name](ws, fixtures)
     before = snapshot(ws.root)
@@ -1823,7 +1837,7 @@ def run_case(name: str, ws: Workspace, fixtures: "Fixtures") -> Outcome:
         ran = run_in_process(expect.call, expect.argv, cwd)
         ws.monkeypatch.undo()  # the fault ends with the command
     else:
-        ran = run_command(ws, expect.argv, cwd)
+        ran = run_command(ws, expect.argv, cwd, preloaded)
     ws.unlock()
     return judge(name, expect, ran, before, snapshot(ws.root))
 
@@ -1835,19 +1849,29 @@ class Fixtures:
 
 
 @pytest.fixture(scope="module")
-def fixtures(trained_demo, tmp_path_factory) -> Fixtures:
+def preloaded(tmp_path_factory):
+    """The catalogue's console scripts, each imported once in a runner of its own that forks a process per
+    command (tests/preloaded_runner.py), started here so that their imports overlap the training of
+    ``trained_demo``. None (every command in a new interpreter) where CUDA is available: a child forked after
+    something initialised CUDA cannot use it. VOTESPLAT_TEST_PRELOAD=0 also starts each command afresh."""
+    if os.environ.get("VOTESPLAT_TEST_PRELOAD", "1") == "0" or torch.cuda.is_available():
+        yield None
+        return
+    scripts = PreloadedScripts(tmp_path_factory.mktemp("preloaded"))
+    scripts.start([str(BIN / name) for name in ("ns-train", "ns-export", "ns-viewer", "votesplat")], command_env())
+    yield scripts
+    scripts.close()
+    if scripts.declined:  # each ran in a new interpreter instead, correct but slow: say which and why
+        warnings.warn("commands not run preloaded: " + "; ".join(f"{argv}: {why}" for argv, why in scripts.declined))
+
+
+@pytest.fixture(scope="module")
+def fixtures(preloaded, trained_demo, tmp_path_factory) -> Fixtures:
     """A copy of the trained demo run and an instance export of it (ns-export, as a user would make it)."""
     base = tmp_path_factory.mktemp("bad_inputs")
     config = copy_run(trained_demo, base / "run")
     export = base / "export"
-    result = subprocess.run(
-        ns_export(config, export),
-        capture_output=True,
-        check=False,
-        text=True,
-        timeout=900,
-        env=command_env(),
-    )
+    result = run_script(ns_export(config, export), command_env(), Path.cwd(), preloaded)
     assert result.returncode == 0, result.stderr[-3000:]
     return Fixtures(trained_demo=config, previous_export=export)
 
@@ -1890,7 +1914,7 @@ def probe(request) -> Probe:
 
 @pytest.mark.slow  # every case starts a console script; several train a step or load a trained run
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_bad_input(name, workspace, fixtures, probe):
-    outcome = run_case(name, workspace, fixtures)
+def test_bad_input(name, workspace, fixtures, preloaded, probe):
+    outcome = run_case(name, workspace, fixtures, preloaded)
     probe.outcomes[name] = outcome
     assert outcome.verdict in (ONE_LINE, RAN_ON), f"{outcome.verdict}: {outcome.detail}"
