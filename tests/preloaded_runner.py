@@ -5,8 +5,8 @@ start-up (seconds of importing torch and nerfstudio) is paid once per script ins
 writes it (its imports, then its main under ``if __name__ == '__main__'``), under a name other than ``__main__``:
 the imports run, the main does not. What the imports print is kept. Then, for each request read from the file
 descriptor REQUESTS, it forks. The child takes the request's per-run environment variables (:data:`PER_RUN_ENV`;
-the rest of its environment is the runner's, with whatever the imports set in it), working folder, umask and argv;
-it gets pipes as its file descriptors 1 and 2, with
+the rest of its environment is the runner's, with whatever the imports set in it), working folder, umask and argv,
+and optionally drops capabilities as ``setpriv`` would have; it gets pipes as its file descriptors 1 and 2, with
 what the imports printed written to them first, draws new seeds for the ``random`` and ``numpy.random`` global
 generators (a new interpreter seeds them from the OS), and runs SCRIPT as ``__main__``, as ``python SCRIPT
 ARGS...`` would once its imports are done. The interpreter's own ending gives the exit status: ``SystemExit``,
@@ -153,6 +153,46 @@ def _write_all(fd: int, data: bytes) -> None:
         view = view[os.write(fd, view) :]
 
 
+def capabilities() -> Dict[str, int]:
+    """This process's capability sets (``/proc/self/status``: Inh, Prm, Eff, Bnd, Amb) as bit masks."""
+    with open("/proc/self/status") as status:
+        return {line[3:6]: int(line.split()[1], 16) for line in status if line.startswith("Cap")}
+
+
+def _drop_capabilities(numbers: Sequence[int]) -> None:
+    """Leave this process as root is once ``setpriv --bounding-set -<cap>,... -- COMMAND`` has executed COMMAND:
+    the capabilities ``numbers`` out of the bounding, permitted and effective sets (an execve by root makes the
+    permitted and effective sets the inheritable set and the bounding set; :meth:`PreloadedScripts.run` forks
+    for it only from a runner whose sets are already so), checked against ``/proc/self/status``."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    pr_capbset_drop = 24  # linux/prctl.h
+    for number in numbers:
+        if libc.prctl(pr_capbset_drop, number, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), f"prctl(PR_CAPBSET_DROP, {number})")
+
+    class Header(ctypes.Structure):
+        _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+
+    class Data(ctypes.Structure):
+        _fields_ = [("effective", ctypes.c_uint32), ("permitted", ctypes.c_uint32), ("inheritable", ctypes.c_uint32)]
+
+    header, data = Header(0x20080522, 0), (Data * 2)()  # _LINUX_CAPABILITY_VERSION_3: two 32-bit words per set
+    if libc.capget(ctypes.byref(header), data) != 0:
+        raise OSError(ctypes.get_errno(), "capget")
+    for number in numbers:
+        word, bit = divmod(number, 32)
+        data[word].effective &= ~(1 << bit) & 0xFFFFFFFF
+        data[word].permitted &= ~(1 << bit) & 0xFFFFFFFF
+    if libc.capset(ctypes.byref(header), data) != 0:
+        raise OSError(ctypes.get_errno(), "capset")
+    sets = capabilities()
+    after_exec = sets["Inh"] | sets["Bnd"]
+    if any(sets["Bnd"] >> number & 1 for number in numbers) or not sets["Prm"] == sets["Eff"] == after_exec:
+        raise RuntimeError(f"capabilities after the drop are not those after setpriv's execve: {sets}")
+
+
 def _child(request: dict, printed: Tuple[bytes, bytes], close: Sequence[int], out_w: int, err_w: int) -> None:
     """In the forked child: become the command's process (everything but running the script)."""
     for fd in close:
@@ -164,6 +204,8 @@ def _child(request: dict, printed: Tuple[bytes, bytes], close: Sequence[int], ou
             os.environ.pop(key, None)
     os.chdir(request["cwd"])
     os.umask(request["umask"])
+    if request["drop_capabilities"]:
+        _drop_capabilities(request["drop_capabilities"])
     os.dup2(out_w, 1)
     os.dup2(err_w, 2)
     os.close(out_w)
@@ -224,7 +266,7 @@ def serve(script: str, channel: Channel) -> Optional[dict]:
         channel.send({"ready": False, "why": traceback.format_exc()})
         return None
     why = _not_forkable(env_before)
-    channel.send({"ready": why is None, "why": why})
+    channel.send({"ready": why is None, "why": why, "euid": os.geteuid(), "capabilities": capabilities()})
     if why is not None:
         return None
     while (message := channel.receive()) is not None:
@@ -323,6 +365,20 @@ class _Runner:
             self.ready = message[0]
         return bool(self.ready["ready"])
 
+    def can_drop(self, numbers: Sequence[int]) -> bool:
+        """Whether a fork of this runner can be left as setpriv leaves root with ``numbers`` out of its bounding
+        set: the runner is root whose permitted and effective sets are what an execve would give it (the
+        inheritable and bounding sets), none of ``numbers`` inheritable and no ambient capabilities."""
+        assert self.ready is not None
+        sets = self.ready["capabilities"]
+        mask = sum(1 << number for number in numbers)
+        return (
+            self.ready["euid"] == 0
+            and sets["Prm"] == sets["Eff"] == sets["Inh"] | sets["Bnd"]
+            and not sets["Inh"] & mask
+            and not sets["Amb"]
+        )
+
     def log_tail(self) -> str:
         return self.log.read_text(errors="replace")[-3000:]
 
@@ -376,13 +432,17 @@ class PreloadedScripts:
         env: Mapping[str, str],
         cwd: Path,
         timeout: float,
+        drop_capabilities: Sequence[int] = (),
     ) -> Optional[subprocess.CompletedProcess]:
         """``subprocess.run(argv, env=env, cwd=cwd, timeout=timeout, capture_output=True, text=True)``, in a fork
         of the runner of ``argv[0]``; None when it cannot run there (not a console script, a runner that cannot
-        fork)."""
+        fork).
+
+        ``drop_capabilities`` (Linux capability numbers): run it as ``setpriv --bounding-set -<cap>,... --
+        ARGV`` would, run as root; None where a fork cannot be left in that state (:meth:`_Runner.can_drop`)."""
         if argv[0] in self.runners and self.runners[argv[0]].env != _fixed(env):
             self.start(list(self.runners), env)  # all of them: the next commands of the others see the change too
-        why = self._why_not(argv, env)
+        why = self._why_not(argv, env, drop_capabilities)
         if why is not None:
             self.declined.append((" ".join(argv), why))
             return None
@@ -397,6 +457,7 @@ class PreloadedScripts:
             "cwd": str(cwd),
             "umask": umask,
             "timeout": timeout,
+            "drop_capabilities": list(drop_capabilities),
         }
         runner.channel.send(request)
         message = runner.channel.receive(time.monotonic() + timeout + START_TIMEOUT_S)
@@ -410,7 +471,7 @@ class PreloadedScripts:
             raise subprocess.TimeoutExpired(list(argv), timeout, stdout, stderr)
         return subprocess.CompletedProcess(list(argv), answer["returncode"], stdout, stderr)
 
-    def _why_not(self, argv: Sequence[str], env: Mapping[str, str]) -> Optional[str]:
+    def _why_not(self, argv: Sequence[str], env: Mapping[str, str], drop_capabilities: Sequence[int]) -> Optional[str]:
         """Why ``argv`` cannot run in a fork of its runner; None when it can."""
         self.start([argv[0]], env)
         runner = self.runners.get(argv[0])
@@ -419,6 +480,8 @@ class PreloadedScripts:
         if not runner.wait_ready():
             assert runner.ready is not None
             return f"its runner cannot fork: {runner.ready['why']}"
+        if drop_capabilities and not runner.can_drop(drop_capabilities):
+            return f"a fork of its runner cannot be left without capabilities {list(drop_capabilities)} as setpriv leaves it"
         return None
 
     def close(self) -> None:

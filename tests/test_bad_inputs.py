@@ -55,9 +55,11 @@ from preloaded_runner import PreloadedScripts
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
 BIN = Path(sys.executable).parent
-# root ignores file permissions through these capabilities; without them a read-only folder is read-only
+# root ignores file permissions through these capabilities (their numbers in linux/capability.h); without them a
+# read-only folder is read-only
+ROOT_OVERRIDES = {"dac_override": 1, "dac_read_search": 2, "fowner": 3}
 DROP_ROOT_OVERRIDES = (
-    ["setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner", "--"] if os.geteuid() == 0 else []
+    ["setpriv", "--bounding-set", ",".join(f"-{name}" for name in ROOT_OVERRIDES), "--"] if os.geteuid() == 0 else []
 )
 TEMP_MARKERS = (".tmp-", ".partial.", ".old.")
 
@@ -1693,27 +1695,29 @@ def command_env(home: Optional[Path] = None) -> Dict[str, str]:
 
 
 def run_script(
-    argv: Sequence[str], env: Dict[str, str], cwd: Path, preloaded: Optional[PreloadedScripts]
+    argv: Sequence[str],
+    env: Dict[str, str],
+    cwd: Path,
+    preloaded: Optional[PreloadedScripts],
+    drop_root_overrides: bool = False,
 ) -> subprocess.CompletedProcess:
     """``argv`` in a process of its own: a fork of its console script's preloaded runner (tests/preloaded_runner.py)
-    where there is one that can run it, else a new interpreter."""
+    where there is one that can run it, else a new interpreter. ``drop_root_overrides``: without the capabilities
+    that let root ignore file permissions, as ``setpriv`` (DROP_ROOT_OVERRIDES) leaves a command it executes; the
+    fork drops them itself, into the same capability sets (the runner checks them)."""
     if preloaded is not None:
-        done = preloaded.run(argv, env, cwd, timeout=900)
+        drop = list(ROOT_OVERRIDES.values()) if drop_root_overrides else []
+        done = preloaded.run(argv, env, cwd, timeout=900, drop_capabilities=drop)
         if done is not None:
             return done
-    return subprocess.run(list(argv), capture_output=True, check=False, text=True, cwd=cwd, timeout=900, env=env)
+    prefix = DROP_ROOT_OVERRIDES if drop_root_overrides else []
+    return subprocess.run(
+        prefix + list(argv), capture_output=True, check=False, text=True, cwd=cwd, timeout=900, env=env
+    )
 
 
 def run_command(ws: Workspace, argv: Sequence[str], cwd: Path, preloaded: Optional[PreloadedScripts]) -> Ran:
-    env = command_env(ws.home)
-    if ws.drop_root_overrides:
-        # setpriv drops the capabilities that let root ignore file permissions and then executes the command,
-        # whose capabilities are set as it executes: a fork of the runner would keep the runner's
-        result = subprocess.run(
-            DROP_ROOT_OVERRIDES + list(argv), capture_output=True, check=False, text=True, cwd=cwd, timeout=900, env=env
-        )
-    else:
-        result = run_script(argv, env, cwd, preloaded)
+    result = run_script(argv, command_env(ws.home), cwd, preloaded, ws.drop_root_overrides)
     return Ran(result.returncode, result.stdout, result.stderr)
 
 
