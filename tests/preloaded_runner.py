@@ -98,19 +98,62 @@ class Channel:
 
 
 # ------------------------------------------------------------------ the runner
-def _preload(script: str) -> Tuple[bytes, bytes]:
-    """Run the script's imports (not its main); what they printed on stdout and stderr."""
-    # sys.path[0] is the script's folder, as ``python SCRIPT`` makes it (symbolic links resolved)
-    sys.path[0] = os.path.dirname(os.path.realpath(script))
-    sys.argv = [script]
+class _Script:
+    """A console script split as Python runs it: the statements before its final ``if __name__ == '__main__':``
+    (its imports) and that block (its main), run in one ``__main__`` module."""
+
+    def __init__(self, path: str):
+        import ast
+        import importlib.machinery
+        import types
+
+        with open(path, "rb") as handle:
+            tree = ast.parse(handle.read(), path)
+        if not tree.body or not _is_main_guard(tree.body[-1]):
+            raise ValueError(f"{path} does not end in its main under if __name__ == '__main__':")
+        self.imports = compile(ast.Module(body=tree.body[:-1], type_ignores=[]), path, "exec")
+        self.main = compile(ast.Module(body=tree.body[-1:], type_ignores=[]), path, "exec")
+        self.module = types.ModuleType("__main__")
+        self.module.__dict__.update(
+            __file__=path,
+            __cached__=None,
+            __builtins__=__builtins__,
+            __loader__=importlib.machinery.SourceFileLoader("__main__", path),
+        )
+
+
+def _is_main_guard(node: object) -> bool:
+    import ast
+
+    if not isinstance(node, ast.If) or not isinstance(node.test, ast.Compare):
+        return False
+    test = node.test
+    return (
+        isinstance(test.left, ast.Name)
+        and test.left.id == "__name__"
+        and len(test.ops) == 1
+        and isinstance(test.ops[0], ast.Eq)
+        and isinstance(test.comparators[0], ast.Constant)
+        and test.comparators[0].value == "__main__"
+    )
+
+
+def _preload(script: _Script) -> Tuple[bytes, bytes]:
+    """Run the script's imports as ``python SCRIPT`` does before its main; what they printed on stdout and
+    stderr."""
+    path = script.module.__file__
+    assert path is not None
+    # sys.path[0] is the script's folder, as ``python SCRIPT`` makes it (symbolic links resolved), and the
+    # script is __main__ while it imports
+    sys.path[0] = os.path.dirname(os.path.realpath(path))
+    sys.argv = [path]
+    sys.modules["__main__"] = script.module
     saved = os.dup(1), os.dup(2)
     captured = os.memfd_create("stdout"), os.memfd_create("stderr")
     try:
         os.dup2(captured[0], 1)
         os.dup2(captured[1], 2)
-        import runpy
-
-        runpy.run_path(script, run_name="__preload__")
+        exec(script.imports, script.module.__dict__)
     finally:
         sys.stdout.flush()
         sys.stderr.flush()
@@ -254,9 +297,9 @@ def _collect(pid: int, out_r: int, err_r: int, timeout: float) -> Tuple[int, boo
     return os.waitstatus_to_exitcode(status), timed_out, bytes(output[out_r]), bytes(output[err_r])
 
 
-def serve(script: str, channel: Channel) -> Optional[dict]:
-    """The runner's loop. Returns in a forked child only, with the request it is to run; in the runner, once
-    the test side has closed its end (None)."""
+def serve(script: _Script, channel: Channel) -> bool:
+    """The runner's loop. Returns True in a forked child only, set up to run the script's main; False in the
+    runner, once the test side has closed its end."""
     env_before = dict(os.environ)
     try:
         printed = _preload(script)
@@ -264,11 +307,11 @@ def serve(script: str, channel: Channel) -> Optional[dict]:
         import traceback
 
         channel.send({"ready": False, "why": traceback.format_exc()})
-        return None
+        return False
     why = _not_forkable(env_before)
     channel.send({"ready": why is None, "why": why, "euid": os.geteuid(), "capabilities": capabilities()})
     if why is not None:
-        return None
+        return False
     while (message := channel.receive()) is not None:
         request = message[0]
         out_r, out_w = os.pipe()
@@ -287,7 +330,7 @@ def serve(script: str, channel: Channel) -> Optional[dict]:
 
                 _write_all(setup_w, traceback.format_exc().encode())
                 os._exit(1)
-            return request
+            return True
         for fd in (out_w, err_w, setup_w):
             os.close(fd)
         chunks = []
@@ -297,7 +340,7 @@ def serve(script: str, channel: Channel) -> Optional[dict]:
         returncode, timed_out, out, err = _collect(pid, out_r, err_r, request["timeout"])
         setup_error = b"".join(chunks).decode(errors="replace") or None
         channel.send({"returncode": returncode, "timed_out": timed_out, "setup_error": setup_error}, out, err)
-    return None
+    return False
 
 
 # ------------------------------------------------------------------ the test side
@@ -309,13 +352,15 @@ def _script_interpreter(path: str) -> Optional[str]:
             text = handle.read(1 << 16)
     except OSError:
         return None
-    first, _, body = text.partition(b"\n")
+    first = text.partition(b"\n")[0]
     interpreter = first[2:].decode(errors="replace").strip()
     if not first.startswith(b"#!") or " " in interpreter or not os.path.basename(interpreter).startswith("python"):
         return None
-    if b"if __name__ == '__main__':" not in body or not os.access(interpreter, os.X_OK):
+    try:
+        _Script(path)
+    except (SyntaxError, ValueError):
         return None
-    return interpreter
+    return interpreter if os.access(interpreter, os.X_OK) else None
 
 
 def _text(data: bytes) -> str:
@@ -491,9 +536,8 @@ class PreloadedScripts:
 
 
 if __name__ == "__main__":
-    _channel = Channel(int(sys.argv[2]), int(sys.argv[3]))
-    _job = serve(sys.argv[1], _channel)
-    if _job is not None:  # a forked child: the command, as ``python SCRIPT ARGS...`` runs it after its imports
-        import runpy
-
-        runpy.run_path(_job["argv"][0], run_name="__main__")
+    _script = _Script(sys.argv[1])
+    if serve(_script, Channel(int(sys.argv[2]), int(sys.argv[3]))):
+        # a forked child: the script's main, as ``python SCRIPT ARGS...`` runs it once its imports are done; what
+        # it raises ends this interpreter as it would end that one
+        exec(_script.main, _script.module.__dict__)
