@@ -157,8 +157,9 @@ def _preload(script: _Script) -> Tuple[bytes, bytes]:
     finally:
         sys.stdout.flush()
         sys.stderr.flush()
-        os.dup2(saved[0], 1)
-        os.dup2(saved[1], 2)
+        for fd, saved_fd in ((1, saved[0]), (2, saved[1])):
+            os.dup2(saved_fd, fd)
+            os.close(saved_fd)
     printed = []
     for fd in captured:
         os.lseek(fd, 0, os.SEEK_SET)
@@ -275,7 +276,8 @@ def _collect(pid: int, out_r: int, err_r: int, timeout: float) -> Tuple[int, boo
         left = deadline - time.monotonic()
         if left <= 0:
             timed_out = True
-            os.kill(pid, signal.SIGKILL)
+            if status is None:  # not yet reaped: the pid is still the child's
+                os.kill(pid, signal.SIGKILL)
             break
         waiting = open_fds + ([pidfd] if status is None else [])
         for fd in select.select(waiting, [], [], left)[0]:

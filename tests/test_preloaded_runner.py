@@ -39,6 +39,9 @@ def main():
     if mode == "random":
         print(random.random())
         return 0
+    if mode == "fds":
+        print("open file descriptors", sorted(int(fd) for fd in os.listdir("/proc/self/fd")))
+        return 0
     if mode == "env":
         print(os.environ.get("PRELOADED_RUNNER_TEST"))
         return 0
@@ -89,7 +92,7 @@ def both(scripts: PreloadedScripts, argv, env, cwd):
     return forked, fresh
 
 
-@pytest.mark.parametrize("mode", ["none", "code", "text", "later"])
+@pytest.mark.parametrize("mode", ["none", "code", "text", "later", "fds"])
 def test_a_forked_command_prints_and_ends_as_in_a_new_interpreter(mode, script, scripts, tmp_path):
     forked, fresh = both(scripts, [str(script), mode, "more args"], env_for(tmp_path / "home"), tmp_path)
     assert (forked.returncode, forked.stdout, forked.stderr) == (fresh.returncode, fresh.stdout, fresh.stderr)
