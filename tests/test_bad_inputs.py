@@ -1855,8 +1855,9 @@ class Fixtures:
 @pytest.fixture(scope="module")
 def preloaded(tmp_path_factory):
     """The catalogue's console scripts, each imported once in a runner of its own that forks a process per
-    command (tests/preloaded_runner.py), started here so that their imports overlap the training of
-    ``trained_demo``. None (every command in a new interpreter) where CUDA is available: a child forked after
+    command (tests/preloaded_runner.py). All four start together, so that their imports run side by side rather
+    than each before its first command; after ``trained_demo`` (a session fixture, set up first), whose training
+    they would slow. None (every command in a new interpreter) where CUDA is available: a child forked after
     something initialised CUDA cannot use it. VOTESPLAT_TEST_PRELOAD=0 also starts each command afresh."""
     if os.environ.get("VOTESPLAT_TEST_PRELOAD", "1") == "0" or torch.cuda.is_available():
         yield None
@@ -1870,7 +1871,7 @@ def preloaded(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def fixtures(preloaded, trained_demo, tmp_path_factory) -> Fixtures:
+def fixtures(trained_demo, preloaded, tmp_path_factory) -> Fixtures:
     """A copy of the trained demo run and an instance export of it (ns-export, as a user would make it)."""
     base = tmp_path_factory.mktemp("bad_inputs")
     config = copy_run(trained_demo, base / "run")
