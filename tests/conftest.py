@@ -9,6 +9,9 @@ from pathlib import Path
 
 import pytest
 
+# The environment this test session started with, before what it imports sets variables of its own (cv2,
+# sklearn, open3d and torch's compiler do): commands the tests start run under it, whichever tests ran before.
+STARTED_ENV = dict(os.environ)
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 # Short enough for CI on 2 cores, long enough for the votes to move well past their start.

@@ -2,9 +2,11 @@
 that sums up how every case ended.
 
 Every case runs one console script (ns-train votesplat, ns-export votesplat-instances, ns-viewer, votesplat
-export/query/click/query-eval/masks) in a workspace of its own. Most run it in a subprocess; a case whose
-fault cannot be made from outside (a full disk, Ctrl-C at a given step) runs the command's main in this
-process under a monkeypatched fault (``Expect.call``). Each case is judged (``judge``) into one verdict:
+export/query/click/query-eval/masks) in a workspace of its own. Most run it in a process of its own, forked
+from a runner that has already imported what the script imports (tests/preloaded_runner.py: the same process a
+new interpreter would be once its imports are done, without their seconds of start-up); a case whose fault
+cannot be made from outside (a full disk, Ctrl-C at a given step) runs the command's main in this process under
+a monkeypatched fault (``Expect.call``). Each case is judged (``judge``) into one verdict:
   - ended in one clear line: the exit code expected, one line ``<command>: error: ...`` (``: interrupted: ``
     for Ctrl-C) last on stderr, naming the file or flag, and no traceback;
   - ran on with what it had to say: exit 0, each expected warning said once, the result checked;
@@ -19,7 +21,7 @@ that let root ignore file permissions (setpriv).
 ``test_bad_input`` runs every case (``pytest tests/test_bad_inputs.py -m slow``); at the end of the session
 conftest.py prints the probe's report: cases tried, how many ended in one clear line or ran on, and the
 counts of tracebacks, silent wrong, data lost, unclear messages and files left behind, with each case that
-ended wrongly. Most cases fail before training or loading starts, so each costs about the command's start-up.
+ended wrongly. Most cases fail before training or loading starts, so each costs little more than a fork.
 The cases that need a trained run copy the session's ``trained_demo`` (tests/conftest.py).
 """
 
@@ -47,13 +49,17 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 import pytest
 import torch
+from conftest import STARTED_ENV
 from PIL import Image
+from preloaded_runner import PreloadedScripts
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
 BIN = Path(sys.executable).parent
-# root ignores file permissions through these capabilities; without them a read-only folder is read-only
+# root ignores file permissions through these capabilities (their numbers in linux/capability.h); without them a
+# read-only folder is read-only
+ROOT_OVERRIDES = {"dac_override": 1, "dac_read_search": 2, "fowner": 3}
 DROP_ROOT_OVERRIDES = (
-    ["setpriv", "--bounding-set", "-dac_override,-dac_read_search,-fowner", "--"] if os.geteuid() == 0 else []
+    ["setpriv", "--bounding-set", ",".join(f"-{name}" for name in ROOT_OVERRIDES), "--"] if os.geteuid() == 0 else []
 )
 TEMP_MARKERS = (".tmp-", ".partial.", ".old.")
 
@@ -1676,18 +1682,42 @@ class Ran:
     stderr: str
 
 
-def run_command(ws: Workspace, argv: Sequence[str], cwd: Optional[Path] = None) -> Ran:
-    env = dict(
-        os.environ,
-        COLUMNS="200",
-        HOME=str(ws.home),
-        XDG_CACHE_HOME=str(ws.home / ".cache"),
-        MPLCONFIGDIR=str(ws.home / ".matplotlib"),
+def command_env(home: Optional[Path] = None) -> Dict[str, str]:
+    """The environment a command runs under: the one this session started with (conftest.py ``STARTED_ENV``, not
+    what this process's imports have set since), pytest's name of the running test, a wide console, and the home
+    folder ``home``."""
+    env = dict(STARTED_ENV, COLUMNS="200")
+    if "PYTEST_CURRENT_TEST" in os.environ:
+        env["PYTEST_CURRENT_TEST"] = os.environ["PYTEST_CURRENT_TEST"]
+    if home is not None:
+        env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), MPLCONFIGDIR=str(home / ".matplotlib"))
+    return env
+
+
+def run_script(
+    argv: Sequence[str],
+    env: Dict[str, str],
+    cwd: Path,
+    preloaded: Optional[PreloadedScripts],
+    drop_root_overrides: bool = False,
+) -> subprocess.CompletedProcess:
+    """``argv`` in a process of its own: a fork of its console script's preloaded runner (tests/preloaded_runner.py)
+    where there is one that can run it, else a new interpreter. ``drop_root_overrides``: without the capabilities
+    that let root ignore file permissions, as ``setpriv`` (DROP_ROOT_OVERRIDES) leaves a command it executes; the
+    fork drops them itself, into the same capability sets (the runner checks them)."""
+    if preloaded is not None:
+        drop = list(ROOT_OVERRIDES.values()) if drop_root_overrides else []
+        done = preloaded.run(argv, env, cwd, timeout=900, drop_capabilities=drop)
+        if done is not None:
+            return done
+    prefix = DROP_ROOT_OVERRIDES if drop_root_overrides else []
+    return subprocess.run(
+        prefix + list(argv), capture_output=True, check=False, text=True, cwd=cwd, timeout=900, env=env
     )
-    prefix = DROP_ROOT_OVERRIDES if ws.drop_root_overrides else []
-    result = subprocess.run(
-        prefix + list(argv), capture_output=True, check=False, text=True, cwd=cwd or ws.home, timeout=900, env=env
-    )
+
+
+def run_command(ws: Workspace, argv: Sequence[str], cwd: Path, preloaded: Optional[PreloadedScripts]) -> Ran:
+    result = run_script(argv, command_env(ws.home), cwd, preloaded, ws.drop_root_overrides)
     return Ran(result.returncode, result.stdout, result.stderr)
 
 
@@ -1802,7 +1832,7 @@ def judge(name: str, expect: Expect, ran: Ran, before: Dict[str, str], after: Di
     return Outcome(ONE_LINE if expect.exit_code != 0 else RAN_ON)
 
 
-def run_case(name: str, ws: Workspace, fixtures: "Fixtures") -> Outcome:
+def run_case(name: str, ws: Workspace, fixtures: "Fixtures", preloaded: Optional[PreloadedScripts] = None) -> Outcome:
     """Set up case ``name`` in ``ws``, run its command and judge what it did."""
     expect = CASES[name](ws, fixtures)
     before = snapshot(ws.root)
@@ -1811,7 +1841,7 @@ def run_case(name: str, ws: Workspace, fixtures: "Fixtures") -> Outcome:
         ran = run_in_process(expect.call, expect.argv, cwd)
         ws.monkeypatch.undo()  # the fault ends with the command
     else:
-        ran = run_command(ws, expect.argv, cwd)
+        ran = run_command(ws, expect.argv, cwd, preloaded)
     ws.unlock()
     return judge(name, expect, ran, before, snapshot(ws.root))
 
@@ -1823,19 +1853,30 @@ class Fixtures:
 
 
 @pytest.fixture(scope="module")
-def fixtures(trained_demo, tmp_path_factory) -> Fixtures:
+def preloaded(tmp_path_factory):
+    """The catalogue's console scripts, each imported once in a runner of its own that forks a process per
+    command (tests/preloaded_runner.py). All four start together, so that their imports run side by side rather
+    than each before its first command; after ``trained_demo`` (a session fixture, set up first), whose training
+    they would slow. None (every command in a new interpreter) where CUDA is available: a child forked after
+    something initialised CUDA cannot use it. VOTESPLAT_TEST_PRELOAD=0 also starts each command afresh."""
+    if os.environ.get("VOTESPLAT_TEST_PRELOAD", "1") == "0" or torch.cuda.is_available():
+        yield None
+        return
+    scripts = PreloadedScripts(tmp_path_factory.mktemp("preloaded"))
+    scripts.start([str(BIN / name) for name in ("ns-train", "ns-export", "ns-viewer", "votesplat")], command_env())
+    yield scripts
+    scripts.close()
+    if scripts.declined:  # each ran in a new interpreter instead, correct but slow: say which and why
+        warnings.warn("commands not run preloaded: " + "; ".join(f"{argv}: {why}" for argv, why in scripts.declined))
+
+
+@pytest.fixture(scope="module")
+def fixtures(trained_demo, preloaded, tmp_path_factory) -> Fixtures:
     """A copy of the trained demo run and an instance export of it (ns-export, as a user would make it)."""
     base = tmp_path_factory.mktemp("bad_inputs")
     config = copy_run(trained_demo, base / "run")
     export = base / "export"
-    result = subprocess.run(
-        ns_export(config, export),
-        capture_output=True,
-        check=False,
-        text=True,
-        timeout=900,
-        env=dict(os.environ, COLUMNS="200"),
-    )
+    result = run_script(ns_export(config, export), command_env(), Path.cwd(), preloaded)
     assert result.returncode == 0, result.stderr[-3000:]
     return Fixtures(trained_demo=config, previous_export=export)
 
@@ -1878,7 +1919,7 @@ def probe(request) -> Probe:
 
 @pytest.mark.slow  # every case starts a console script; several train a step or load a trained run
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_bad_input(name, workspace, fixtures, probe):
-    outcome = run_case(name, workspace, fixtures)
+def test_bad_input(name, workspace, fixtures, preloaded, probe):
+    outcome = run_case(name, workspace, fixtures, preloaded)
     probe.outcomes[name] = outcome
     assert outcome.verdict in (ONE_LINE, RAN_ON), f"{outcome.verdict}: {outcome.detail}"
