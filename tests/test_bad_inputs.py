@@ -1727,6 +1727,8 @@ def run_in_process(call: Callable[[], object], argv: Sequence[str], cwd: Path) -
     out, err = io.StringIO(), io.StringIO()
     returncode = 0
     previous, previous_argv = os.getcwd(), sys.argv
+    # A user's Ctrl-C raises KeyboardInterrupt; a pytest started in the background ignores SIGINT instead
+    previous_sigint = signal.signal(signal.SIGINT, signal.default_int_handler)
     os.chdir(cwd)
     sys.argv = list(argv)
 
@@ -1747,6 +1749,7 @@ def run_in_process(call: Callable[[], object], argv: Sequence[str], cwd: Path) -
     finally:
         os.chdir(previous)
         sys.argv = previous_argv
+        signal.signal(signal.SIGINT, previous_sigint)
     return Ran(returncode, out.getvalue(), err.getvalue())
 
 
