@@ -54,6 +54,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))  # the oracle and the stand-in decoder are test code
 
+from votesplat_ns.core.sam_decoder import DECODER_MODES, DEFAULT_DECODER  # noqa: E402
+
 LANGSPLAT: Dict[str, Any] = dict(
     points_per_side=32,
     pred_iou_thresh=0.7,
@@ -163,6 +165,7 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
             model_predictor=model,
             precision=precision,
             crops_per_encoder_pass=args.crops_per_encoder_pass,
+            decoder=args.decoder,
         )
         stand_in.segment_maps()  # the stand-in's per-segment maps, made before any timing
         return stand_in
@@ -174,6 +177,7 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
             **settings,
             precision=precision,
             crops_per_encoder_pass=args.crops_per_encoder_pass,
+            decoder=args.decoder,
         )
 
     precisions = list(args.precision)
@@ -232,6 +236,7 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
         row = {
             "workload": workload,
             "precision": precision,
+            "decoder": args.decoder,
             "images": len(images),
             "seeds": [seed for seed, _, _ in images],
             "model": "none (stand-in alone)" if sam is None else "SAM, random weights",
@@ -379,6 +384,9 @@ def main(argv=None) -> int:
         dest="decoder_agreement",
         action="store_false",
         help="skip the prompt-by-prompt comparison of each precision's masks with fp32's",
+    )
+    parser.add_argument(
+        "--decoder", default=DEFAULT_DECODER, choices=list(DECODER_MODES), help="the one-pass path's mask decoder"
     )
     parser.add_argument("--points-per-batch", type=int, default=DEFAULT_POINTS_PER_BATCH, help="both paths")
     parser.add_argument("--crops-per-encoder-pass", type=int, default=None, help="default: 1 in fp32, else all")

@@ -65,6 +65,7 @@ class StandInPredictor:
         model_predictor=None,
         precision: str = "fp32",
         crops_per_encoder_pass=None,
+        decoder: str = "folded",
     ):
         from segment_anything.utils.amg import generate_crop_boxes
         from segment_anything.utils.transforms import ResizeLongestSide
@@ -74,7 +75,9 @@ class StandInPredictor:
         assert len(label_maps) == 3
         self.model_predictor = model_predictor  # a real SamPredictor run alongside, for timing: its outputs are dropped
         self.model_steps = (
-            SamSteps(model_predictor, precision, crops_per_encoder_pass) if model_predictor is not None else None
+            SamSteps(model_predictor, precision, crops_per_encoder_pass, decoder)
+            if model_predictor is not None
+            else None
         )
         self.image = image
         self.device = torch.device(device)

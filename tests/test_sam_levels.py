@@ -201,6 +201,7 @@ def test_sam_mask_source_runs_the_one_pass_generator(one_torch_thread):
     assert isinstance(source._generator, SamLevelsMaskGenerator)
     settings = {**source.generator_kwargs}
     assert settings.pop("precision") == "fp32"  # the oracle is segment_anything's float32 model
+    assert settings.pop("decoder") == "folded"  # the oracle runs segment_anything's own decoder
     expected = ReferenceGenerator(sam, None, ("m", "default", "s"), **settings).label_images(image)
     assert all(np.array_equal(a, b) for a, b in zip(expected, labels))
     assert labels[1].max() > 0

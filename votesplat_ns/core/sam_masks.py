@@ -18,6 +18,7 @@ from PIL import Image
 
 from votesplat_ns.core.image_files import PathLike
 from votesplat_ns.core.mask_source_base import MaskSource, validate_levels
+from votesplat_ns.core.sam_decoder import DECODER_MODES, DEFAULT_DECODER
 from votesplat_ns.errors import VoteSplatInputError, load_failure_reason
 
 SAM_CHECKPOINT_FILES = {
@@ -119,6 +120,7 @@ class SamMaskSource(MaskSource):
             crop_n_points_downscale_factor=int(crop_n_points_downscale_factor),
             min_mask_region_area=int(min_mask_region_area),
             precision=precision,
+            decoder=DEFAULT_DECODER,
         )
         self._sam_model = sam_model
         self._generator = None
@@ -214,11 +216,26 @@ class SamSteps:
 
     ``precision`` (:data:`SAM_PRECISIONS`): ``"tf32"`` and ``"bf16"`` apply to encoder and decoder (their outputs
     come back as float32); the upscaling stays float32.
+
+    ``decoder`` (``core/sam_decoder.py`` :data:`DECODER_MODES`): ``"folded"`` (default) runs segment_anything's
+    decoder modules on one copy of the image tokens where they do not depend on the prompt, instead of one copy
+    per prompt, and moves the later blocks' image-token projections onto the prompt's 7 tokens (BENCHMARKS.md
+    "SAM masks": the labels stay segment_anything's); ``"shared"`` does only the first; ``"segment_anything"``
+    calls ``MaskDecoder`` itself.
     """
 
-    def __init__(self, predictor: Any, precision: str = "fp32", crops_per_encoder_pass: Optional[int] = None):
+    def __init__(
+        self,
+        predictor: Any,
+        precision: str = "fp32",
+        crops_per_encoder_pass: Optional[int] = None,
+        decoder: str = DEFAULT_DECODER,
+    ):
         import torch
 
+        if decoder not in DECODER_MODES:
+            raise VoteSplatInputError(f"unknown SAM decoder '{decoder}'; use one of {list(DECODER_MODES)}")
+        self.decoder = decoder
         if precision not in SAM_PRECISIONS:
             raise VoteSplatInputError(f"unknown SAM precision '{precision}'; use one of {list(SAM_PRECISIONS)}")
         if crops_per_encoder_pass is not None and crops_per_encoder_pass < 1:
@@ -278,6 +295,8 @@ class SamSteps:
         """Low-resolution logits [P, 3, 256, 256] and predicted IoUs [P, 3] of P point prompts (crop pixels, x y)."""
         import torch
 
+        from votesplat_ns.core.sam_decoder import decode_multimask
+
         transformed = self.transform.apply_coords(points, state.original_size)
         in_points = torch.as_tensor(transformed, device=self.device)
         in_labels = torch.ones(in_points.shape[0], dtype=torch.int, device=self.device)
@@ -285,12 +304,13 @@ class SamSteps:
             sparse, dense = self.model.prompt_encoder(
                 points=(in_points[:, None, :], in_labels[:, None]), boxes=None, masks=None
             )
-            low_res, iou_predictions = self.model.mask_decoder(
-                image_embeddings=state.features,
-                image_pe=self.model.prompt_encoder.get_dense_pe(),
-                sparse_prompt_embeddings=sparse,
-                dense_prompt_embeddings=dense,
-                multimask_output=True,
+            low_res, iou_predictions = decode_multimask(
+                self.model.mask_decoder,
+                state.features,
+                self.model.prompt_encoder.get_dense_pe(),
+                sparse,
+                dense,
+                self.decoder,
             )
         return low_res.float(), iou_predictions.float()
 
@@ -346,7 +366,8 @@ class SamLevelsMaskGenerator:
     however many levels keep it, in the mask's box rather than the whole image (:func:`_small_regions_removed`,
     same result), on ``workers`` threads.
 
-    ``predictor``: a ``SamPredictor`` (run by :class:`SamSteps` with ``precision`` and ``crops_per_encoder_pass``),
+    ``predictor``: a ``SamPredictor`` (run by :class:`SamSteps` with ``precision``, ``crops_per_encoder_pass`` and
+    ``decoder``),
     or an object with ``SamSteps``' ``encode_crops`` / ``decode_points`` / ``upscale_masks`` / ``device`` /
     ``mask_threshold``, used as it is. Set ``stage_seconds = {}`` to accumulate seconds per stage (the device is
     synchronised at each stage boundary then, so only for measuring).
@@ -371,6 +392,7 @@ class SamLevelsMaskGenerator:
         crops_per_encoder_pass: Optional[int] = None,
         upscale_budget_bytes: int = UPSCALE_BUDGET_BYTES,
         workers: Optional[int] = None,
+        decoder: str = DEFAULT_DECODER,
     ):
         from segment_anything.utils.amg import build_all_layer_point_grids
 
@@ -382,7 +404,7 @@ class SamLevelsMaskGenerator:
         if hasattr(predictor, "decode_points"):
             self.steps = predictor
         else:
-            self.steps = SamSteps(predictor, precision, crops_per_encoder_pass)
+            self.steps = SamSteps(predictor, precision, crops_per_encoder_pass, decoder)
         self.levels = tuple(levels)
         self.point_grids = build_all_layer_point_grids(points_per_side, crop_n_layers, crop_n_points_downscale_factor)
         self.points_per_batch = points_per_batch
