@@ -545,7 +545,7 @@ def _read_float32_gaussians(
         "log_scales": (select([f"scale_{i}" for i in range(3)]), (count, 3)),
         "quats": (select([f"rot_{i}" for i in range(4)]), (count, 4)),
     }
-    arrays = {key: np.empty(shape, dtype=np.float32) for key, (_, shape) in targets.items()}
+    arrays: Dict[str, np.ndarray] = {key: np.empty(shape, dtype=np.float32) for key, (_, shape) in targets.items()}
     features_rest = np.empty((count, k, 3), dtype=np.float32)
     # channel-major in the file (f_rest_{c K + j} is coefficient j of channel c), [N, K, 3] in splatfacto
     rest = select([f"f_rest_{c * k + j}" for c in range(3) for j in range(k)]) if k else None
@@ -557,7 +557,7 @@ def _read_float32_gaussians(
         handle.seek(offset)
         for start in range(0, count, chunk_rows):
             block = buffer[: min(chunk_rows, count - start)]
-            if handle.readinto(memoryview(block).cast("B")) != block.nbytes:
+            if handle.readinto(block.data.cast("B")) != block.nbytes:
                 return None
             if not np.isfinite(block[:, check]).all():
                 return None
@@ -641,7 +641,7 @@ def read_3dgs_ply(path: PathLike, chunk_rows: int = PLY_CHUNK_ROWS) -> Tuple[Dic
             f"{path} is truncated: its header declares {count} Gaussians ({count * dtype.itemsize} bytes) but only "
             f"{max(size - offset, 0)} bytes follow; copy or export the file again"
         )
-    if fmt != "ascii" and all(dtype.fields[name][0] == np.dtype(np.float32) for name in names):
+    if fmt != "ascii" and all(dtype[name] == np.dtype(np.float32) for name in names):
         arrays = _read_float32_gaussians(path, names, count, offset, num_rest, chunk_rows)
         if arrays is not None:
             return arrays, sh_degree
