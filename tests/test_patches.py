@@ -20,7 +20,29 @@ def test_apply_installs_every_process_wide_patch_once():
         "one-line input errors",
         "ns-export votesplat-instances",
         "checkpoint checked first",
+        "external methods listed cheaply",
     }
+
+
+def test_external_methods_are_listed_without_a_prompt_and_offered_from_the_command_line(monkeypatch):
+    from nerfstudio.configs import external_methods
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    patches.apply()
+    dummy = external_methods.ExternalMethodDummyTrainerConfig
+    assert getattr(dummy.__post_init__, "_votesplat_cheap", False)
+    patches.install_cheap_external_methods()  # idempotent: no second wrapper
+    assert not getattr(dummy.__post_init__.__wrapped__, "_votesplat_cheap", False)
+
+    shown = []
+    monkeypatch.setattr(CONSOLE, "print", lambda *args, **kwargs: shown.append(args))
+    configs, descriptions = external_methods.get_external_methods()  # listing them offers nothing
+    assert shown == [] and set(configs) == set(descriptions) and "in2n" in configs
+
+    method = external_methods.ExternalMethod("install me", [("x", "y")], pip_package=None)
+    with pytest.raises(SystemExit) as stopped:  # as tyro makes it for `ns-train <method>`: nerfstudio's own offer
+        dummy(method_name="x", method=method)
+    assert stopped.value.code == 0 and shown == [("install me",)]
 
 
 def test_versions_other_than_the_patched_ones_warn_once(monkeypatch):

@@ -110,6 +110,44 @@ def test_reader_reads_every_writers_layout(tmp_path):
     assert degree == 0 and arrays["features_rest"].shape == (40, 0, 3)
 
 
+@pytest.mark.parametrize("chunk_rows", [1, 7, 40, 1000])
+def test_reader_in_chunks_of_any_size_reads_any_float_order(tmp_path, chunk_rows):
+    # all float32 in a shuffled order, no normals, vote offsets (not read, so their NaNs are fine) in between
+    g = random_gaussians()
+    rest = g["features_rest"].numpy().transpose(0, 2, 1).reshape(40, 45)
+    columns = {c: g["means"][:, i].numpy() for i, c in enumerate("xyz")}
+    columns.update({f"f_dc_{i}": g["features_dc"][:, i].numpy() for i in range(3)})
+    columns.update({f"f_rest_{i}": rest[:, i] for i in range(45)})
+    columns["opacity"] = g["opacities"][:, 0].numpy()
+    columns.update({f"scale_{i}": g["scales"][:, i].numpy() for i in range(3)})
+    columns.update({f"rot_{i}": g["quats"][:, i].numpy() for i in range(4)})
+    columns.update({f"vote_offset_{i}": np.full(40, np.nan, np.float32) for i in range(3)})
+    order = list(columns)
+    np.random.default_rng(3).shuffle(order)
+    write_vertex_ply(tmp_path / "shuffled.ply", {name: columns[name] for name in order})
+    arrays, degree = read_3dgs_ply(tmp_path / "shuffled.ply", chunk_rows=chunk_rows)
+    assert degree == 3
+    expected = {
+        "means": g["means"],
+        "features_dc": g["features_dc"],
+        "features_rest": g["features_rest"],
+        "opacity_logits": g["opacities"][:, 0],
+        "log_scales": g["scales"],
+        "quats": g["quats"],
+    }
+    assert list(arrays) == list(expected)
+    for name, value in expected.items():
+        assert arrays[name].dtype == np.float32 and arrays[name].flags.c_contiguous, name
+        np.testing.assert_array_equal(arrays[name], value.numpy(), err_msg=name)
+
+    # a value that is not finite in a later chunk is found, and named as in a file read whole
+    columns["scale_2"] = columns["scale_2"].copy()
+    columns["scale_2"][33] = np.inf
+    write_vertex_ply(tmp_path / "inf.ply", {name: columns[name] for name in order})
+    with pytest.raises(GaussianPlyError, match=r"1 of 40 Gaussians have NaN or infinite values \(in scale_2\)"):
+        read_3dgs_ply(tmp_path / "inf.ply", chunk_rows=chunk_rows)
+
+
 def _bad_files(tmp_path):
     g = random_gaussians(n=8)
     write_ply(tmp_path / "good.ply", g)

@@ -515,7 +515,64 @@ def _names_list(names: Sequence[str], limit: int = 6) -> str:
     return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
-def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
+def _column_selector(columns: Sequence[int]) -> Union[slice, np.ndarray]:
+    """What picks ``columns`` of a [rows, P] block: a slice (a view) when they are consecutive, as in every
+    writer's layout, else their indices (numpy's fancy indexing, a copy several times slower)."""
+    first = columns[0]
+    if list(columns) == list(range(first, first + len(columns))):
+        return slice(first, first + len(columns))
+    return np.asarray(columns, dtype=np.intp)
+
+
+def _read_float32_gaussians(
+    path: PathLike, names: Sequence[str], count: int, offset: int, num_rest: int, chunk_rows: int = PLY_CHUNK_ROWS
+) -> Optional[Dict[str, np.ndarray]]:
+    """:func:`read_3dgs_ply`'s arrays from a binary PLY whose ``names`` (its properties, in file order, checked)
+    are all float32 in this machine's byte order: ``chunk_rows`` rows at a time are read into one buffer,
+    checked to be finite (all but the vote offsets) and copied into the arrays, so memory holds the arrays and
+    one chunk, never a table of the whole file. None when a value is not finite or the file ends early."""
+    width = len(names)
+    column = {name: index for index, name in enumerate(names)}
+    k = num_rest // 3
+
+    def select(group: Sequence[str]) -> Union[slice, np.ndarray]:
+        return _column_selector([column[name] for name in group])
+
+    targets = {
+        "means": (select(["x", "y", "z"]), (count, 3)),
+        "features_dc": (select(["f_dc_0", "f_dc_1", "f_dc_2"]), (count, 3)),
+        "opacity_logits": (column["opacity"], (count,)),
+        "log_scales": (select([f"scale_{i}" for i in range(3)]), (count, 3)),
+        "quats": (select([f"rot_{i}" for i in range(4)]), (count, 4)),
+    }
+    arrays: Dict[str, np.ndarray] = {key: np.empty(shape, dtype=np.float32) for key, (_, shape) in targets.items()}
+    features_rest = np.empty((count, k, 3), dtype=np.float32)
+    # channel-major in the file (f_rest_{c K + j} is coefficient j of channel c), [N, K, 3] in splatfacto
+    rest = select([f"f_rest_{c * k + j}" for c in range(3) for j in range(k)]) if k else None
+    checked = [column[name] for name in names if name not in VOTESPLAT_OFFSET_PROPERTIES]
+    check: Union[slice, np.ndarray] = _column_selector(checked)
+    chunk_rows = max(1, int(chunk_rows))
+    buffer = np.empty((min(chunk_rows, count), width), dtype=np.float32)
+    with open(path, "rb") as handle:
+        handle.seek(offset)
+        for start in range(0, count, chunk_rows):
+            block = buffer[: min(chunk_rows, count - start)]
+            if handle.readinto(block.data.cast("B")) != block.nbytes:
+                return None
+            if not np.isfinite(block[:, check]).all():
+                return None
+            stop = start + block.shape[0]
+            for key, (columns, _) in targets.items():
+                arrays[key][start:stop] = block[:, columns]
+            if rest is not None:
+                features_rest[start:stop] = block[:, rest].reshape(-1, 3, k).transpose(0, 2, 1)
+    arrays["features_rest"] = features_rest
+    return {
+        key: arrays[key] for key in ("means", "features_dc", "features_rest", "opacity_logits", "log_scales", "quats")
+    }
+
+
+def read_3dgs_ply(path: PathLike, chunk_rows: int = PLY_CHUNK_ROWS) -> Tuple[Dict[str, np.ndarray], int]:
     """Read and check a standard 3DGS PLY written by any tool; returns (arrays as ``read_gaussian_ply``, SH degree).
 
     Accepted: binary (little or big endian) or ASCII, one vertex element with exactly the properties x y z
@@ -526,6 +583,9 @@ def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
     truncated file, no vertices, missing or extra properties (an extra one such as Mip-Splatting's
     filter_3D changes what the scene looks like), f_rest for no SH degree, a NaN or infinite
     value — raises :class:`GaussianPlyError` with a one-line message naming the file.
+
+    A binary file whose properties are all float32 (every writer's usual layout) is read ``chunk_rows`` rows at
+    a time straight into the arrays (:func:`_read_float32_gaussians`), without a table of the whole file.
     """
     what_to_do = "give a 3DGS PLY (ns-export gaussian-splat, the original 3DGS or gsplat's simple_trainer)"
     try:
@@ -581,6 +641,11 @@ def read_3dgs_ply(path: PathLike) -> Tuple[Dict[str, np.ndarray], int]:
             f"{path} is truncated: its header declares {count} Gaussians ({count * dtype.itemsize} bytes) but only "
             f"{max(size - offset, 0)} bytes follow; copy or export the file again"
         )
+    if fmt != "ascii" and all(dtype[name] == np.dtype(np.float32) for name in names):
+        arrays = _read_float32_gaussians(path, names, count, offset, num_rest, chunk_rows)
+        if arrays is not None:
+            return arrays, sh_degree
+        # a value that is not finite, or a file cut short since its size was taken: the full read below says which
     try:
         data = read_vertex_data(path, fmt, count, props, offset)
     except ValueError as err:  # an ASCII value that is not a number

@@ -138,6 +138,12 @@ class VoteSplatModel(SplatfactoModel):
             raise ValueError(f"vote_every_n_steps must be >= 1 (got {self.config.vote_every_n_steps})")
         self.config.vote_levels = self._resolve_vote_levels()
         install_rasterizer_in_splatfacto()
+        self.vote_options = self.config.vote_render_options()
+        self._kernel_warm_up: Optional[KernelWarmUp] = None  # compiling the fused kernels (CUDA)
+        if (self.kwargs.get("metadata") or {}).get("vote_training"):
+            # first, so that the compiling processes run beside the rest of the set-up: the Gaussians built or
+            # read (a retrofit's PLY read and its frame rendered), the optimizers, the first step's forward
+            self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
         # built on the CPU (splatfacto hard-codes one .cuda()); the pipeline moves the model to its device
         with offline_lpips(), cuda_calls_stay_on_cpu(model_on_cpu=True):
             super().populate_modules()
@@ -152,14 +158,9 @@ class VoteSplatModel(SplatfactoModel):
         # Not optimised (its optimizer never sees a gradient); it lives in gauss_params only so
         # that densification copies a parent's support to its children and pruning drops it.
         self.gauss_params["vote_support"] = Parameter(torch.zeros(num_points, num_levels, device=device))
-        self.vote_options = self.config.vote_render_options()
         self.vote_step = VoteStepState()
-        self._kernel_warm_up: Optional[KernelWarmUp] = None  # compiling the fused kernels (CUDA)
         # made at the first draw, on the device the pipeline has moved the model to by then
         self._vote_pixel_generator: Optional[torch.Generator] = None
-        if (self.kwargs.get("metadata") or {}).get("vote_training"):
-            # now, so that the compiling process runs beside the trainer's set-up (image caching)
-            self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
         self.viewer_state = VoteSplatViewerState(self)
 
     @property

@@ -18,6 +18,11 @@ Process-wide, applied by :func:`apply` when nerfstudio imports the method (every
   (``ns-viewer``, ``ns-eval``, ``ns-render``) first reads the run's config.yml with the plugin's safe loader and
   checks its checkpoint as the plugin's commands do, so a run without one ends in one line instead of nerfstudio's
   IndexError; a config.yml the safe loader refuses (another plugin's classes) is left to nerfstudio, as before.
+* ``external methods listed cheaply`` (:func:`install_cheap_external_methods`): nerfstudio's
+  ``ExternalMethodDummyTrainerConfig.__post_init__`` asks ``inspect.stack()`` whether ``get_external_methods`` made
+  it, which reads the source lines of every frame and searches every loaded module for each: about a second of
+  every ``ns-*`` command's start (each rank's, in a run of several), for its 26 entries. The same question is
+  asked of the caller's frame directly; anything else goes to nerfstudio's own ``__post_init__``.
 
 Scoped, applied where they are needed (listed here so that an upgrade checks them too):
 
@@ -267,6 +272,34 @@ def install_checkpoint_check(module_name: str = EVAL_UTILS_MODULE) -> None:
         sys.meta_path.insert(0, _PatchingFinder(module_name, _check_run_first))
 
 
+# ----------------------------------------------------------------------------- external methods listed cheaply
+
+EXTERNAL_METHODS_MODULE = "nerfstudio.configs.external_methods"
+
+
+def install_cheap_external_methods(module_name: str = EXTERNAL_METHODS_MODULE) -> None:
+    """Make nerfstudio's list of not-installed methods cost microseconds instead of a second (module docstring).
+
+    Its ``method_configs`` imports the method entry points (this plugin) before it calls ``get_external_methods``,
+    so the patch is in place for that call. ``module_name`` exists for tests."""
+    import importlib
+
+    dummy = importlib.import_module(module_name).ExternalMethodDummyTrainerConfig
+    original = dummy.__post_init__
+    if getattr(original, "_votesplat_cheap", False):
+        return
+
+    def __post_init__(self) -> None:
+        # nerfstudio asks inspect.stack()[2].function: frame 0 is this method, 1 the dataclass's __init__, 2 its caller
+        if sys._getframe(2).f_code.co_name == "get_external_methods":
+            return
+        original(self)  # made from the command line: nerfstudio offers to install the method
+
+    __post_init__._votesplat_cheap = True  # type: ignore[attr-defined]
+    __post_init__.__wrapped__ = original  # type: ignore[attr-defined]
+    dummy.__post_init__ = __post_init__
+
+
 # ----------------------------------------------------------------------------- splatfacto rasterization
 
 _rasterizer_lock = threading.Lock()
@@ -377,6 +410,11 @@ PATCHES: Tuple[Patch, ...] = (
         install_ns_export_hook,
     ),
     Patch("checkpoint checked first", "nerfstudio.utils.eval_utils.eval_setup", install_checkpoint_check),
+    Patch(
+        "external methods listed cheaply",
+        "nerfstudio.configs.external_methods.ExternalMethodDummyTrainerConfig.__post_init__",
+        install_cheap_external_methods,
+    ),
 )
 
 _version_warned = False

@@ -185,16 +185,25 @@ def rotate_sh(features_rest: Tensor, rotation: Tensor) -> Tensor:
     return out
 
 
-def transform_gaussians(gaussians: Dict[str, Tensor], matrix: Tensor) -> Dict[str, Tensor]:
+def transform_means(means: Tensor, matrix: Tensor) -> Tensor:
+    """Points [N, 3] moved by the similarity p -> M p (M [4, 4] or [3, 4]), in float64, returned in ``means``' dtype:
+    the means of :func:`transform_gaussians`, without the rest of the Gaussians."""
+    scale, rotation, translation = similarity_parts(torch.as_tensor(matrix).cpu())
+    return (scale * means.double() @ rotation.T.to(means.device) + translation.to(means.device)).to(means)
+
+
+def transform_gaussians(
+    gaussians: Dict[str, Tensor], matrix: Tensor, moved_means: Optional[Tensor] = None
+) -> Dict[str, Tensor]:
     """splatfacto's Gaussian parameters moved by the similarity p -> M p (M [4, 4] or [3, 4]).
 
     means: M p; scales (log): + log s; quats (w, x, y, z, not normalised): q_R * q, keeping their
-    norm; features_rest: each SH band rotated; features_dc and opacities unchanged.
+    norm; features_rest: each SH band rotated; features_dc and opacities unchanged. ``moved_means``: the
+    means' :func:`transform_means` by ``matrix`` when the caller has them already.
     """
-    scale, rotation, translation = similarity_parts(torch.as_tensor(matrix).cpu())
-    means = gaussians["means"]
+    scale, rotation, _ = similarity_parts(torch.as_tensor(matrix).cpu())
     moved = dict(gaussians)
-    moved["means"] = (scale * means.double() @ rotation.T.to(means.device) + translation.to(means.device)).to(means)
+    moved["means"] = transform_means(gaussians["means"], matrix) if moved_means is None else moved_means
     moved["scales"] = gaussians["scales"] + math.log(scale)
     quats = gaussians["quats"]
     turn = rotation_to_quaternion(rotation).to(quats.device)
@@ -321,6 +330,7 @@ def resolve_frame(
 
     fits: List[FrameFit] = []
     moved: Dict[str, Dict[str, Tensor]] = {}
+    moved_means: Dict[str, Tensor] = {}
     probes: Dict[str, Tensor] = {}
     for name in [n for n in FRAMES if n in reference.frames]:
         matrix = reference.frames[name]
@@ -343,13 +353,15 @@ def resolve_frame(
             twin.same_as.append(name)
             continue
         probes[name] = placed
-        moved[name] = transform_gaussians(gaussians, matrix)
+        moved_means[name] = transform_means(gaussians["means"], matrix)
         # an even sample: a retrofit of millions of Gaussians does not project each one into every training view
-        sample = moved[name]["means"][:: max(1, count // IN_VIEW_SAMPLE)]
+        sample = moved_means[name][:: max(1, count // IN_VIEW_SAMPLE)]
         share = float(in_view(sample, all_views).float().mean())
         fits.append(FrameFit(name, [], share, None))
     for fit in fits:
         if fit.in_view_share >= MIN_IN_VIEW_SHARE:
+            # only the frames rendered here can be chosen: the others' SH bands are never rotated
+            moved[fit.name] = transform_gaussians(gaussians, reference.frames[fit.name], moved_means.pop(fit.name))
             fit.psnr = render_psnr(moved[fit.name], photo_views, rasterize_fn, sh_degree)
 
     def summary() -> str:
