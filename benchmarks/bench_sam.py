@@ -361,6 +361,62 @@ def bench(model_type: str, image: np.ndarray, args, settings, write) -> list:
     return rows
 
 
+def decoder_modes(device: str, prompts: int, repeats: int = 10) -> List[dict]:
+    """The prompt decoder alone (``core/sam_decoder.py``): every mode on ``prompts`` point prompts of one image,
+    SAM's decoder sizes with random weights moved off their initial values, fp32 and (CUDA) bf16: ms per call and
+    how far each mode's outputs are from segment_anything's ``MaskDecoder`` in the same precision."""
+    from contextlib import nullcontext
+
+    import torch
+    from segment_anything.modeling import MaskDecoder, PromptEncoder, TwoWayTransformer
+
+    from votesplat_ns.core.sam_decoder import decode_multimask
+
+    torch.manual_seed(0)
+    prompt_encoder = PromptEncoder(
+        embed_dim=256, image_embedding_size=(64, 64), input_image_size=(1024, 1024), mask_in_chans=16
+    ).to(device)
+    transformer = TwoWayTransformer(depth=2, embedding_dim=256, mlp_dim=2048, num_heads=8)
+    decoder = MaskDecoder(num_multimask_outputs=3, transformer=transformer, transformer_dim=256).to(device).eval()
+    with torch.no_grad():
+        for parameter in [*decoder.parameters(), *prompt_encoder.parameters()]:
+            parameter.add_(0.05 * torch.randn_like(parameter))
+    embedding = torch.randn(1, 256, 64, 64, device=device)
+    points = torch.rand(prompts, 1, 2, device=device) * 1024
+    labels = torch.ones(prompts, 1, dtype=torch.int, device=device)
+    rows = []
+    for precision in ("fp32", "bf16") if device == "cuda" else ("fp32",):
+        autocast = torch.autocast(device, dtype=torch.bfloat16) if precision == "bf16" else nullcontext()
+        with torch.no_grad(), autocast:
+            sparse, dense = prompt_encoder(points=(points, labels), boxes=None, masks=None)
+            image_pe = prompt_encoder.get_dense_pe()
+            outputs = {}
+            for mode in DECODER_MODES:
+                decode_multimask(decoder, embedding, image_pe, sparse, dense, mode)  # warm-up
+                if device == "cuda":
+                    torch.cuda.synchronize()
+                start = time.perf_counter()
+                for _ in range(repeats):
+                    masks, iou = decode_multimask(decoder, embedding, image_pe, sparse, dense, mode)
+                if device == "cuda":
+                    torch.cuda.synchronize()
+                outputs[mode] = (masks.float(), iou.float(), (time.perf_counter() - start) / repeats)
+        reference_masks, reference_iou, _ = outputs["segment_anything"]
+        for mode, (masks, iou, seconds) in outputs.items():
+            rows.append(
+                {
+                    "precision": precision,
+                    "decoder": mode,
+                    "prompts": prompts,
+                    "ms_per_call": round(1000 * seconds, 2),
+                    "max_logit_difference": float((masks - reference_masks).abs().max()),
+                    "share_sign_changed": float(((masks > 0) != (reference_masks > 0)).float().mean()),
+                    "max_iou_difference": float((iou - reference_iou).abs().max()),
+                }
+            )
+    return rows
+
+
 def main(argv=None) -> int:
     from votesplat_ns.core.sam_masks import DEFAULT_POINTS_PER_BATCH, SAM_PRECISIONS
 
@@ -396,8 +452,24 @@ def main(argv=None) -> int:
     parser.add_argument("--crop-n-layers", type=int, default=LANGSPLAT["crop_n_layers"])
     parser.add_argument("--device", default=None, help="default: cuda if present, else cpu")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--decoder-only", action="store_true", help="time the prompt decoder's modes alone (points-per-batch prompts)"
+    )
     args = parser.parse_args(argv)
     import torch
+
+    if args.decoder_only:
+        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+        print(
+            "| precision | decoder | prompts | ms per call | max logit difference | share of signs changed | max IoU difference |"
+        )
+        print("|---|---|---|---|---|---|---|")
+        for row in decoder_modes(device, args.points_per_batch):
+            print(
+                f"| {row['precision']} | {row['decoder']} | {row['prompts']} | {row['ms_per_call']:.2f} | "
+                f"{row['max_logit_difference']:.2g} | {row['share_sign_changed']:.2g} | {row['max_iou_difference']:.2g} |"
+            )
+        return 0
 
     if args.four_k:
         args.width, args.height, args.one_pass_only = 3840, 2160, True
