@@ -13,7 +13,8 @@ if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null;
     echo "warning: chromium is missing and cannot be installed here; the ns-viewer browser test will be skipped" >&2
   fi
 fi
-.venv/bin/python -m pytest "$@"
+# the 15 slowest tests are listed at the end: the suite is meant to stay near ten minutes
+.venv/bin/python -m pytest --durations=15 "$@"
 # The Triton kernels' tests once more under Triton's interpreter, their only run without a GPU (TRITON_INTERPRET
 # must be set before triton is imported, hence a second run). The vote kernels are the fused losses' only
 # (core/vote_fused.py, with the walk helpers of core/vote_kernel.py), all tested in test_vote_fused.py.
