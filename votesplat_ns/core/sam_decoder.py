@@ -79,7 +79,6 @@ def _two_way_transformer(
     query_pe = tokens
     queries = tokens
     for layer in transformer.layers:
-        shared = keys.shape[0] == 1
         if layer.skip_first_layer_pe:
             queries = layer.self_attn(q=queries, k=queries, v=queries)
         else:
@@ -88,11 +87,7 @@ def _two_way_transformer(
         queries = layer.norm1(queries)
         q = queries + query_pe
         k = keys + key_pe
-        if folded and not shared:
-            attn_out = _token_to_image_folded(layer.cross_attn_token_to_image, q, k, keys)
-        else:
-            attn_out = layer.cross_attn_token_to_image(q=q, k=k, v=keys)
-        queries = layer.norm2(queries + attn_out)
+        queries = layer.norm2(queries + _token_to_image(layer.cross_attn_token_to_image, q, k, keys, folded))
         queries = layer.norm3(queries + layer.mlp(queries))
         q = queries + query_pe
         if folded:
@@ -102,12 +97,18 @@ def _two_way_transformer(
         keys = layer.norm4(keys + attn_out)
     q = queries + query_pe
     k = keys + key_pe
-    if folded:
-        attn_out = _token_to_image_folded(transformer.final_attn_token_to_image, q, k, keys)
-    else:
-        attn_out = transformer.final_attn_token_to_image(q=q, k=k, v=keys)
-    queries = transformer.norm_final_attn(queries + attn_out)
+    queries = transformer.norm_final_attn(
+        queries + _token_to_image(transformer.final_attn_token_to_image, q, k, keys, folded)
+    )
     return queries, keys
+
+
+def _token_to_image(attn: Any, q: torch.Tensor, k: torch.Tensor, keys: torch.Tensor, folded: bool) -> torch.Tensor:
+    """The prompt's tokens attending to the image tokens; folded only where the image tokens are per prompt (one
+    shared copy is projected once either way)."""
+    if folded and keys.shape[0] > 1:
+        return _token_to_image_folded(attn, q, k, keys)
+    return attn(q=q, k=k, v=keys)
 
 
 def _heads_of(weight: torch.Tensor, num_heads: int) -> torch.Tensor:
