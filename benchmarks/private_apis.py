@@ -7,9 +7,12 @@ One process trains one scene several times, the same steps and seed each time, a
   itself on the Gaussians' groups);
 * ``public-fused-adam``: the Gaussians' groups step with ``torch.optim.Adam(fused=True)``;
 * ``multi-tensor-adam``: torch's default multi-tensor Adam (``fused=False``), splatfacto's own optimizer;
-* ``splatfacto``: nerfstudio's own splatfacto on the same data and steps, with its multi-tensor Adam. (With
-  ``LeanFusedAdam`` on its Gaussian groups it stops at a fused step during training, BENCHMARKS.md "Training
-  time".)
+* ``splatfacto``: nerfstudio's own splatfacto on the same data and steps, with its multi-tensor Adam;
+* ``splatfacto-lean-adam``: the same with votesplat's optimizer (``LeanFusedAdam``) on its Gaussian groups, the
+  same-optimizer baseline. splatfacto makes ``features_dc`` and ``features_rest`` views of one [N, 16, 3] tensor
+  (strides 48 and (48, 3, 1)) while Adam's states are contiguous, and CUDA's fused Adam refuses tensors of
+  different strides; so these two get storage of their own after set-up (the same values; the first
+  densification would give them that anyway).
 
 Printed per variant: the mean step time before the first vote step and the mean and median after it (vote steps
 included), and each one's ratio to ``votesplat``. ``--json`` writes every run and the means::
@@ -32,6 +35,7 @@ VARIANTS = (
     "public-fused-adam",
     "multi-tensor-adam",
     "splatfacto",
+    "splatfacto-lean-adam",
 )
 
 
@@ -45,7 +49,7 @@ def _configure(variant: str, data: Path, out: Path, steps: int, vote_start: int,
     from votesplat_ns.ns.run import SPLAT_PARAM_NAMES  # splatfacto's Gaussian groups
 
     config = trainer_config_in_process(data, out, steps, vote_start, device, variant, num_downscales=0)
-    if variant == "splatfacto":
+    if variant.startswith("splatfacto"):
         from nerfstudio.configs.method_configs import method_configs
 
         # nerfstudio's own splatfacto (its datamanager and model), with the run settings of votesplat's
@@ -72,12 +76,28 @@ def _configure(variant: str, data: Path, out: Path, steps: int, vote_start: int,
     return config
 
 
-def _timed_training(config) -> List[float]:
+def _sh_with_storage_of_their_own(trainer) -> None:
+    """splatfacto's ``features_dc`` / ``features_rest`` as contiguous parameters (module docstring), in the model
+    and in their optimizers (which hold no state before the first step)."""
+    import torch
+
+    model = trainer.pipeline.model
+    for name in ("features_dc", "features_rest"):
+        optimizer = trainer.optimizers.optimizers[name]
+        assert not optimizer.state, "set before the first step"
+        parameter = torch.nn.Parameter(model.gauss_params[name].detach().clone())
+        model.gauss_params[name] = parameter
+        optimizer.param_groups[0]["params"] = [parameter]
+
+
+def _timed_training(config, variant: str) -> List[float]:
     from votesplat_ns.ns.method import setup_trainer
     from votesplat_ns.ns.patches import offline_lpips
 
     with offline_lpips():  # stock splatfacto builds torchmetrics' LPIPS, which downloads AlexNet otherwise
         trainer = setup_trainer(config)
+    if variant == "splatfacto-lean-adam":
+        _sh_with_storage_of_their_own(trainer)
     stamps: List[float] = []
     inner: Callable = trainer.train_iteration
 
@@ -112,7 +132,7 @@ def main() -> None:
     for repeat in range(args.repeats):
         for variant in args.variants:
             config = _configure(variant, args.data, args.work_dir, args.steps, args.vote_start, args.device)
-            steps = _timed_training(config)
+            steps = _timed_training(config, variant)
             # the first steps of each phase (CUDA warm-up, first visits of the views, the vote kernels' JIT
             # compiles in the first run of the process) are left out of its mean
             before = steps[warm_up : args.vote_start - 1]
