@@ -266,10 +266,15 @@ def bench_upsampled_run(
         return round(torch.cuda.max_memory_allocated() / 2**30, 2) if cuda else 0.0
 
     row: dict = {"gaussians": size, "mask_check": mask_check, "mask_check_views": mask_check_views}
+
+    def progress(stage: str) -> None:
+        print(f"[{size} Gaussians] {stage}: {json.dumps(row)}", file=sys.stderr, flush=True)
+
     wall = time.perf_counter()
     pipeline, scene, _ = load_run(config)
     row.update(run_gaussians=scene.num_gaussians, device=scene.device, load_s=round(time.perf_counter() - wall, 2))
     row["rss_after_load_gb"] = peak_rss_gb()
+    progress("loaded")
     settings = InstanceSettings.make(ClusteringOptions(max_points=max_points), mask_check, mask_check_views)
     rasterize = default_rasterizer()
     original, _ = compute_instances(scene, settings, pipeline, rasterize)
@@ -278,6 +283,7 @@ def bench_upsampled_run(
     upsampled, parents = upsampled_scene(scene, size, seed)
     row["upsample_s"] = round(time.perf_counter() - wall, 2)
     row["rss_after_upsample_gb"] = peak_rss_gb()
+    progress("copied up")
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     wall = time.perf_counter()
@@ -285,6 +291,7 @@ def bench_upsampled_run(
     row["instances_s"] = round(time.perf_counter() - wall, 2)
     row["mask_check_ran"] = bool(checked and mask_check)
     row["rss_after_instances_gb"], row["gpu_peak_instances_gb"] = peak_rss_gb(), gpu_peak_gb()
+    progress("instances")
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_TMP")) as folder:
@@ -293,6 +300,7 @@ def bench_upsampled_run(
         row["export_s"] = round(time.perf_counter() - wall, 2)
         row["export_gb"] = round(sum(p.stat().st_size for p in Path(folder).rglob("*") if p.is_file()) / 2**30, 2)
     row["rss_peak_gb"], row["gpu_peak_export_gb"] = peak_rss_gb(), gpu_peak_gb()
+    progress("exported")
     row["levels"] = {}
     for level, before in zip(instances.levels, original.levels):
         row["levels"][level.name] = {
@@ -314,9 +322,11 @@ def upsample_sizes_in_processes(args) -> list:
         command += ["--upsample-run", str(args.upsample_run), "--upsample-one", str(size)]
         command += ["--max-points", str(args.max_points), "--mask-check-views", str(args.mask_check_views)]
         command += [] if args.mask_check else ["--no-mask-check"]
-        result = subprocess.run(command, capture_output=True, text=True, check=False)
+        # the child's stderr (its stage-by-stage progress, warnings, a traceback) goes straight through, so that a run
+        # cut short by a time limit still shows how far it came
+        result = subprocess.run(command, stdout=subprocess.PIPE, text=True, check=False)
         if result.returncode != 0:
-            row = {"gaussians": size, "error": result.stderr.strip().splitlines()[-1:] or [f"exit {result.returncode}"]}
+            row = {"gaussians": size, "error": f"exit {result.returncode} (its stderr above)"}
         else:
             row = json.loads(result.stdout.strip().splitlines()[-1])
         rows.append(row)
