@@ -56,7 +56,7 @@ def decode_multimask(
     tokens = torch.cat((output_tokens.unsqueeze(0).expand(sparse.size(0), -1, -1), sparse), dim=1)
     # the no-mask embedding is one vector broadcast over the image: one copy serves every prompt
     src = image_embedding + dense[:1]
-    b, c, h, w = src.shape
+    _, c, h, w = src.shape
     hs, keys = _two_way_transformer(dec.transformer, src, image_pe, tokens, folded=mode == "folded")
     iou_token_out = hs[:, 0, :]
     mask_tokens_out = hs[:, 1 : 1 + dec.num_mask_tokens, :]

@@ -408,13 +408,12 @@ def whole_objects(
             means,
             table,
             spacing,
-            hidden_neighbours,
-            hidden_margin,
-            min_share,
-            min_seen,
-            None,
-            hidden_reach,
-            contact_factor,
+            hidden_neighbours=hidden_neighbours,
+            hidden_margin=hidden_margin,
+            min_share=min_share,
+            min_seen=min_seen,
+            hidden_reach=hidden_reach,
+            contact_factor=contact_factor,
         )
     out = relabel_by_size(out)
     confidence = instance_confidence(out, table, min_views, min_share, min_seen)
