@@ -80,6 +80,37 @@ def test_the_votesplat_config_resumes_through_the_safe_trainer(tmp_path):
     assert config._target is VoteSplatTrainer
 
 
+def test_classes_under_the_module_paths_of_earlier_layouts_load_from_where_they_live_now():
+    from votesplat_ns.ns.datamanager import VoteDataManager
+    from votesplat_ns.ns.model import VoteSplatModel, VoteSplatModelConfig
+
+    text = """
+model_target: !!python/name:votesplat_ns.model.VoteSplatModel ''
+dm_target: !!python/name:votesplat_ns.datamanager.VoteDataManager ''
+model: !!python/object:votesplat_ns.model.VoteSplatModelConfig {sh_degree: 2}
+split_model: !!python/object:votesplat_ns.ns.model_config.VoteSplatModelConfig {sh_degree: 1}
+"""
+    loaded = parse_run_config(text)
+    assert loaded["model_target"] is VoteSplatModel and loaded["dm_target"] is VoteDataManager
+    assert type(loaded["model"]) is VoteSplatModelConfig and loaded["model"].sh_degree == 2
+    assert type(loaded["split_model"]) is VoteSplatModelConfig and loaded["split_model"].sh_degree == 1
+    # a class of another version is named as such, not as a payload
+    gone = "model: !!python/object:votesplat_ns.ns.no_such_module.VoteSplatModelConfig {}\n"
+    with pytest.raises(RefusedTag, match="votesplat_ns.ns.no_such_module is not installed") as refused:
+        parse_run_config(gone)
+    assert refused.value.other_version
+
+
+def test_a_run_of_another_version_is_named_as_such_in_one_line(tmp_path):
+    config = tmp_path / "config.yml"
+    config.write_text("method_name: votesplat\nmodel: !!python/object:votesplat_ns.ns.model.NoSuchConfig {}\n")
+    with pytest.raises(VoteSplatInputError) as error:
+        load_run_config(config)
+    message = str(error.value)
+    assert "\n" not in message and str(config) in message and "line 2" in message
+    assert "another version" in message and "could run code" not in message
+
+
 REAL_LINE = "method_name: votesplat\n"
 APPLY_OS_SYSTEM = "!!python/object/apply:os.system ['touch {marker}']"
 # (what is planted, the tag refused: for a call nested in a path or an enum, the path's or the enum's)

@@ -15,6 +15,9 @@ is a ``yaml.SafeLoader`` that builds only what such a dump holds, from an allow-
   ``!!python/object/apply:M.E [value]`` for an ``Enum`` ``E`` under ``nerfstudio.`` or ``votesplat_ns.``;
 * ``!!python/tuple``.
 
+A class named under a module of an earlier votesplat_ns layout (:data:`MOVED_MODULES`) is looked up where it lives
+now, so runs trained before a move still open.
+
 Anything else (another module, a function, ``!!python/object/apply`` of anything but a path or an enum,
 ``!!python/object/new``, ``!!python/module``, an unknown tag) raises :class:`RefusedTag`, which
 :func:`load_run_config` turns into one line naming the file, the tag and its line.
@@ -43,16 +46,24 @@ PATH_CLASSES = {
 }
 PATH_CLASSES["pathlib.PureWindowsPath"] = pathlib.PureWindowsPath
 YAML_PREFIX = "tag:yaml.org,2002:"
+# modules of an earlier votesplat_ns layout that config.yml files of older runs name: where their classes live now
+MOVED_MODULES: Dict[str, str] = {
+    "votesplat_ns.model": "votesplat_ns.ns.model",
+    "votesplat_ns.datamanager": "votesplat_ns.ns.datamanager",
+    "votesplat_ns.ns.model_config": "votesplat_ns.ns.model",
+}
 WHAT_IS_ALLOWED = "a run's config.yml may hold only nerfstudio and votesplat config classes, paths, enums and tuples"
 
 
 class RefusedTag(ConstructorError):
     """A tag :class:`RunConfigLoader` does not build: ``tag`` (as written in the file) at ``line``, and why."""
 
-    def __init__(self, tag: str, node: Node, why: str):
+    def __init__(self, tag: str, node: Node, why: str, other_version: bool = False):
         self.tag = "!!" + tag[len(YAML_PREFIX) :] if tag.startswith(YAML_PREFIX) else tag  # as written in the file
         self.line = node.start_mark.line + 1
         self.why = why
+        # a nerfstudio or votesplat class this installation does not have: a run of another version, not a payload
+        self.other_version = other_version
         super().__init__(None, None, f"refused tag {self.tag} ({why})", node.start_mark)
 
 
@@ -66,10 +77,12 @@ def _allowed_class(name: str, node: Node, tag: str, packages: Tuple[str, ...] = 
     if not module_name or not _in_allowed_package(module_name, packages):
         raise RefusedTag(tag, node, f"module {module_name or name!r} is not nerfstudio's or votesplat's")
     try:
-        module = importlib.import_module(module_name)
+        module = importlib.import_module(MOVED_MODULES.get(module_name, module_name))
     except ImportError:
-        raise RefusedTag(tag, node, f"module {module_name} is not installed here") from None
+        raise RefusedTag(tag, node, f"module {module_name} is not installed here", other_version=True) from None
     found = getattr(module, attribute, None)
+    if found is None:
+        raise RefusedTag(tag, node, f"{module_name} has no {attribute} here", other_version=True)
     if not isinstance(found, type):
         raise RefusedTag(tag, node, f"{name} is not a class")
     if not _in_allowed_package(found.__module__, packages):  # e.g. a name a nerfstudio module imported
@@ -173,7 +186,13 @@ def parse_run_config(text: str) -> Any:
 
 
 def refusal_message(load_config: Union[str, Path], flag: str, refused: RefusedTag) -> str:
-    """The one line for a config.yml whose ``refused`` tag could run code."""
+    """The one line for a config.yml whose ``refused`` tag could run code, or names a class of another version."""
+    if refused.other_version:
+        return (
+            f"{flag} {load_config}: line {refused.line} names {refused.tag}, which this installation does not have "
+            f"({refused.why}): the run was written by another version of votesplat_ns or nerfstudio; open it with "
+            "the version that trained it, or train it again with this one"
+        )
     return (
         f"{flag} {load_config}: refused to load tag {refused.tag} at line {refused.line} ({refused.why}): "
         f"{WHAT_IS_ALLOWED}, and this file could run code when loaded; do not open it with nerfstudio either "
