@@ -1,10 +1,15 @@
-"""A vote cache made by two CPU processes writing the one cache: the same entries as one process, and a rank that
-dies mid-way keeps what was finished and leaves no half-written entry."""
+"""A vote cache made by two ranks writing the one cache (rank 0 a thread of the test's process, rank 1 a CPU
+process): the same entries as one process, the views handed out as the ranks ask, and a rank that stops mid-way
+(killed, an error, Ctrl-C) keeps what was finished and leaves no half-written entry."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import re
 import signal
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -43,16 +48,60 @@ def sam_source() -> SamMaskSource:
     return SamMaskSource(sam_model=tiny_sam(), device="cpu", **SAM_OPTIONS)
 
 
-class DyingSamSource(SamMaskSource):
-    """SAM that kills its own process (SIGKILL: no clean-up runs) when it reaches the image ``dies_on``."""
+def wait_for(pattern: str, folder: Path, seconds: float = 120.0) -> None:
+    deadline = time.time() + seconds
+    while not list(folder.glob(pattern)) and time.time() < deadline:
+        time.sleep(0.05)
 
-    def __init__(self, dies_on: str, **options):
+
+class RecordingSamSource(SamMaskSource):
+    """SAM that notes in ``record_dir`` which process takes each image (``<image>.<pid>``), and makes the ranks'
+    processes (not the test's, rank 0's) wait ``process_delay`` seconds per image."""
+
+    def __init__(self, record_dir: Path, process_delay: float = 0.0, **options):
         super().__init__(**options)
-        self.dies_on = dies_on
+        self.record_dir, self.process_delay, self.parent_pid = Path(record_dir), process_delay, os.getpid()
 
     def masks_for_image(self, image, image_path, frame_index):
-        if Path(image_path).name == self.dies_on:
-            os.kill(os.getpid(), signal.SIGKILL)
+        (self.record_dir / f"{Path(image_path).name}.{os.getpid()}").touch()
+        if os.getpid() != self.parent_pid:
+            time.sleep(self.process_delay)
+        return super().masks_for_image(image, image_path, frame_index)
+
+
+class DyingSamSource(SamMaskSource):
+    """SAM that kills rank 1's process (SIGKILL: no clean-up runs) at its second image; rank 0 (the test's
+    process) makes its first image only once that happened, so rank 1 surely takes two views."""
+
+    def __init__(self, record_dir: Path, **options):
+        super().__init__(**options)
+        self.record_dir, self.parent_pid, self.images = Path(record_dir), os.getpid(), 0
+
+    def masks_for_image(self, image, image_path, frame_index):
+        name = Path(image_path).name
+        if os.getpid() == self.parent_pid:
+            wait_for("died-*", self.record_dir)
+        else:
+            self.images += 1
+            if self.images == 2:
+                (self.record_dir / f"died-{name}").touch()
+                os.kill(os.getpid(), signal.SIGKILL)
+            (self.record_dir / f"made-{name}").touch()
+        return super().masks_for_image(image, image_path, frame_index)
+
+
+class InterruptingSamSource(SamMaskSource):
+    """SAM that, in the test's process, sends that process SIGINT (the user's Ctrl-C) at its second image."""
+
+    def __init__(self, **options):
+        super().__init__(**options)
+        self.parent_pid, self.images = os.getpid(), 0
+
+    def masks_for_image(self, image, image_path, frame_index):
+        if os.getpid() == self.parent_pid:
+            self.images += 1
+            if self.images == 2:
+                os.kill(os.getpid(), signal.SIGINT)  # Python raises KeyboardInterrupt in the main thread
         return super().masks_for_image(image, image_path, frame_index)
 
 
@@ -100,10 +149,33 @@ def test_two_processes_make_the_entries_one_process_makes(tmp_path, one_torch_th
     assert leftovers(two) == []
 
 
+def test_the_views_go_to_the_rank_that_is_free(tmp_path, one_torch_thread):
+    """Rank 0 makes entries while rank 1's process starts; a slow rank makes fewer than its half."""
+    views = write_views(tmp_path / "images")
+    record = tmp_path / "record"
+    record.mkdir()
+    source = RecordingSamSource(record, process_delay=2.0, sam_model=tiny_sam(), device="cpu", **SAM_OPTIONS)
+    cache = VoteCache(tmp_path / "cache", source)
+    reference = VoteCache(tmp_path / "reference", sam_source())
+    keys = reference.build_all(views, progress=False)
+    assert cache.entry_dir.name == reference.entry_dir.name
+    assert build_on_ranks(cache, views, ["cpu", "cpu"], progress=False) == keys
+
+    takers = [path.name.rsplit(".", 1) for path in record.iterdir()]
+    assert sorted(name for name, _ in takers) == sorted(path.name for _, path in views)  # each view taken once
+    by_rank_0 = sum(1 for _, pid in takers if int(pid) == os.getpid())
+    assert by_rank_0 > NUM_VIEWS // 2  # more than the fixed share r, r + N, ... would give it
+    for key in keys:
+        assert_same_entry(reference, cache, key)
+    assert leftovers(cache) == []
+
+
 def test_a_rank_that_dies_keeps_the_finished_entries_and_no_half_written_one(tmp_path, one_torch_thread):
     views = write_views(tmp_path / "images")
-    # rank 1 makes views 1, 3, 5 in that order and dies on view 3: view 1 is finished, view 3 never is
-    dying = DyingSamSource(dies_on="frame_003.png", sam_model=tiny_sam(), device="cpu", **SAM_OPTIONS)
+    record = tmp_path / "record"
+    record.mkdir()
+    # rank 1 finishes its first view and dies on its second; rank 0 finishes the view it holds and stops
+    dying = DyingSamSource(record, sam_model=tiny_sam(), device="cpu", **SAM_OPTIONS)
     cache = VoteCache(tmp_path / "cache", dying)
     with pytest.raises(VoteSplatInputError) as caught:
         build_on_ranks(cache, views, ["cpu", "cpu"], progress=False)
@@ -113,10 +185,14 @@ def test_a_rank_that_dies_keeps_the_finished_entries_and_no_half_written_one(tmp
     assert "run the command again to make the rest" in message and str(cache.entry_dir) in message
 
     keys = [cache.view_key(path, index) for index, path in views]
-    assert cache.votes_path(keys[1]).is_file()  # finished before the kill: kept
-    assert not cache.votes_path(keys[3]).exists() and not cache.labels_path(keys[3]).exists()
+    key_of = {path.name: key for (_, path), key in zip(views, keys)}
+    (finished,) = [key_of[path.name.removeprefix("made-")] for path in record.glob("made-*")]
+    (killed,) = [key_of[path.name.removeprefix("died-")] for path in record.glob("died-*")]
+    assert cache.votes_path(finished).is_file()  # finished before the kill: kept
+    assert not cache.votes_path(killed).exists() and not cache.labels_path(killed).exists()
     assert leftovers(cache) == []
     made = [key for key in keys if cache.votes_path(key).is_file()]
+    assert len(made) >= 2  # rank 1's first view and the one rank 0 held
     assert f"the {len(made)} of {NUM_VIEWS} vote maps made so far are kept" in message
 
     # what was kept is what one process makes; building again makes only the rest
@@ -135,14 +211,61 @@ def test_a_rank_that_dies_keeps_the_finished_entries_and_no_half_written_one(tmp
 
 def test_bad_input_met_by_a_rank_is_one_line_naming_the_file(tmp_path, one_torch_thread):
     views = write_views(tmp_path / "images", count=4)
-    broken = tmp_path / "images" / "frame_003.png"  # rank 1's second view
+    broken = tmp_path / "images" / "frame_003.png"
     broken.write_bytes(b"not an image")
     cache = VoteCache(tmp_path / "cache", sam_source())
     with pytest.raises(VoteSplatInputError) as caught:
         build_on_ranks(cache, views, ["cpu", "cpu"], progress=False)
     message = str(caught.value)
-    assert "\n" not in message and str(broken) in message and "(rank 1 of 2, cpu; the " in message
+    assert "\n" not in message and str(broken) in message and re.search(r"\(rank [01] of 2, cpu; the ", message)
     assert leftovers(cache) == []
+
+
+def test_an_error_in_rank_0_is_one_line_and_leaves_no_half_written_entry(tmp_path, one_torch_thread, monkeypatch):
+    """Rank 0 (this process's thread) fails between an entry's labels file and its record: the labels file goes."""
+    views = write_views(tmp_path / "images")
+    cache = VoteCache(tmp_path / "cache", sam_source())
+    half_written = []
+
+    def failing_savez(handle, **arrays):  # in this process only: rank 1's process has its own numpy
+        half_written.extend(cache.entry_dir.glob("*.labels.npy"))
+        handle.write(b"PK\x03\x04 the start of a record")
+        raise RuntimeError("the disk went away")
+
+    monkeypatch.setattr(np, "savez", failing_savez)
+    with pytest.raises(VoteSplatInputError) as caught:
+        build_on_ranks(cache, views, ["cpu", "cpu"], progress=False)
+    monkeypatch.undo()
+    message = str(caught.value)
+    assert "\n" not in message
+    assert "rank 0 of 2 (cpu) stopped mid-way (RuntimeError: the disk went away)" in message
+    assert "run the command again to make the rest" in message
+    assert half_written and not any(path.exists() for path in half_written)
+    assert leftovers(cache) == []
+    assert not [thread for thread in threading.enumerate() if thread.name == "votesplat-rank-0"]
+    assert not multiprocessing.active_children()
+
+
+def test_ctrl_c_stops_both_ranks_and_keeps_the_finished_entries(tmp_path, one_torch_thread):
+    views = write_views(tmp_path / "images")
+    source = InterruptingSamSource(sam_model=tiny_sam(), device="cpu", **SAM_OPTIONS)
+    cache = VoteCache(tmp_path / "cache", source)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # pytest in the background ignores it
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            build_on_ranks(cache, views, ["cpu", "cpu"], progress=False)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert not [thread for thread in threading.enumerate() if thread.name == "votesplat-rank-0"]
+    assert not multiprocessing.active_children()
+    assert leftovers(cache) == []
+    keys = [cache.view_key(path, index) for index, path in views]
+    made = [key for key in keys if cache.votes_path(key).is_file()]
+    assert len(made) >= 2  # rank 0's first view, and the second, under way at the Ctrl-C, finished
+    reference = VoteCache(tmp_path / "reference", sam_source())
+    assert reference.build_all(views, progress=False) == keys
+    for key in made:
+        assert_same_entry(reference, cache, key)
 
 
 def test_votesplat_masks_on_two_cpu_processes_makes_the_one_process_cache(tmp_path):

@@ -10,9 +10,10 @@ the same mask options and image downscale. ``--preview N`` saves, for N views sp
 dataset, a PNG with one panel per mask level: masks in colour, centroids marked with a cross,
 under ``<output-dir>/<dataset folder name>/votesplat_previews/``.
 
-With ``--num-gpus N`` (or N ranks started by ``torchrun``) rank r makes the images r, r + N, ... on GPU r,
-all into the one cache (:mod:`votesplat_ns.core.vote_cache_ranks`); the entries are those one process
-makes. ``--sam-device cpu`` runs the N ranks as CPU processes instead.
+With ``--num-gpus N`` rank r runs on GPU r (rank 0 in this process, ranks 1 .. N-1 in processes it starts) and
+takes the next image not yet made whenever it is free; N ranks started by ``torchrun`` make the images r, r + N,
+... each. All write the one cache (:mod:`votesplat_ns.core.vote_cache_ranks`); the entries are those one
+process makes. ``--sam-device cpu`` runs the N ranks on the CPU instead.
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ class MasksConfig(SamOptions, _MasksInput):
     preview: int = 0
     """Number of views to save a picture of the masks and centroids for."""
     num_gpus: int = 1
-    """Processes making the masks, one per GPU (rank r on cuda:r takes images r, r+N, ...), all into one cache; with --sam-device cpu, N CPU processes. Under torchrun leave it at 1."""
+    """Processes making the masks, one per GPU (rank r on cuda:r takes the next image whenever it is free), all into one cache; with --sam-device cpu, N CPU processes. Under torchrun leave it at 1."""
 
 
 # a rank started by torchrun may wait this long at the end for the slowest rank
