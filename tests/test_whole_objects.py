@@ -116,6 +116,34 @@ def test_small_object_with_its_own_masks_stays_apart() -> None:
     assert stats["join"]["joined"] == 0 and stats["join"]["refused_by_masks"] == 1
 
 
+def test_the_container_gaussians_at_a_small_objects_contact_that_its_masks_see_move_to_it() -> None:
+    scene = Scene()
+    bowl = scene.add(box_surface([0, 0, 0], [1.5, 1.5, 0.6]), 0, [1, 1, 2, 2, 3, 3])
+    fruit = scene.add(box_surface([0.5, 0.5, 0.7], [0.8, 0.8, 0.9]), 1, [4, 4, 5, 5, -1, 0])
+    # the bowl's instance holds Gaussians under the fruit, at the contact (within the fruit's box grown by the
+    # reach): seen in the fruit's masks in 2 views against 4 in the bowl's, they move; seen there in 1 view, they stay
+    grid = np.stack(np.meshgrid([0.55, 0.65, 0.75], [0.55, 0.65, 0.75], indexing="ij"), -1).reshape(-1, 2)
+    at_contact = np.column_stack([grid, np.full(len(grid), 0.65)])
+    moving = scene.add(at_contact, 0, [4, 1, 5, 2, 3, 3])
+    staying = scene.add(at_contact + [0, 0, -0.02], 0, [4, 1, 2, 2, 3, 3])
+    # beyond the fruit's box the fruit's masks do not take a Gaussian of the bowl
+    far = scene.add(at_contact + [0.6, 0.6, 0], 0, [4, 4, 5, 5, 3, 3])
+    means, labels, table = scene.build()
+    out, _, stats = run(means, labels, table)
+    assert (out[moving] == out[fruit[0]]).all() and out[fruit[0]] != out[bowl[0]]
+    assert (out[staying] == out[bowl[0]]).all() and (out[far] == out[bowl[0]]).all()
+    assert stats["contact"] == {"contact_gaussians": len(moving), "contact_sources": 1}
+    kept, _, _ = run(means, labels, table, contact=False)
+    assert (kept[moving] == kept[bowl[0]]).all()
+    # two touching objects of one size (stacked cubes) are neither's container
+    same = Scene()
+    lower = same.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    upper = same.add(box_surface([0, 0, 1.1], [1, 1, 2.1]), 1, [4, 4, 5, 5, 6, 6])
+    touching = same.add(np.array([[0.5, 0.5, 1.0], [0.4, 0.5, 1.0]]), 0, [4, 1, 5, 2, 6, 3])
+    out, _, stats = run(*same.build())
+    assert out[lower[0]] != out[upper[0]] and (out[touching] == out[lower[0]]).all()
+
+
 def test_stacked_cubes_stay_apart() -> None:
     scene = Scene()
     lower = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])

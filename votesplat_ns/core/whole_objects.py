@@ -10,7 +10,7 @@ of error that a user sees in the instance list and in an object's removal:
 * **hidden Gaussians**: Gaussians behind an object's front surface in every training view never
   vote (vote support 0), so they stay background, and a removed object leaves them behind.
 
-Four rules, each switchable (keywords of :func:`whole_objects`, passed on by
+Five rules, each switchable (keywords of :func:`whole_objects`, passed on by
 :func:`~votesplat_ns.core.mask_consensus.regroup_with_masks`, so ``mc.<key>`` in
 ``benchmarks/sweep.py`` reaches them). The evidence is the check's per-view mask table [V, N]
 (-1: not seen, 0: seen in no mask, k >= 1: seen in mask k), read per member Gaussian instead of per
@@ -34,6 +34,15 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   only find in the list. The hidden rule below then gives its Gaussians to the object they lie
   inside, so a removal still takes them. With ``unseen=False`` only an unseen instance that
   touches no other becomes background (contact is its only evidence otherwise).
+* **Contact** (``contact``): a Gaussian of one instance that lies in the box (grown by ``hidden_reach`` typical
+  spacings) of an instance of at most ``join_ratio`` times its size moves to the smaller one when, over at least ``min_views`` views, it lies in
+  the smaller one's mask in at least ``contact_ratio`` times as many views as in its own instance's mask (views
+  where both sit in one mask do not count). This is a small object's contact with its container (a lime in a
+  bowl, a box on a table): the vote clustering cuts the two along the votes, the Gaussians where they touch
+  go to the larger one, and a removal of the small object leaves them behind as a ghost. The training masks
+  see them in the small object's mask about as often as in the container's, since the centre test's depth
+  tolerance accepts both surfaces at the contact. Each Gaussian is decided on its own, against the instances
+  as the rules before left them. Two touching objects of similar size (stacked cubes) are neither's container.
 * **Hidden** (``hidden``): a Gaussian left as background that no view sees in no mask (never seen,
   or seen in a mask) takes instance j when most of its ``hidden_neighbours`` nearest *settled*
   Gaussians (in an instance, or background that a view saw outside every mask) are of j, it lies
@@ -88,6 +97,10 @@ DEFAULT_HIDDEN_MARGIN = 0.5
 # misses the fuzz just off an object's surface, which a removal leaves behind (BENCHMARKS.md "Instances a
 # user gets"). On the tuning scenes the Gaussians it takes lie 1-4 GT surface tolerances off an object.
 DEFAULT_HIDDEN_REACH = 1.5
+# A Gaussian at a small object's contact with its container moves to the small object when it lies in the
+# small object's mask in at least half as many views as in its own instance's (BENCHMARKS.md "Instances a user
+# gets": chosen on the tuning scenes against 0.75 and 1).
+DEFAULT_CONTACT_RATIO = 0.5
 
 
 def _sightings(table: np.ndarray, members: np.ndarray, home: np.ndarray) -> Tuple[int, int, int]:
@@ -235,6 +248,59 @@ def drop_floaters(
     return out, stats
 
 
+def take_contact(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    spacing: float,
+    contact_ratio: float = DEFAULT_CONTACT_RATIO,
+    reach: float = DEFAULT_HIDDEN_REACH,
+    size_ratio: float = DEFAULT_JOIN_RATIO,
+    min_views: int = 2,
+    min_share: float = 0.5,
+    min_seen: int = 5,
+) -> Tuple[np.ndarray, Dict[str, int]]:
+    """Labels after the contact rule (module docstring); stats: Gaussians moved and the instances they left."""
+    out = labels.copy()
+    stats = {"contact_gaussians": 0, "contact_sources": 0}
+    ids = [int(i) for i in np.unique(labels) if i >= 0]
+    if len(ids) < 2:
+        return out, stats
+    members = {i: np.flatnonzero(labels == i) for i in ids}
+    homes = {i: sitting_masks(table, members[i], min_share, min_seen) for i in ids}
+    grow = reach * spacing
+    boxes = {i: (means[members[i]].min(axis=0) - grow, means[members[i]].max(axis=0) + grow) for i in ids}
+    for large in ids:
+        smaller = [i for i in ids if members[i].size <= size_ratio * members[large].size]
+        if not smaller:
+            continue
+        points = means[members[large]]
+        inside = {i: np.all((points >= boxes[i][0]) & (points <= boxes[i][1]), axis=1) for i in smaller}
+        candidates = np.flatnonzero(np.any(np.stack(list(inside.values())), axis=0))
+        if candidates.size == 0:
+            continue
+        sub = table[:, members[large][candidates]]  # [V, C]: only the Gaussians in some smaller instance's box
+        own_home = homes[large][:, None]
+        in_own = ((sub == own_home) & (own_home > 0)).sum(axis=0)
+        best, best_views = np.full(candidates.size, -1), np.zeros(candidates.size, dtype=np.int64)
+        for small in smaller:
+            home = homes[small][:, None]
+            in_small = ((sub == home) & (home > 0) & (home != own_home)).sum(axis=0)
+            take = (
+                inside[small][candidates]
+                & (in_small >= min_views)
+                & (in_small >= contact_ratio * in_own)
+                & (in_small > best_views)
+            )
+            best[take], best_views[take] = small, in_small[take]
+        moving = best >= 0
+        if moving.any():
+            out[members[large][candidates[moving]]] = best[moving]
+            stats["contact_gaussians"] += int(moving.sum())
+            stats["contact_sources"] += 1
+    return out, stats
+
+
 def _inside_hull(points: np.ndarray, hull_points: np.ndarray, margin) -> np.ndarray:
     """[P] bool: ``points`` inside the convex hull of ``hull_points`` by at least ``margin`` (a
     number or one per point)."""
@@ -359,12 +425,14 @@ def whole_objects(
     floaters: bool = True,
     hidden: bool = True,
     unseen: bool = True,
+    contact: bool = True,
     join_ratio: float = DEFAULT_JOIN_RATIO,
     join_agreement: float = DEFAULT_JOIN_AGREEMENT,
     contact_factor: float = DEFAULT_CONTACT_FACTOR,
     hidden_neighbours: int = DEFAULT_HIDDEN_NEIGHBOURS,
     hidden_margin: float = DEFAULT_HIDDEN_MARGIN,
     hidden_reach: float = DEFAULT_HIDDEN_REACH,
+    contact_ratio: float = DEFAULT_CONTACT_RATIO,
     min_views: int = 2,
     min_share: float = 0.5,
     min_seen: int = 5,
@@ -380,8 +448,10 @@ def whole_objects(
     for name, value in (("join_ratio", join_ratio), ("join_agreement", join_agreement)):
         if not 0.0 <= value <= 1.0:
             raise ValueError(f"{name} must be in [0, 1], got {value}")
-    if contact_factor < 0 or hidden_margin < 0 or hidden_reach < 0 or hidden_neighbours < 1:
-        raise ValueError("contact_factor, hidden_margin and hidden_reach must be >= 0 and hidden_neighbours >= 1")
+    if contact_factor < 0 or hidden_margin < 0 or hidden_reach < 0 or hidden_neighbours < 1 or contact_ratio < 0:
+        raise ValueError(
+            "contact_factor, hidden_margin, hidden_reach and contact_ratio must be >= 0 and hidden_neighbours >= 1"
+        )
     out = np.asarray(labels, dtype=np.int64)
     means = np.asarray(means, dtype=np.float64)
     stats: Dict[str, Any] = {}
@@ -402,6 +472,10 @@ def whole_objects(
         )
     if floaters:
         out, stats["floaters"] = drop_floaters(out, means, table, spacing, contact_factor, min_views, unseen)
+    if contact:
+        out, stats["contact"] = take_contact(
+            out, means, table, spacing, contact_ratio, hidden_reach, join_ratio, min_views, min_share, min_seen
+        )
     if hidden:
         out, stats["hidden"] = take_hidden(
             out,
