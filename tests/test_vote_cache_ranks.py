@@ -170,6 +170,33 @@ def test_the_views_go_to_the_rank_that_is_free(tmp_path, one_torch_thread):
     assert leftovers(cache) == []
 
 
+def test_a_source_that_reads_files_makes_several_views_per_take_in_threads(tmp_path, monkeypatch):
+    from votesplat_ns.core.mask_sources import FolderMaskSource
+    from votesplat_ns.core.vote_cache import BUILD_THREADS
+
+    views = write_views(tmp_path / "images", count=12)
+    (tmp_path / "masks" / "instance").mkdir(parents=True)
+    for _, path in views:
+        labels = (np.asarray(Image.open(path))[..., 0] > 100).astype(np.uint8)
+        Image.fromarray(labels).save(tmp_path / "masks" / "instance" / path.name)
+    takes: list = []
+    build_all = VoteCache.build_all
+
+    def recorded(self, views_taken, *args, **kwargs):  # rank 0's takes (the ranks' processes do not see this)
+        takes.append(len(views_taken))
+        return build_all(self, views_taken, *args, **kwargs)
+
+    monkeypatch.setattr(VoteCache, "build_all", recorded)
+    cache = VoteCache(tmp_path / "cache", FolderMaskSource(tmp_path / "masks"))
+    keys = build_on_ranks(cache, views, ["cpu", "cpu"], progress=False)
+    assert takes and max(takes) > 1 and max(takes) <= BUILD_THREADS  # several views at a time, as one process
+    reference = VoteCache(tmp_path / "reference", FolderMaskSource(tmp_path / "masks"))
+    assert build_all(reference, views, progress=False) == keys
+    for key in keys:
+        assert_same_entry(reference, cache, key)
+    assert leftovers(cache) == []
+
+
 def test_a_rank_that_dies_keeps_the_finished_entries_and_no_half_written_one(tmp_path, one_torch_thread):
     views = write_views(tmp_path / "images")
     record = tmp_path / "record"

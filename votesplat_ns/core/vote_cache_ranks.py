@@ -1,8 +1,8 @@
 """A vote cache made by several processes at once, one per GPU (or several CPU processes), all writing the one cache.
 
 :func:`build_on_ranks` hands the views out as the ranks ask for them: the missing entries wait in one queue, and
-each rank takes the next view when it has finished the one before, so a rank that started sooner, or runs
-faster, makes more of them. The calling process is rank 0 itself, in a thread (it has torch, this package and
+each rank takes the next view when it has finished the one before (a source that reads files: the next few,
+made in threads as one process makes them), so a rank that started sooner, or runs faster, makes more of them. The calling process is rank 0 itself, in a thread (it has torch, this package and
 the source loaded already), and starts ranks 1 .. N-1 (``spawn``), which spend their first seconds importing
 and loading the model. Each entry is written as a single process writes it (:mod:`votesplat_ns.core.vote_cache`:
 temporary files renamed into place, the ``.votes.npz`` record last), so no rank ever reads another's
@@ -39,7 +39,7 @@ import torch
 
 from votesplat_ns.core.mask_source_base import MaskSource
 from votesplat_ns.core.ply_io import TEMP_MARKER
-from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, progress_bar
+from votesplat_ns.core.vote_cache import BUILD_THREADS, VoteCache, VoteOptions, progress_bar
 from votesplat_ns.errors import VoteSplatInputError, writing_into
 
 T = TypeVar("T")
@@ -94,20 +94,43 @@ def _make_entries(
     work,
     on_built: Callable[[], object],
     stop: Optional[threading.Event] = None,
-    taken: Optional[Callable[[Optional[str]], object]] = None,
+    taken: Optional[Callable[[Sequence[str]], object]] = None,
 ) -> None:
     """Take views from ``work`` and make their entries until it says there are no more (``None``), or until
-    ``stop`` is set (looked at between views). ``taken(key)``: told the key of each view taken, None when done."""
+    ``stop`` is set (looked at between takes). A source that reads files (``thread_safe``) takes up to
+    ``BUILD_THREADS`` views at a time, which ``build_all`` makes in threads, as one process does; a model's source
+    takes one. ``taken(keys)``: told the keys of the views being made, () when they are done."""
+    size = BUILD_THREADS if cache.source.thread_safe else 1
     while True:
-        item: WorkItem = _next_item(work, stop)
-        if item is None:
+        items, last = _next_items(work, stop, size)
+        if items:
+            if taken is not None:
+                taken([key for _, key in items])
+            cache.build_all(
+                [view for view, _ in items], keys=[key for _, key in items], progress=False, on_built=on_built
+            )
+            if taken is not None:
+                taken(())
+        if last:
             break
-        view, key = item
-        if taken is not None:
-            taken(key)
-        cache.build_all([view], keys=[key], progress=False, on_built=on_built)
-        if taken is not None:
-            taken(None)
+
+
+def _next_items(work, stop: Optional[threading.Event], size: int) -> Tuple[List[Tuple[View, str]], bool]:
+    """Up to ``size`` items of ``work`` (at least one unless none is left), and whether this rank is done: it took
+    its ``None``, or ``stop`` is set."""
+    first = _next_item(work, stop)
+    if first is None:
+        return [], True
+    items = [first]
+    while len(items) < size:
+        try:
+            item = work.get_nowait()
+        except queue_module.Empty:
+            break
+        if item is None:  # this rank's end: the views it holds are its last
+            return items, True
+        items.append(item)
+    return items, False
 
 
 def _next_item(work, stop: Optional[threading.Event]) -> WorkItem:
@@ -148,7 +171,7 @@ class _OwnRank:
     def __init__(self, job: _RankJob, work, on_built: Callable[[], object]):
         self.stop = threading.Event()
         self.failure: Optional[Tuple[str, bool]] = None  # (its error in one line, whether it is bad input)
-        self.making: Optional[str] = None  # the key of the entry it is making
+        self.making: Tuple[str, ...] = ()  # the keys of the entries it is making
         self._thread = threading.Thread(
             target=self._run, args=(job, work, on_built), name="votesplat-rank-0", daemon=True
         )
@@ -164,8 +187,8 @@ class _OwnRank:
         finally:
             torch.set_num_threads(threads)
 
-    def _taken(self, key: Optional[str]) -> None:
-        self.making = key
+    def _taken(self, keys: Sequence[str]) -> None:
+        self.making = tuple(keys)
 
     def start(self) -> None:
         self._thread.start()
@@ -296,10 +319,10 @@ def build_on_ranks(
             work.close()
             if not finished:
                 pids = [process.pid for process in processes if process.pid is not None]
-                busy = own.making if own.running else None  # rank 0 still writes it: leave it alone
-                if busy is None:
+                busy = own.making if own.running else ()  # rank 0 still writes them: leave them alone
+                if not busy:
                     pids.append(os.getpid())
-                _remove_leftovers(cache, pids, [key for key in keys if key != busy], started)
+                _remove_leftovers(cache, pids, [key for key in keys if key not in busy], started)
     if stopped is None:
         return keys
     done = sum(1 for key in keys if cache.votes_path(key).is_file())
