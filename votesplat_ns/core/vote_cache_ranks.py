@@ -2,9 +2,9 @@
 
 :func:`build_on_ranks` hands the views out as the ranks ask for them: the missing entries wait in one queue, and
 each rank takes the next view when it has finished the one before (a source that reads files: the next few,
-made in threads as one process makes them), so a rank that started sooner, or runs faster, makes more of them. The calling process is rank 0 itself, in a thread (it has torch, this package and
-the source loaded already), and starts ranks 1 .. N-1 (``spawn``), which spend their first seconds importing
-and loading the model. Each entry is written as a single process writes it (:mod:`votesplat_ns.core.vote_cache`:
+made in threads as one process makes them), so a rank that started sooner, or runs faster, makes more of them.
+The calling process is rank 0 itself, in a thread (it has torch, this package and the source loaded already),
+and starts ranks 1 .. N-1 (``spawn``), which spend their first seconds importing and loading the model. Each entry is written as a single process writes it (:mod:`votesplat_ns.core.vote_cache`:
 temporary files renamed into place, the ``.votes.npz`` record last), so no rank ever reads another's
 half-written file, and the device is not part of an entry's key (``MaskSource.config_key`` does not name it):
 the cache is the one a single process makes, whichever rank made which entry.

@@ -35,9 +35,9 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   inside, so a removal still takes them. With ``unseen=False`` only an unseen instance that
   touches no other becomes background (contact is its only evidence otherwise).
 * **Contact** (``contact``): a Gaussian of one instance that lies in the box (grown by ``hidden_reach`` typical
-  spacings) of an instance of at most ``join_ratio`` times its size moves to the smaller one when, over at least ``min_views`` views, it lies in
-  the smaller one's mask in at least ``contact_ratio`` times as many views as in its own instance's mask (views
-  where both sit in one mask do not count). This is a small object's contact with its container (a lime in a
+  spacings) of an instance of at most ``join_ratio`` times its size moves to the smaller one when, over at least
+  ``min_views`` views, it lies in the smaller one's mask in at least ``contact_ratio`` times as many views as in
+  its own instance's mask (views where both sit in one mask do not count). This is a small object's contact with its container (a lime in a
   bowl, a box on a table): the vote clustering cuts the two along the votes, the Gaussians where they touch
   go to the larger one, and a removal of the small object leaves them behind as a ghost. The training masks
   see them in the small object's mask about as often as in the container's, since the centre test's depth
