@@ -129,18 +129,18 @@ def test_the_container_gaussians_at_a_small_objects_contact_that_its_masks_see_m
     # beyond the fruit's box the fruit's masks do not take a Gaussian of the bowl
     far = scene.add(at_contact + [0.6, 0.6, 0], 0, [4, 4, 5, 5, 3, 3])
     means, labels, table = scene.build()
-    out, _, stats = run(means, labels, table, contact=True)
+    out, _, stats = run(means, labels, table)  # on by default
     assert (out[moving] == out[fruit[0]]).all() and out[fruit[0]] != out[bowl[0]]
     assert (out[staying] == out[bowl[0]]).all() and (out[far] == out[bowl[0]]).all()
     assert stats["contact"] == {"contact_gaussians": len(moving), "contact_sources": 1}
-    kept, _, kept_stats = run(means, labels, table)  # off by default
+    kept, _, kept_stats = run(means, labels, table, contact=False)
     assert (kept[moving] == kept[bowl[0]]).all() and "contact" not in kept_stats
     # two touching objects of one size (stacked cubes) are neither's container
     same = Scene()
     lower = same.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
     upper = same.add(box_surface([0, 0, 1.1], [1, 1, 2.1]), 1, [4, 4, 5, 5, 6, 6])
     touching = same.add(np.array([[0.5, 0.5, 1.0], [0.4, 0.5, 1.0]]), 0, [4, 1, 5, 2, 6, 3])
-    out, _, stats = run(*same.build(), contact=True)
+    out, _, stats = run(*same.build())
     assert out[lower[0]] != out[upper[0]] and (out[touching] == out[lower[0]]).all()
 
 

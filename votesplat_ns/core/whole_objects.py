@@ -34,8 +34,7 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   only find in the list. The hidden rule below then gives its Gaussians to the object they lie
   inside, so a removal still takes them. With ``unseen=False`` only an unseen instance that
   touches no other becomes background (contact is its only evidence otherwise).
-* **Contact** (``contact``, off by default: it was chosen on replays of the tuning scenes, and a default that
-  moves the instances waits for the test scenes' sweep at both seeds and both mask kinds): a Gaussian of one instance that lies in the box (grown by ``hidden_reach`` typical
+* **Contact** (``contact``): a Gaussian of one instance that lies in the box (grown by ``hidden_reach`` typical
   spacings) of an instance of at most ``join_ratio`` times its size moves to the smaller one when, over at least
   ``min_views`` views, it lies in the smaller one's mask in at least ``contact_ratio`` times as many views as in
   its own instance's mask (views where both sit in one mask do not count). This is a small object's contact with its container (a lime in a
@@ -426,7 +425,7 @@ def whole_objects(
     floaters: bool = True,
     hidden: bool = True,
     unseen: bool = True,
-    contact: bool = False,
+    contact: bool = True,
     join_ratio: float = DEFAULT_JOIN_RATIO,
     join_agreement: float = DEFAULT_JOIN_AGREEMENT,
     contact_factor: float = DEFAULT_CONTACT_FACTOR,
