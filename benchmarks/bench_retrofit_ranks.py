@@ -422,6 +422,7 @@ def parse_args(argv: Optional[List[str]] = None):
         "--launcher", choices=["nerfstudio", "torchrun"], default=None, help="default: nerfstudio on cuda"
     )
     parser.add_argument("--seed", type=int, default=42)
+    parser.add_argument("--no-scores", action="store_true", help="time the runs only (no vote error, no mIoU)")
     parser.add_argument("--run-timeout", type=float, default=900.0, help="seconds one ns-train may run")
     parser.add_argument("--work-dir", type=Path, default=Path("build/bench_retrofit_ranks"))
     parser.add_argument("--json", type=Path, default=None)
@@ -477,7 +478,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         rows.append(run_retrofit(args, ranks, Path(str(source["ply"]))))
         print(json.dumps({k: v for k, v in rows[-1].items() if k != "error"}), flush=True)
         write_json(args.json, result)
-    score_runs(args, rows)
+    if not args.no_scores:
+        score_runs(args, rows)
     compare(rows)
     result["total_s"] = round(time.perf_counter() - start, 1)
     write_json(args.json, result)

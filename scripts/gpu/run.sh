@@ -98,6 +98,10 @@ mkdir -p "$OUT" "$RUNS"
 export PYTHONPATH="$PWD:$SITE${PYTHONPATH:+:$PYTHONPATH}"   # working tree first: it wins over the carried wheel
 export PATH="$SITE/bin:$PATH"
 export PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+# the machine's torch environment is read-only and holds no byte-code, so every new process (each rank, each
+# worker) would compile torch's and transformers' sources again (10-20 s of a retrofit's set-up, measured); a
+# user's pip install has its byte-code: write it once under a prefix the machine lets us write
+export PYTHONPYCACHEPREFIX=${PYTHONPYCACHEPREFIX:-/tmp/pycache} PYTHONDONTWRITEBYTECODE=
 export TORCH_EXTENSIONS_DIR=/tmp/torch_extensions           # gsplat's JIT build lands in $TORCH_EXTENSIONS_DIR/gsplat_cuda
 export MAX_JOBS=${MAX_JOBS:-$(nproc)}
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}    # H100/H200; part of the build's flags, so keep it fixed
