@@ -34,15 +34,16 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   only find in the list. The hidden rule below then gives its Gaussians to the object they lie
   inside, so a removal still takes them. With ``unseen=False`` only an unseen instance that
   touches no other becomes background (contact is its only evidence otherwise).
-* **Contact** (``contact``): a Gaussian of one instance that lies in the box (grown by ``hidden_reach`` typical
-  spacings) of an instance of at most ``join_ratio`` times its size moves to the smaller one when, over at least
-  ``min_views`` views, it lies in the smaller one's mask in at least ``contact_ratio`` times as many views as in
-  its own instance's mask (views where both sit in one mask do not count). This is a small object's contact with its container (a lime in a
-  bowl, a box on a table): the vote clustering cuts the two along the votes, the Gaussians where they touch
-  go to the larger one, and a removal of the small object leaves them behind as a ghost. The training masks
-  see them in the small object's mask about as often as in the container's, since the centre test's depth
-  tolerance accepts both surfaces at the contact. Each Gaussian is decided on its own, against the instances
-  as the rules before left them. Two touching objects of similar size (stacked cubes) are neither's container.
+* **Contact** (``contact``): a Gaussian of one instance that lies in the box (grown by ``hidden_reach``
+  typical spacings) of an instance of at most ``join_ratio`` times its size moves to the smaller one when,
+  over at least ``min_views`` views, it lies in the smaller one's mask in at least ``contact_ratio`` times
+  as many views as in its own instance's mask (views where both sit in one mask do not count). This is a
+  small object's contact with its container (a lime in a bowl, a box on a table): the vote clustering cuts
+  the two along the votes, the Gaussians where they touch go to the larger one, and a removal of the small
+  object leaves them behind as a ghost. The training masks see them in the small object's mask about as
+  often as in the container's, since the centre test's depth tolerance accepts both surfaces at the
+  contact. Each Gaussian is decided on its own, against the instances as the rules before left them. Two
+  touching objects of similar size (stacked cubes) are neither's container.
 * **Hidden** (``hidden``): a Gaussian left as background that no view sees in no mask (never seen,
   or seen in a mask) takes instance j when most of its ``hidden_neighbours`` nearest *settled*
   Gaussians (in an instance, or background that a view saw outside every mask) are of j, it lies
@@ -248,6 +249,16 @@ def drop_floaters(
     return out, stats
 
 
+def _grown_box(points: np.ndarray, grow: float) -> Tuple[np.ndarray, np.ndarray]:
+    """(low [3], high [3]): the bounding box of ``points`` [P, 3], grown by ``grow`` on every side."""
+    return points.min(axis=0) - grow, points.max(axis=0) + grow
+
+
+def _in_box(points: np.ndarray, box: Tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """[P] bool: ``points`` inside ``box`` (as :func:`_grown_box` gives it)."""
+    return ((points >= box[0]) & (points <= box[1])).all(axis=1)
+
+
 def take_contact(
     labels: np.ndarray,
     means: np.ndarray,
@@ -268,14 +279,13 @@ def take_contact(
         return out, stats
     members = {i: np.flatnonzero(labels == i) for i in ids}
     homes = {i: sitting_masks(table, members[i], min_share, min_seen) for i in ids}
-    grow = reach * spacing
-    boxes = {i: (means[members[i]].min(axis=0) - grow, means[members[i]].max(axis=0) + grow) for i in ids}
+    boxes = {i: _grown_box(means[members[i]], reach * spacing) for i in ids}
     for large in ids:
         smaller = [i for i in ids if members[i].size <= size_ratio * members[large].size]
         if not smaller:
             continue
         points = means[members[large]]
-        inside = {i: np.all((points >= boxes[i][0]) & (points <= boxes[i][1]), axis=1) for i in smaller}
+        inside = {i: _in_box(points, boxes[i]) for i in smaller}
         candidates = np.flatnonzero(np.any(np.stack(list(inside.values())), axis=0))
         if candidates.size == 0:
             continue
@@ -313,7 +323,7 @@ def _inside_hull(points: np.ndarray, hull_points: np.ndarray, margin) -> np.ndar
     # equations: unit outward normals and offsets, inside where normal . x + offset <= 0
     margin = np.broadcast_to(np.asarray(margin, dtype=np.float64), (points.shape[0],))
     # the hull's bounding box first: the facet test is points x facets
-    inside = ((points >= hull_points.min(axis=0)) & (points <= hull_points.max(axis=0))).all(axis=1)
+    inside = _in_box(points, _grown_box(hull_points, 0.0))
     index = np.flatnonzero(inside)
     for start in range(0, index.size, 65536):
         part = index[start : start + 65536]
@@ -330,9 +340,8 @@ def _near_some_instance(points: np.ndarray, means: np.ndarray, labels: np.ndarra
     bounds = np.flatnonzero(np.diff(sorted_labels[starts:])) + starts + 1
     near = np.zeros(len(points), dtype=bool)
     for members in np.split(order[starts:], bounds - starts):
-        low, high = means[members].min(axis=0) - grow, means[members].max(axis=0) + grow
         open_rows = np.flatnonzero(~near)
-        inside = ((points[open_rows] >= low) & (points[open_rows] <= high)).all(axis=1)
+        inside = _in_box(points[open_rows], _grown_box(means[members], grow))
         near[open_rows[inside]] = True
     return near
 
