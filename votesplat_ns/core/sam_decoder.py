@@ -62,11 +62,68 @@ def decode_multimask(
     mask_tokens_out = hs[:, 1 : 1 + dec.num_mask_tokens, :]
     # only the three multimask outputs are returned: the single-mask token's hypernetwork is not needed
     hyper_in = torch.stack([dec.output_hypernetworks_mlps[i](mask_tokens_out[:, i, :]) for i in (1, 2, 3)], dim=1)
-    upscaled = dec.output_upscaling(keys.transpose(1, 2).view(keys.shape[0], c, h, w))
-    bu, cu, hu, wu = upscaled.shape
-    masks = (hyper_in @ upscaled.view(bu, cu, hu * wu)).view(bu, -1, hu, wu)
+    if mode == "folded":
+        masks = _upscaled_masks(dec.output_upscaling, keys, hyper_in, h, w)
+    else:
+        upscaled = dec.output_upscaling(keys.transpose(1, 2).view(keys.shape[0], c, h, w))
+        bu, cu, hu, wu = upscaled.shape
+        masks = (hyper_in @ upscaled.view(bu, cu, hu * wu)).view(bu, -1, hu, wu)
     iou_pred = dec.iou_prediction_head(iou_token_out)[:, 1:]
     return masks, iou_pred
+
+
+# prompts per chunk of the token-major upscaling: its two per-prompt tensors take 12 MiB a prompt in float32
+UPSCALING_PROMPTS_PER_CHUNK = 64
+
+
+def _upscaled_masks(
+    upscaling: Any,  # segment_anything's output_upscaling: ConvT(2, 2) -> LayerNorm2d -> GELU -> ConvT(2, 2) -> GELU
+    keys: torch.Tensor,  # [P, h·w, C]: the image tokens after the transformer, row-major
+    hyper_in: torch.Tensor,  # [P, M, C/8]: the mask tokens' hypernetwork outputs
+    h: int,
+    w: int,
+) -> torch.Tensor:
+    """``hyper_in @ output_upscaling(keys)`` as [P, M, 4h, 4w], computed token by token.
+
+    A transposed convolution with kernel 2 and stride 2 maps each input pixel to its own 2×2 output pixels, and
+    the LayerNorm and GELU act per pixel, so the whole upscaling is a function of one image token: two matrix
+    products over the tokens ([P·h·w, C] → 4 sub-pixels × C/4 → 16 sub-pixels × C/8), the channel LayerNorm over
+    contiguous rows (``F.layer_norm``, one pass instead of LayerNorm2d's eight strided ones) and the GELUs in
+    place. The pixels are put in image order only for the M masks. Float sums run in another order than the
+    convolutions', and in float32 rather than cuDNN's default TF32 on a GPU.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    conv1, norm, act1, conv2, act2 = upscaling
+    if not (
+        isinstance(conv1, torch.nn.ConvTranspose2d)
+        and isinstance(conv2, torch.nn.ConvTranspose2d)
+        and conv1.kernel_size == conv1.stride == conv2.kernel_size == conv2.stride == (2, 2)
+        and isinstance(act1, torch.nn.GELU)
+        and isinstance(act2, torch.nn.GELU)
+    ):
+        raise ValueError("the token-major upscaling needs segment_anything's output_upscaling layers")
+    assert conv1.bias is not None and conv2.bias is not None  # segment_anything's layers have biases
+    prompts, tokens, channels = keys.shape
+    c1, c2 = conv1.out_channels, conv2.out_channels
+    # [C_in, C_out, a, b] -> [C_in, (a, b, C_out)]: each sub-pixel's channels contiguous
+    w1 = conv1.weight.permute(0, 2, 3, 1).reshape(channels, 4 * c1)
+    b1 = conv1.bias.repeat(4)
+    w2 = conv2.weight.permute(0, 2, 3, 1).reshape(c1, 4 * c2)
+    b2 = conv2.bias.repeat(4)
+    masks = hyper_in.shape[1]
+    out = []
+    for start in range(0, prompts, UPSCALING_PROMPTS_PER_CHUNK):
+        chunk = keys[start : start + UPSCALING_PROMPTS_PER_CHUNK]
+        p = chunk.shape[0]
+        x = torch.addmm(b1, chunk.reshape(p * tokens, channels), w1).view(p * tokens * 4, c1)
+        x = act1(F.layer_norm(x, (c1,), norm.weight, norm.bias, norm.eps))
+        x = act2(torch.addmm(b2, x, w2))  # [(P, h·w, a, b), (a2, b2, C/8)]
+        m = x.view(p, tokens * 16, c2) @ hyper_in[start : start + p].transpose(1, 2)  # [P, (i, j, a, b, a2, b2), M]
+        m = m.view(p, h, w, 2, 2, 2, 2, masks).permute(0, 7, 1, 3, 5, 2, 4, 6)  # [P, M, i, a, a2, j, b, b2]
+        out.append(m.reshape(p, masks, 4 * h, 4 * w))
+    return torch.cat(out) if len(out) > 1 else out[0]
 
 
 def _two_way_transformer(
