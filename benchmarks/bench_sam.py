@@ -166,6 +166,7 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
             precision=precision,
             crops_per_encoder_pass=args.crops_per_encoder_pass,
             decoder=args.decoder,
+            compile_decoder=args.compile_decoder,
         )
         stand_in.segment_maps()  # the stand-in's per-segment maps, made before any timing
         return stand_in
@@ -178,6 +179,7 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
             precision=precision,
             crops_per_encoder_pass=args.crops_per_encoder_pass,
             decoder=args.decoder,
+            compile_decoder=args.compile_decoder,
         )
 
     precisions = list(args.precision)
@@ -230,6 +232,7 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
                 pixels += sum(a.size for a in expected)
                 print(f"  image {seed}: {differing[-1]} of {sum(a.size for a in expected)} pixels differ", flush=True)
             del reference
+    streams = {p: stream_seconds(images, one_pass, p, labels_of[p]) for p in precisions} if args.stream else {}
     rows = []
     for precision in precisions:
         split = {name: float(np.median(values)) for name, values in stages[precision].items()}
@@ -237,6 +240,7 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
             "workload": workload,
             "precision": precision,
             "decoder": args.decoder,
+            "decoder_compiled": args.compile_decoder and args.device.startswith("cuda"),
             "images": len(images),
             "seeds": [seed for seed, _, _ in images],
             "model": "none (stand-in alone)" if sam is None else "SAM, random weights",
@@ -252,6 +256,8 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
             "one_pass_peak_mib": round(max(peaks[precision]), 1),
             "one_pass_working_peak_mib": round(max(working[precision]), 1),
         }
+        if precision in streams:
+            row.update(streams[precision])
         if precision == "fp32" and differing:
             row.update(
                 differing_pixels=int(sum(differing)),
@@ -262,6 +268,37 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
             row["agreement_with_fp32"] = agreement(labels_of["fp32"], labels_of[precision])
         rows.append(row)
     return {"rows": rows}
+
+
+def stream_seconds(images, one_pass, precision: str, labels_alone: list) -> dict:
+    """Seconds per image over all ``images`` one after another, and with two threads (what the cache build does:
+    the device works on one image while the host works on the other). Each image has its generator (the
+    stand-in belongs to one image), all sharing one encoder lock as one generator's calls do; each image's labels
+    are checked against those it got alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    generators = [one_pass(image, maps, seed, precision) for seed, image, maps in images]
+    model_steps = [getattr(g.steps, "model_steps", g.steps) for g in generators]  # the stand-in's SAM, or SAM's
+    for steps in model_steps[1:]:
+        if steps is not None:
+            steps.encoder_lock = model_steps[0].encoder_lock
+
+    def label(i: int):
+        return generators[i].label_images(images[i][1])
+
+    result = {}
+    for name, threads in (("stream_one_at_a_time_s", 1), ("stream_overlapped_s", 2)):
+        before = reset_peak()
+        start = time.perf_counter()
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            labels = list(pool.map(label, range(len(images))))
+        synchronize()
+        result[name] = (time.perf_counter() - start) / len(images)
+        result[name.replace("_s", "_peak_mib")] = round(peak_mib(), 1)
+        result[name.replace("_s", "_working_peak_mib")] = round(peak_mib() - before, 1)  # less the images' stand-ins
+        same = all(np.array_equal(a, b) for got, want in zip(labels, labels_alone) for a, b in zip(got, want))
+        result[name.replace("_s", "_labels_as_alone")] = same
+    return result
 
 
 def decoder_agreement(sam, image: np.ndarray, precision: str, settings: dict) -> dict:
@@ -391,16 +428,19 @@ def decoder_modes(device: str, prompts: int, repeats: int = 10) -> List[dict]:
             sparse, dense = prompt_encoder(points=(points, labels), boxes=None, masks=None)
             image_pe = prompt_encoder.get_dense_pe()
             outputs = {}
-            for mode in DECODER_MODES:
-                decode_multimask(decoder, embedding, image_pe, sparse, dense, mode)  # warm-up
+            # on a GPU also the default decoder as SamSteps runs it there: through torch.compile (compiled first)
+            compiled = [("folded, compiled", torch.compile(decode_multimask, dynamic=False), "folded")]
+            runs = [(mode, decode_multimask, mode) for mode in DECODER_MODES] + (compiled if device == "cuda" else [])
+            for name, decode, mode in runs:
+                decode(decoder, embedding, image_pe, sparse, dense, mode)  # warm-up
                 if device == "cuda":
                     torch.cuda.synchronize()
                 start = time.perf_counter()
                 for _ in range(repeats):
-                    masks, iou = decode_multimask(decoder, embedding, image_pe, sparse, dense, mode)
+                    masks, iou = decode(decoder, embedding, image_pe, sparse, dense, mode)
                 if device == "cuda":
                     torch.cuda.synchronize()
-                outputs[mode] = (masks.float(), iou.float(), (time.perf_counter() - start) / repeats)
+                outputs[name] = (masks.float(), iou.float(), (time.perf_counter() - start) / repeats)
         reference_masks, reference_iou, _ = outputs["segment_anything"]
         for mode, (masks, iou, seconds) in outputs.items():
             rows.append(
@@ -444,6 +484,12 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--decoder", default=DEFAULT_DECODER, choices=list(DECODER_MODES), help="the one-pass path's mask decoder"
     )
+    parser.add_argument(
+        "--no-compile",
+        dest="compile_decoder",
+        action="store_false",
+        help="the one-pass path's decoder uncompiled on a GPU (compiled by default, as `votesplat masks` runs it)",
+    )
     parser.add_argument("--points-per-batch", type=int, default=DEFAULT_POINTS_PER_BATCH, help="both paths")
     parser.add_argument("--crops-per-encoder-pass", type=int, default=None, help="default: 1 in fp32, else all")
     parser.add_argument("--points-per-side", type=int, default=LANGSPLAT["points_per_side"])
@@ -451,6 +497,11 @@ def main(argv=None) -> int:
     parser.add_argument("--stability-score-thresh", type=float, default=LANGSPLAT["stability_score_thresh"])
     parser.add_argument("--crop-n-layers", type=int, default=LANGSPLAT["crop_n_layers"])
     parser.add_argument("--device", default=None, help="default: cuda if present, else cpu")
+    parser.add_argument(
+        "--stream",
+        action="store_true",
+        help="also time the images one after another and two at a time (host part overlapping the device part)",
+    )
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument(
         "--decoder-only", action="store_true", help="time the prompt decoder's modes alone (points-per-batch prompts)"
@@ -546,6 +597,22 @@ def main(argv=None) -> int:
                 f"{d['mask_iou_mean']:.4f} | {d['mask_iou_p05']:.4f} | {d['share_mask_iou_ge_0_99']:.3f} | "
                 f"{d['pred_iou_abs_change_mean']:.4f} / {d['pred_iou_abs_change_max']:.4f} | "
                 f"{d['share_pred_iou_filter_flips']:.4f}, {d['share_stability_filter_flips']:.4f} |"
+            )
+    streamed = [row for row in rows if "stream_overlapped_s" in row]
+    if streamed:
+        print("\nall images in a row (s/image): one at a time, and two at a time as the cache build runs them")
+        print(
+            "| model | workload | precision | images | one at a time | overlapped | labels as alone | "
+            "peak GPU MiB (the pass's own), one / two at a time |"
+        )
+        print("|---|---|---|---|---|---|---|---|")
+        for row in streamed:
+            same = row["stream_one_at_a_time_labels_as_alone"] and row["stream_overlapped_labels_as_alone"]
+            print(
+                f"| {row['model_type']} | {row['workload']} | {row['precision']} | {row['images']} | "
+                f"{row['stream_one_at_a_time_s']:.3f} | {row['stream_overlapped_s']:.3f} | {same} | "
+                f"{row['stream_one_at_a_time_peak_mib']} ({row['stream_one_at_a_time_working_peak_mib']}) / "
+                f"{row['stream_overlapped_peak_mib']} ({row['stream_overlapped_working_peak_mib']}) |"
             )
     print("\none pass per stage (s/image, median; the encoder stage is every crop's pass)")
     groups = list(STAGE_GROUPS)

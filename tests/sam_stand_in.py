@@ -66,6 +66,7 @@ class StandInPredictor:
         precision: str = "fp32",
         crops_per_encoder_pass=None,
         decoder: str = "folded",
+        compile_decoder: bool = False,
     ):
         from segment_anything.utils.amg import generate_crop_boxes
         from segment_anything.utils.transforms import ResizeLongestSide
@@ -75,7 +76,7 @@ class StandInPredictor:
         assert len(label_maps) == 3
         self.model_predictor = model_predictor  # a real SamPredictor run alongside, for timing: its outputs are dropped
         self.model_steps = (
-            SamSteps(model_predictor, precision, crops_per_encoder_pass, decoder)
+            SamSteps(model_predictor, precision, crops_per_encoder_pass, decoder, compile_decoder)
             if model_predictor is not None
             else None
         )

@@ -5,6 +5,7 @@ per level (tests/sam_reference.py). Driven by random-init SAM models and by a st
 label maps (tests/sam_stand_in.py) with which dozens of masks per level survive every filter.
 """
 
+import functools
 from types import SimpleNamespace
 
 import numpy as np
@@ -207,6 +208,27 @@ def test_sam_mask_source_runs_the_one_pass_generator(one_torch_thread):
     assert labels[1].max() > 0
 
 
+def test_images_asked_for_from_two_threads_get_their_own_labels(one_torch_thread):
+    """Two threads at once (the cache build's overlap of one view's host work with the next one's device work):
+    each image gets the labels it gets alone, in any interleaving."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from segment_anything import SamPredictor
+
+    sam = tiny_sam()
+    options = dict(
+        points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1, min_mask_region_area=20
+    )
+    images = [np.roll(blocks_image(), shift, axis=1) for shift in (0, 5, 11, 17, 23, 29)]
+    expected = [SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image) for image in images]
+    assert len({labels[0].tobytes() for labels in expected}) == len(images)  # each image its own labels
+    generator = SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        together = list(pool.map(generator.label_images, images))
+    for labels, want in zip(together, expected):
+        assert_same_labels(want, labels)
+
+
 def vit_b_predictor(sam):
     """A SamPredictor over random-init vit_b whose image features are a fixed random tensor of the encoder's output
     shape: both paths get the same features either way, and a vit_b encoder pass takes over a minute on a CI CPU
@@ -244,6 +266,97 @@ def test_random_vit_b_decoder_equals_segment_anything(one_torch_thread):
     labels = SamLevelsMaskGenerator(vit_b_predictor(sam), LEVELS, **options).label_images(image)
     assert_same_labels(expected, labels)
     assert all(level.max() > 0 for level in labels)  # random weights: few masks, but some at every level
+
+
+def compiling_steps(sam, monkeypatch, compiled):
+    """SamSteps whose decoder goes through its compiled path on the CPU (compiling is for CUDA devices), with
+    ``torch.compile`` replaced by ``compiled(function) -> function``."""
+    from segment_anything import SamPredictor
+
+    from votesplat_ns.core import sam_masks
+    from votesplat_ns.core.sam_masks import SamSteps
+
+    monkeypatch.setattr(torch, "compile", lambda function, **options: compiled(function))
+    monkeypatch.setattr(
+        sam_masks,
+        "_compiled_decode_multimask",
+        functools.lru_cache(None)(sam_masks._compiled_decode_multimask.__wrapped__),
+    )
+    steps = SamSteps(SamPredictor(sam), compile_decoder=True)
+    assert not steps.compile_decoder  # a CPU device: not compiled
+    steps.compile_decoder = True
+    return steps
+
+
+def test_the_compiled_decoder_pads_a_short_batch_to_the_size_compiled_for(monkeypatch, one_torch_thread):
+    sam = tiny_sam()
+    image = blocks_image()
+    options = dict(
+        points_per_side=5, points_per_batch=7, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1
+    )
+    prompts_seen = []
+
+    def compiled(function):
+        def run(mask_decoder, features, image_pe, sparse, dense, mode):
+            prompts_seen.append(sparse.shape[0])
+            return function(mask_decoder, features, image_pe, sparse, dense, mode)
+
+        return run
+
+    labels = SamLevelsMaskGenerator(compiling_steps(sam, monkeypatch, compiled), LEVELS, **options).label_images(image)
+    assert set(prompts_seen) == {7}  # 25 points per crop: three batches of 7 and one of 4, padded
+    assert_same_labels(SamLevelsMaskGenerator(predictor_of(sam), LEVELS, **options).label_images(image), labels)
+
+
+def test_a_decoder_that_cannot_be_compiled_runs_uncompiled_after_one_warning(monkeypatch, one_torch_thread):
+    sam = tiny_sam()
+    image = blocks_image()
+    options = dict(points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1)
+    calls = []
+
+    def compiled(function):
+        def run(*arguments):
+            calls.append(1)
+            raise RuntimeError("no working C compiler\nsecond line")
+
+        return run
+
+    steps = compiling_steps(sam, monkeypatch, compiled)
+    with pytest.warns(
+        UserWarning, match=r"SAM's decoder could not be compiled \(RuntimeError: no working C compiler\)"
+    ):
+        labels = SamLevelsMaskGenerator(steps, LEVELS, **options).label_images(image)
+    assert calls == [1] and not steps.compile_decoder
+    assert_same_labels(SamLevelsMaskGenerator(predictor_of(sam), LEVELS, **options).label_images(image), labels)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="torch.compile of the decoder runs on CUDA devices")
+def test_the_compiled_decoder_on_cuda_gives_the_uncompiled_outputs():
+    from segment_anything import sam_model_registry
+
+    from votesplat_ns.core.sam_masks import SamSteps
+
+    torch.manual_seed(0)
+    sam = sam_model_registry["vit_b"](checkpoint=None).cuda().eval()
+    image = np.ascontiguousarray(np.kron(blocks_image(), np.ones((8, 8, 1), dtype=np.uint8)))
+    points = np.random.default_rng(0).uniform(0, 190, size=(64, 2))
+    outputs = {}
+    for compile_decoder in (False, True):
+        steps = SamSteps(predictor_of(sam), compile_decoder=compile_decoder)
+        assert steps.compile_decoder == compile_decoder
+        state = steps.encode_crops([image])[0]
+        with torch.no_grad():
+            outputs[compile_decoder] = [steps.decode_points(state, points[:n]) for n in (64, 40)]
+    for (eager_masks, eager_iou), (masks, iou) in zip(outputs[False], outputs[True]):
+        scale = eager_masks.abs().max()
+        torch.testing.assert_close(masks, eager_masks, rtol=0, atol=1e-4 * scale)
+        torch.testing.assert_close(iou, eager_iou, rtol=0, atol=1e-4)
+
+
+def predictor_of(sam):
+    from segment_anything import SamPredictor
+
+    return SamPredictor(sam)
 
 
 def random_blob_mask(rng, shape):

@@ -71,7 +71,10 @@ class RecordingSamSource(SamMaskSource):
 
 class DyingSamSource(SamMaskSource):
     """SAM that kills rank 1's process (SIGKILL: no clean-up runs) at its second image; rank 0 (the test's
-    process) makes its first image only once that happened, so rank 1 surely takes two views."""
+    process) makes its first image only once that happened, so rank 1 surely takes two views. One view at a time,
+    so that the first is written before the second starts."""
+
+    overlaps_views = False
 
     def __init__(self, record_dir: Path, **options):
         super().__init__(**options)

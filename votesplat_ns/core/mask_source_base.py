@@ -18,6 +18,10 @@ class MaskSource(abc.ABC):
     # Whether masks_for_image may run for several views at once in threads (sources that read files);
     # a model-backed source (SAM on a GPU) keeps the default and is called one view at a time.
     thread_safe: bool = False
+    # Whether masks_for_image may run for two views at once in threads although the source is not thread_safe:
+    # it serialises itself what cannot run twice at once, so that the device works on one view while the host
+    # works on the other (SAM on a GPU).
+    overlaps_views: bool = False
 
     @abc.abstractmethod
     def masks_for_image(self, image: np.ndarray, image_path: PathLike, frame_index: int) -> List[np.ndarray]:

@@ -6,8 +6,10 @@ The checkpoint is never downloaded: :func:`check_sam_checkpoint` names the offic
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import os
+import threading
 import time
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
@@ -70,12 +72,17 @@ class SamMaskSource(MaskSource):
     box_nms_thresh=0.7, stability_score_thresh=0.85, crop_n_layers=1, min_mask_region_area=100), with
     ``points_per_batch`` prompts per decoder call (:data:`DEFAULT_POINTS_PER_BATCH`). ``precision="bf16"`` runs
     SAM's encoder and decoder in bfloat16, ``"tf32"`` their float32 matrix products on TensorFloat-32
-    (:class:`SamSteps`); the masks then differ a little from fp32's.
+    (:class:`SamSteps`); the masks then differ a little from fp32's. On a GPU the prompt decoder is compiled
+    (``compile_decoder``, :class:`SamSteps`).
     Images whose long side exceeds ``max_long_side`` are downscaled before SAM (masks come back
     at that size; the vote maps are resized to the training resolution later).
 
     The checkpoint is never downloaded. Tests may pass ``sam_model`` (an already-built ``Sam``).
+    Two views may be asked for at once (``overlaps_views``): one model serves both, and the device works on one
+    view while the host works on the other (:meth:`SamLevelsMaskGenerator.label_images`).
     """
+
+    overlaps_views = True
 
     def __init__(
         self,
@@ -93,6 +100,7 @@ class SamMaskSource(MaskSource):
         min_mask_region_area: int = 100,
         max_long_side: Optional[int] = 1080,
         precision: str = "fp32",
+        compile_decoder: bool = True,
         sam_model: Any = None,
     ):
         if model_type not in SAM_CHECKPOINT_FILES:
@@ -122,8 +130,11 @@ class SamMaskSource(MaskSource):
             precision=precision,
             decoder=DEFAULT_DECODER,
         )
+        # on a GPU only (SamSteps); not part of config_key: it changes float rounding, not what is computed
+        self.compile_decoder = bool(compile_decoder)
         self._sam_model = sam_model
         self._generator = None
+        self._generator_lock = threading.Lock()
         if sam_model is not None:
             self.checkpoint = None
             self._model_identity = {"model": "in-memory", "parameters_sha256": _state_dict_digest(sam_model)}
@@ -149,13 +160,18 @@ class SamMaskSource(MaskSource):
         # sent to another process (vote_cache_ranks) without the generator: it holds the encoder's last features
         state = dict(self.__dict__)
         state["_generator"] = None
+        del state["_generator_lock"]
         return state
+
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        vars(self).update(state, _generator_lock=threading.Lock())
 
     def on_device(self, device: str) -> "SamMaskSource":
         """A copy that runs SAM on ``device`` (its model is built there at the first image)."""
         moved = copy.copy(self)
         moved.device = device
         moved._generator = None
+        moved._generator_lock = threading.Lock()
         return moved
 
     def _resolve_device(self) -> str:
@@ -184,12 +200,15 @@ class SamMaskSource(MaskSource):
                 ) from error
             self._sam_model = model
         self._sam_model.to(self._resolve_device()).eval()
-        return SamLevelsMaskGenerator(SamPredictor(self._sam_model), self.levels, **self.generator_kwargs)
+        return SamLevelsMaskGenerator(
+            SamPredictor(self._sam_model), self.levels, **self.generator_kwargs, compile_decoder=self.compile_decoder
+        )
 
     def masks_for_image(self, image: np.ndarray, image_path: PathLike, frame_index: int) -> List[np.ndarray]:
         image = _as_rgb_uint8(image, image_path)
-        if self._generator is None:
-            self._generator = self._build_generator()
+        with self._generator_lock:
+            if self._generator is None:
+                self._generator = self._build_generator()
         return self._generator.label_images(_limit_long_side(image, self.max_long_side))
 
 
@@ -222,6 +241,11 @@ class SamSteps:
     per prompt, and moves the later blocks' image-token projections onto the prompt's 7 tokens (BENCHMARKS.md
     "SAM masks": the labels stay segment_anything's); ``"shared"`` does only the first; ``"segment_anything"``
     calls ``MaskDecoder`` itself.
+
+    ``compile_decoder``: on a CUDA device, the decoder runs through ``torch.compile`` (its elementwise work and
+    normalisations fused: BENCHMARKS.md "SAM masks"), compiled once per process and prompt count; a short batch
+    is padded to the longest one so far (prompts do not interact), so that it reuses that compilation. If the
+    compilation fails, one warning says so and the decoder runs uncompiled. Not used on a CPU.
     """
 
     def __init__(
@@ -230,6 +254,7 @@ class SamSteps:
         precision: str = "fp32",
         crops_per_encoder_pass: Optional[int] = None,
         decoder: str = DEFAULT_DECODER,
+        compile_decoder: bool = False,
     ):
         import torch
 
@@ -247,6 +272,11 @@ class SamSteps:
         self.mask_threshold = float(self.model.mask_threshold)
         self.precision = precision
         self.crops_per_encoder_pass = crops_per_encoder_pass
+        self.compile_decoder = bool(compile_decoder) and self.device.type == "cuda"
+        self._compiled_prompts = 0
+        # held while a crop is encoded: SamPredictor keeps the image it encodes (set_image), so two threads'
+        # images take turns there; decode_points and upscale_masks keep nothing and run side by side
+        self.encoder_lock = threading.Lock()
         if precision == "bf16" and self.device.type == "cuda" and not torch.cuda.is_bf16_supported():
             raise VoteSplatInputError(
                 f"SAM precision bf16 needs a GPU with bfloat16 (compute capability 8.0 or newer), not "
@@ -264,6 +294,11 @@ class SamSteps:
 
     def encode_crops(self, crops: Sequence[np.ndarray]) -> List[SamCropState]:
         """The features of each RGB uint8 crop."""
+
+        with self.encoder_lock:
+            return self._encode_crops(crops)
+
+    def _encode_crops(self, crops: Sequence[np.ndarray]) -> List[SamCropState]:
         import torch
 
         states: List[SamCropState] = []
@@ -304,32 +339,84 @@ class SamSteps:
             sparse, dense = self.model.prompt_encoder(
                 points=(in_points[:, None, :], in_labels[:, None]), boxes=None, masks=None
             )
-            low_res, iou_predictions = decode_multimask(
-                self.model.mask_decoder,
-                state.features,
-                self.model.prompt_encoder.get_dense_pe(),
-                sparse,
-                dense,
-                self.decoder,
-            )
+            arguments = (self.model.mask_decoder, state.features, self.model.prompt_encoder.get_dense_pe())
+            if self.compile_decoder:
+                low_res, iou_predictions = self._decode_compiled(*arguments, sparse, dense)
+            else:
+                low_res, iou_predictions = decode_multimask(*arguments, sparse, dense, self.decoder)
         return low_res.float(), iou_predictions.float()
+
+    def _decode_compiled(self, mask_decoder: Any, features: Any, image_pe: Any, sparse: Any, dense: Any):
+        """``decode_multimask`` through ``torch.compile``, ``sparse`` padded to the most prompts compiled for."""
+        import warnings
+
+        import torch
+
+        from votesplat_ns.core.sam_decoder import decode_multimask
+
+        prompts = sparse.shape[0]
+        self._compiled_prompts = max(self._compiled_prompts, prompts)
+        if prompts < self._compiled_prompts:
+            padding = self._compiled_prompts - prompts
+            sparse = torch.cat([sparse, sparse[-1:].expand(padding, -1, -1)])
+            if dense.shape[0] == prompts > 1:  # the prompt encoder's no-mask embedding, one per prompt
+                dense = torch.cat([dense, dense[-1:].expand(padding, -1, -1, -1)])
+        try:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*[Oo]nline softmax")  # inductor's note on its choice
+                low_res, iou_predictions = _compiled_decode_multimask()(
+                    mask_decoder, features, image_pe, sparse, dense, self.decoder
+                )
+        except Exception as error:  # a missing compiler, an unsupported GPU: the decoder as it is
+            warnings.warn(
+                f"SAM's decoder could not be compiled ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
+                "running it uncompiled (slower; the masks are the same up to float rounding)"
+            )
+            self.compile_decoder = False
+            return decode_multimask(
+                mask_decoder, features, image_pe, sparse[:prompts], dense[: max(1, prompts)], self.decoder
+            )
+        return low_res[:prompts], iou_predictions[:prompts]
 
     def upscale_masks(self, state: SamCropState, low_res: Any):
         """Mask logits [m, h, w] at the crop's size from m rows [m, 256, 256] of ``decode_points``' logits."""
         return self.model.postprocess_masks(low_res[:, None], state.input_size, state.original_size)[:, 0]
 
 
-@contextmanager
-def _float32_matmul_precision(precision: str) -> Iterator[None]:
-    """``torch.set_float32_matmul_precision`` for a while (it is global: restored after)."""
+@functools.lru_cache(maxsize=None)
+def _compiled_decode_multimask() -> Any:
+    """``decode_multimask`` through ``torch.compile``, one wrapper per process (its compilations are kept per
+    model, precision and prompt count)."""
     import torch
 
-    previous = torch.get_float32_matmul_precision()
-    torch.set_float32_matmul_precision(precision)
+    from votesplat_ns.core.sam_decoder import decode_multimask
+
+    return torch.compile(decode_multimask, dynamic=False)
+
+
+_MATMUL_PRECISION_LOCK = threading.Lock()
+_matmul_precision_users: List[Any] = []  # [count, the precision before the first] while some thread is inside
+
+
+@contextmanager
+def _float32_matmul_precision(precision: str) -> Iterator[None]:
+    """``torch.set_float32_matmul_precision`` while some thread is inside (it is global: the precision from
+    before the first thread entered is restored when the last one leaves)."""
+    import torch
+
+    with _MATMUL_PRECISION_LOCK:
+        if not _matmul_precision_users:
+            _matmul_precision_users[:] = [0, torch.get_float32_matmul_precision()]
+            torch.set_float32_matmul_precision(precision)
+        _matmul_precision_users[0] += 1
     try:
         yield
     finally:
-        torch.set_float32_matmul_precision(previous)
+        with _MATMUL_PRECISION_LOCK:
+            _matmul_precision_users[0] -= 1
+            if _matmul_precision_users[0] == 0:
+                torch.set_float32_matmul_precision(_matmul_precision_users[1])
+                _matmul_precision_users.clear()
 
 
 class _Crop:
@@ -366,8 +453,8 @@ class SamLevelsMaskGenerator:
     however many levels keep it, in the mask's box rather than the whole image (:func:`_small_regions_removed`,
     same result), on ``workers`` threads.
 
-    ``predictor``: a ``SamPredictor`` (run by :class:`SamSteps` with ``precision``, ``crops_per_encoder_pass`` and
-    ``decoder``),
+    ``predictor``: a ``SamPredictor`` (run by :class:`SamSteps` with ``precision``, ``crops_per_encoder_pass``,
+    ``decoder`` and ``compile_decoder``),
     or an object with ``SamSteps``' ``encode_crops`` / ``decode_points`` / ``upscale_masks`` / ``device`` /
     ``mask_threshold``, used as it is. Set ``stage_seconds = {}`` to accumulate seconds per stage (the device is
     synchronised at each stage boundary then, so only for measuring).
@@ -393,6 +480,7 @@ class SamLevelsMaskGenerator:
         upscale_budget_bytes: int = UPSCALE_BUDGET_BYTES,
         workers: Optional[int] = None,
         decoder: str = DEFAULT_DECODER,
+        compile_decoder: bool = False,
     ):
         from segment_anything.utils.amg import build_all_layer_point_grids
 
@@ -404,7 +492,7 @@ class SamLevelsMaskGenerator:
         if hasattr(predictor, "decode_points"):
             self.steps = predictor
         else:
-            self.steps = SamSteps(predictor, precision, crops_per_encoder_pass, decoder)
+            self.steps = SamSteps(predictor, precision, crops_per_encoder_pass, decoder, compile_decoder)
         self.levels = tuple(levels)
         self.point_grids = build_all_layer_point_grids(points_per_side, crop_n_layers, crop_n_points_downscale_factor)
         self.points_per_batch = points_per_batch
@@ -444,13 +532,20 @@ class SamLevelsMaskGenerator:
         return max(1, self.upscale_budget_bytes // per_mask)
 
     def label_images(self, image: np.ndarray) -> List[np.ndarray]:
-        """One int32 label image per level for an RGB uint8 [H, W, 3] image (0: no mask)."""
+        """One int32 label image per level for an RGB uint8 [H, W, 3] image (0: no mask).
+
+        Threads may call it at once (the cache build runs two): the encoder runs for one image at a time (the
+        predictor holds its image), everything else of two images side by side, so that the device works on one
+        image while the host works on the other (their filters, small regions and labels). Labels do not depend on
+        that order."""
         import torch
 
         with torch.no_grad():
-            return self._label_images(image)
+            kept, windows = self._masks_on_host(image)
+            return self._labels(image.shape[:2], kept, windows)
 
-    def _label_images(self, image: np.ndarray) -> List[np.ndarray]:
+    def _masks_on_host(self, image: np.ndarray) -> Tuple[Dict[str, List[Tuple[int, int]]], "_MaskWindows"]:
+        """The (crop, row) keys each level keeps, and the kept masks on the host."""
         import torch
         from segment_anything.utils.amg import MaskData, generate_crop_boxes
         from torchvision.ops.boxes import batched_nms, box_area
@@ -487,7 +582,13 @@ class SamLevelsMaskGenerator:
 
         with self._stage("masks"):
             windows = self._kept_windows(crops, kept, orig_size)
-        del crops
+        return kept, windows
+
+    def _labels(
+        self, orig_size: Tuple[int, ...], kept: Dict[str, List[Tuple[int, int]]], windows: "_MaskWindows"
+    ) -> List[np.ndarray]:
+        """segment_anything's small-region removal and NMS on the host, then each level's label image."""
+        orig_size = (int(orig_size[0]), int(orig_size[1]))
         with self._stage("small_regions"):
             if self.min_mask_region_area > 0:
                 every_key = sorted({key for keys in kept.values() for key in keys})

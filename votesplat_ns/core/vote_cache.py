@@ -277,7 +277,8 @@ class VoteCache:
 
         Entries already present and readable are reused, so an interrupted build resumes. Sources that
         read files (``MaskSource.thread_safe``) build BUILD_THREADS views at a time: decoding images and
-        label files and writing entries release the GIL. ``keys``: the views' keys when the caller has
+        label files and writing entries release the GIL. A source that overlaps views (``overlaps_views``:
+        SAM) builds two at a time, one on the device and one on the host. ``keys``: the views' keys when the caller has
         them (``view_key`` reads every image file); ``on_built``: called after each entry made, in order.
         """
         self._remove_stale_temp_files()
@@ -290,7 +291,7 @@ class VoteCache:
         if missing:
             text = description or f"Making vote maps ({self.source.name} masks)"
             steps = _progress(missing, text, enabled=progress)
-            threads = BUILD_THREADS if self.source.thread_safe and len(missing) > 1 else 1
+            threads = _build_threads(self.source) if len(missing) > 1 else 1
 
             def build(i: int) -> None:
                 index, path = views[i]
@@ -326,6 +327,13 @@ class VoteCache:
                         path.unlink()
                 except FileNotFoundError:
                     pass
+
+
+def _build_threads(source: MaskSource) -> int:
+    """Views a source's entries are made for at once (``build_all``)."""
+    if source.thread_safe:
+        return BUILD_THREADS
+    return 2 if source.overlaps_views else 1
 
 
 def is_cache_file(name: str) -> bool:

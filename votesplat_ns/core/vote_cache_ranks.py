@@ -98,9 +98,10 @@ def _make_entries(
 ) -> None:
     """Take views from ``work`` and make their entries until it says there are no more (``None``), or until
     ``stop`` is set (looked at between takes). A source that reads files (``thread_safe``) takes up to
-    ``BUILD_THREADS`` views at a time, which ``build_all`` makes in threads, as one process does; a model's source
-    takes one. ``taken(keys)``: told the keys of the views being made, () when they are done."""
-    size = BUILD_THREADS if cache.source.thread_safe else 1
+    ``BUILD_THREADS`` views at a time, which ``build_all`` makes in threads, as one process does, and so does a
+    source that overlaps views (SAM, two at a time); another model's source takes one. ``taken(keys)``: told the
+    keys of the views being made, () when they are done."""
+    size = BUILD_THREADS if cache.source.thread_safe or cache.source.overlaps_views else 1
     while True:
         items, last = _next_items(work, stop, size)
         if items:

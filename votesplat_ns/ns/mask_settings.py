@@ -39,6 +39,8 @@ class SamOptions:
     """Images are shrunk to this long side before SAM (None: full size); LangSplat uses 1080."""
     sam_precision: Literal["fp32", "tf32", "bf16"] = "fp32"
     """SAM encoder and decoder arithmetic: fp32 (segment_anything's own masks); tf32 or bf16: faster on a GPU, masks differ a little."""
+    sam_compile: bool = True
+    """On a GPU, run SAM's prompt decoder through torch.compile: about half its time in fp32, a third in bf16, after some 15 s of compiling per process (False: uncompiled)."""
 
     def sam_settings(self) -> Dict[str, Any]:
         """Every SAM option by field name, to hand to another config that takes them."""
@@ -54,4 +56,5 @@ class SamOptions:
             min_mask_region_area=self.sam_min_mask_region_area,
             max_long_side=self.sam_max_long_side,
             precision=self.sam_precision,
+            compile_decoder=self.sam_compile,
         )
