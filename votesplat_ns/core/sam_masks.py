@@ -274,6 +274,7 @@ class SamSteps:
         self.crops_per_encoder_pass = crops_per_encoder_pass
         self.compile_decoder = bool(compile_decoder) and self.device.type == "cuda"
         self._compiled_prompts = 0
+        self._compiled_for: set = set()  # prompt counts whose compilation is done
         # held while a crop is encoded: SamPredictor keeps the image it encodes (set_image), so two threads'
         # images take turns there; decode_points and upscale_masks keep nothing and run side by side
         self.encoder_lock = threading.Lock()
@@ -294,7 +295,6 @@ class SamSteps:
 
     def encode_crops(self, crops: Sequence[np.ndarray]) -> List[SamCropState]:
         """The features of each RGB uint8 crop."""
-
         with self.encoder_lock:
             return self._encode_crops(crops)
 
@@ -361,12 +361,16 @@ class SamSteps:
             sparse = torch.cat([sparse, sparse[-1:].expand(padding, -1, -1)])
             if dense.shape[0] == prompts > 1:  # the prompt encoder's no-mask embedding, one per prompt
                 dense = torch.cat([dense, dense[-1:].expand(padding, -1, -1, -1)])
+        arguments = (mask_decoder, features, image_pe, sparse, dense, self.decoder)
         try:
             with warnings.catch_warnings():
                 warnings.filterwarnings("ignore", message=".*[Oo]nline softmax")  # inductor's note on its choice
-                low_res, iou_predictions = _compiled_decode_multimask()(
-                    mask_decoder, features, image_pe, sparse, dense, self.decoder
-                )
+                if sparse.shape[0] in self._compiled_for:
+                    low_res, iou_predictions = _compiled_decode_multimask()(*arguments)
+                else:  # the first call compiles: one thread at a time
+                    with _COMPILE_LOCK:
+                        low_res, iou_predictions = _compiled_decode_multimask()(*arguments)
+                    self._compiled_for.add(sparse.shape[0])
         except Exception as error:  # a missing compiler, an unsupported GPU: the decoder as it is
             warnings.warn(
                 f"SAM's decoder could not be compiled ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
@@ -381,6 +385,9 @@ class SamSteps:
     def upscale_masks(self, state: SamCropState, low_res: Any):
         """Mask logits [m, h, w] at the crop's size from m rows [m, 256, 256] of ``decode_points``' logits."""
         return self.model.postprocess_masks(low_res[:, None], state.input_size, state.original_size)[:, 0]
+
+
+_COMPILE_LOCK = threading.Lock()
 
 
 @functools.lru_cache(maxsize=None)
