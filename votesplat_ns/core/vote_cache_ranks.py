@@ -1,8 +1,8 @@
 """A vote cache made by several processes at once, one per GPU (or several CPU processes), all writing the one cache.
 
 :func:`build_on_ranks` hands the views out as the ranks ask for them: the missing entries wait in one queue, and
-each rank takes the next view when it has finished the one before (a source that reads files: the next few,
-made in threads as one process makes them), so a rank that started sooner, or runs faster, makes more of them.
+each rank takes the next view when it has finished the one before (a source that reads files, or SAM, which
+overlaps two views: the next few, made in threads as one process makes them), so a rank that started sooner, or runs faster, makes more of them.
 The calling process is rank 0 itself, in a thread (it has torch, this package and the source loaded already),
 and starts ranks 1 .. N-1 (``spawn``), which spend their first seconds importing and loading the model. Each entry is written as a single process writes it (:mod:`votesplat_ns.core.vote_cache`:
 temporary files renamed into place, the ``.votes.npz`` record last), so no rank ever reads another's

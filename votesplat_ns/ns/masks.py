@@ -11,9 +11,9 @@ dataset, a PNG with one panel per mask level: masks in colour, centroids marked 
 under ``<output-dir>/<dataset folder name>/votesplat_previews/``.
 
 With ``--num-gpus N`` rank r runs on GPU r (rank 0 in this process, ranks 1 .. N-1 in processes it starts) and
-takes the next image not yet made whenever it is free; N ranks started by ``torchrun`` make the images r, r + N,
-... each. All write the one cache (:mod:`votesplat_ns.core.vote_cache_ranks`); the entries are those one
-process makes. ``--sam-device cpu`` runs the N ranks on the CPU instead.
+takes the next images not yet made (four, two at a time) whenever it is free; N ranks started by ``torchrun``
+make the images r, r + N, ... each. All write the one cache (:mod:`votesplat_ns.core.vote_cache_ranks`); the
+entries are those one process makes. ``--sam-device cpu`` runs the N ranks on the CPU instead.
 """
 
 from __future__ import annotations
