@@ -88,8 +88,8 @@ def _upscaled_masks(
     A transposed convolution with kernel 2 and stride 2 maps each input pixel to its own 2×2 output pixels, and
     the LayerNorm and GELU act per pixel, so the whole upscaling is a function of one image token: two matrix
     products over the tokens ([P·h·w, C] → 4 sub-pixels × C/4 → 16 sub-pixels × C/8), the channel LayerNorm over
-    contiguous rows (``F.layer_norm``, one pass instead of LayerNorm2d's eight strided ones) and the GELUs in
-    place. The pixels are put in image order only for the M masks. Float sums run in another order than the
+    contiguous rows (``F.layer_norm``, one pass instead of LayerNorm2d's eight strided ones) and the GELUs. The
+    pixels are put in image order only for the M masks. Float sums run in another order than the
     convolutions', and in float32 rather than cuDNN's default TF32 on a GPU.
     """
     import torch

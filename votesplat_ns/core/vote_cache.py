@@ -278,8 +278,9 @@ class VoteCache:
         Entries already present and readable are reused, so an interrupted build resumes. Sources that
         read files (``MaskSource.thread_safe``) build BUILD_THREADS views at a time: decoding images and
         label files and writing entries release the GIL. A source that overlaps views (``overlaps_views``:
-        SAM) builds two at a time, one on the device and one on the host. ``keys``: the views' keys when the caller has
-        them (``view_key`` reads every image file); ``on_built``: called after each entry made, in order.
+        SAM) builds two at a time, one on the device and one on the host. ``keys``: the views' keys when the
+        caller has them (``view_key`` reads every image file); ``on_built``: called after each entry made, in
+        order.
         """
         self._remove_stale_temp_files()
         if keys is None:
