@@ -363,14 +363,13 @@ class SamSteps:
                 dense = torch.cat([dense, dense[-1:].expand(padding, -1, -1, -1)])
         arguments = (mask_decoder, features, image_pe, sparse, dense, self.decoder)
         try:
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message=".*[Oo]nline softmax")  # inductor's note on its choice
-                if sparse.shape[0] in self._compiled_for:
+            if sparse.shape[0] in self._compiled_for:
+                low_res, iou_predictions = _compiled_decode_multimask()(*arguments)
+            else:  # the first call compiles: one thread at a time (so also one in the warnings filter)
+                with _COMPILE_LOCK, warnings.catch_warnings():
+                    warnings.filterwarnings("ignore", message=".*[Oo]nline softmax")  # inductor's note on its choice
                     low_res, iou_predictions = _compiled_decode_multimask()(*arguments)
-                else:  # the first call compiles: one thread at a time
-                    with _COMPILE_LOCK:
-                        low_res, iou_predictions = _compiled_decode_multimask()(*arguments)
-                    self._compiled_for.add(sparse.shape[0])
+                self._compiled_for.add(sparse.shape[0])
         except Exception as error:  # a missing compiler, an unsupported GPU: the decoder as it is
             warnings.warn(
                 f"SAM's decoder could not be compiled ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
