@@ -168,6 +168,39 @@ def test_sam_precisions(one_torch_thread):
         SamMaskSource(sam_model=sam, precision="fp16")
 
 
+def test_tf32_precision_is_held_while_any_thread_needs_it_and_restored_after_the_last():
+    """tf32 sets torch's float32 matmul precision, which is global: with two threads inside at once, the one that
+    leaves first must not restore it under the other."""
+    import threading
+
+    from votesplat_ns.core.sam_masks import _float32_matmul_precision
+
+    first_inside, second_inside, first_left = threading.Event(), threading.Event(), threading.Event()
+    seen = {}
+
+    def first():
+        with _float32_matmul_precision("high"):
+            first_inside.set()
+            second_inside.wait(5)
+        first_left.set()
+
+    def second():
+        first_inside.wait(5)
+        with _float32_matmul_precision("high"):
+            second_inside.set()
+            first_left.wait(5)
+            seen["after the first left"] = torch.get_float32_matmul_precision()
+
+    before = torch.get_float32_matmul_precision()
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(10)
+    assert seen == {"after the first left": "high"}
+    assert torch.get_float32_matmul_precision() == before == "highest"
+
+
 def test_masks_packed_to_bits_come_back_as_their_windows():
     from votesplat_ns.core.sam_masks import _MaskWindows, _packed_bits, _Window
 
