@@ -16,12 +16,6 @@
 #                     and scripts/gpu/train_side_by_side.sh run for each of their trainings (STEPS=7000:
 #                     splatfacto ~215 s; run the methods as separate calls to stay under the 600 s limit)
 #   train-synthetic [DATA]  the same on a synthetic scene (default .gpu/synthetic, masks from its transforms.json)
-#   bench-sam         ~300-600 s  benchmarks/bench_sam.py: SAM vit_h masks at 1920x1080, three levels,
-#                     LangSplat's settings, random weights (no checkpoint here): the old path
-#                     (segment_anything's generator once per level) and the one-pass path on the
-#                     same workloads, labels compared, the new path's per-stage split; workloads
-#                     "stand-in" ($SAM_IMAGES label-map scenes, default 2, hundreds of masks) and
-#                     "random" (the model's own outputs); + the fox vote cache's size per view
 #   quality           ~300-450 s  benchmarks/quality.py on the scenes in $QUALITY_SCENES (GT and
 #                     noisy masks) and the ablation on $ABLATION_SCENE (each seed of $ABLATION_SEEDS,
 #                     then mean ± std), every run its own process,
@@ -313,34 +307,6 @@ stage_bench_vote() {
   return "$rc"
 }
 
-# -------------------------------------------------------------------------------- bench-sam
-stage_bench_sam() {
-  ensure_setup || return 1
-  local image rc
-  image=$(find "$FOX" -path '*/images*' -type f \( -name '*.jpg' -o -name '*.png' \) 2>/dev/null | sort | head -1)
-  log "bench_sam on ${image:-a random image}" | tee -a "$OUT/bench_sam.log"
-  # SAM_PRECISIONS: one-pass precisions (matched-mask IoU against fp32); SAM_BENCH_ARGS: more bench_sam.py
-  # arguments, after these so that they win (e.g. "--4k --workloads stand-in", or "--workloads stand-in
-  # --no-model --images 10 --first-seed 10 --repeats 1" for the identity check)
-  # shellcheck disable=SC2086
-  timeout "$(limit_s)" "$PY" benchmarks/bench_sam.py ${image:+--image "$image"} --model-types vit_h \
-    --workloads stand-in random --images "${SAM_IMAGES:-2}" --width 1920 --height 1080 --repeats 2 \
-    --precision ${SAM_PRECISIONS:-fp32 bf16} ${SAM_BENCH_ARGS:-} \
-    --json "$OUT/bench_sam.json" 2>&1 | tee -a "$OUT/bench_sam.log"
-  rc=${PIPESTATUS[0]}
-  if [ -d "$RUNS/votesplat_cache_fox" ]; then
-    "$PY" - "$RUNS/votesplat_cache_fox" <<'PY' 2>&1 | tee -a "$OUT/bench_sam.log"
-import pathlib, sys
-root = pathlib.Path(sys.argv[1])
-files = [p for p in root.rglob("*") if p.is_file()]
-entries = {p.parent for p in files if p.suffix in (".npz", ".npy", ".png")}
-total = sum(p.stat().st_size for p in files)
-print(f"fox vote cache: {total / 1e6:.2f} MB in {len(files)} files, {len(entries)} view entries -> {total / max(1, len(entries)) / 1e3:.1f} kB per view")
-PY
-  fi
-  return "$rc"
-}
-
 # ---------------------------------------------------------------------------------- quality
 stage_quality() {
   ensure_setup || return 1
@@ -606,7 +572,6 @@ while [ "$#" -gt 0 ]; do
     setup) stage_setup || rc=1 ;;
     tests) stage_tests || rc=1 ;;
     bench-vote) stage_bench_vote || rc=1 ;;
-    bench-sam) stage_bench_sam || rc=1 ;;
     quality) stage_quality || rc=1 ;;
     sweep) stage_sweep || rc=1 ;;
     train-fox) train_compare fox "$FOX" 2 || rc=1 ;;
@@ -619,7 +584,7 @@ while [ "$#" -gt 0 ]; do
       experiment=$1; shift; data=
       if [ "$#" -gt 0 ] && [ -d "$1" ]; then data=$1; shift; fi
       stage_train_balanced "$experiment" "$data" || rc=1 ;;
-    *) log "unknown stage '$stage' (setup, tests, bench-vote, bench-sam, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA])" >&2; rc=2 ;;
+    *) log "unknown stage '$stage' (setup, tests, bench-vote, quality, sweep, train-fox, train-synthetic [DATA], train-balanced fox|synthetic [DATA])" >&2; rc=2 ;;
   esac
 done
 log "done (exit $rc)" >&2
