@@ -547,11 +547,9 @@ class SamLevelsMaskGenerator:
         import torch
 
         with torch.no_grad():
-            kept, windows = self._masks_on_host(image)
-            return self._labels(image.shape[:2], kept, windows)
+            return self._label_images(image)
 
-    def _masks_on_host(self, image: np.ndarray) -> Tuple[Dict[str, List[Tuple[int, int]]], "_MaskWindows"]:
-        """The (crop, row) keys each level keeps, and the kept masks on the host."""
+    def _label_images(self, image: np.ndarray) -> List[np.ndarray]:
         import torch
         from segment_anything.utils.amg import MaskData, generate_crop_boxes
         from torchvision.ops.boxes import batched_nms, box_area
@@ -588,13 +586,7 @@ class SamLevelsMaskGenerator:
 
         with self._stage("masks"):
             windows = self._kept_windows(crops, kept, orig_size)
-        return kept, windows
-
-    def _labels(
-        self, orig_size: Tuple[int, ...], kept: Dict[str, List[Tuple[int, int]]], windows: "_MaskWindows"
-    ) -> List[np.ndarray]:
-        """segment_anything's small-region removal and NMS on the host, then each level's label image."""
-        orig_size = (int(orig_size[0]), int(orig_size[1]))
+        del crops
         with self._stage("small_regions"):
             if self.min_mask_region_area > 0:
                 every_key = sorted({key for keys in kept.values() for key in keys})
