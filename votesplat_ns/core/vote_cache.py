@@ -292,7 +292,7 @@ class VoteCache:
         if missing:
             text = description or f"Making vote maps ({self.source.name} masks)"
             steps = _progress(missing, text, enabled=progress)
-            threads = _build_threads(self.source) if len(missing) > 1 else 1
+            threads = build_threads(self.source) if len(missing) > 1 else 1
 
             def build(i: int) -> None:
                 index, path = views[i]
@@ -330,8 +330,9 @@ class VoteCache:
                     pass
 
 
-def _build_threads(source: MaskSource) -> int:
-    """Views a source's entries are made for at once (``build_all``)."""
+def build_threads(source: MaskSource) -> int:
+    """Views a source's entries are made for at once (``build_all``): BUILD_THREADS for a source that reads files,
+    two for one that overlaps views, else one."""
     if source.thread_safe:
         return BUILD_THREADS
     return 2 if source.overlaps_views else 1

@@ -1,8 +1,9 @@
 """A vote cache made by several processes at once, one per GPU (or several CPU processes), all writing the one cache.
 
 :func:`build_on_ranks` hands the views out as the ranks ask for them: the missing entries wait in one queue, and
-each rank takes the next view when it has finished the one before (a source that reads files, or SAM, which
-overlaps two views: the next few, made in threads as one process makes them), so a rank that started sooner, or runs faster, makes more of them.
+each rank takes the next view when it has finished the one before (a source made in threads, which reads files
+or, as SAM does, overlaps two views: the next few, made as one process makes them), so a rank that started
+sooner, or runs faster, makes more of them.
 The calling process is rank 0 itself, in a thread (it has torch, this package and the source loaded already),
 and starts ranks 1 .. N-1 (``spawn``), which spend their first seconds importing and loading the model. Each entry is written as a single process writes it (:mod:`votesplat_ns.core.vote_cache`:
 temporary files renamed into place, the ``.votes.npz`` record last), so no rank ever reads another's
@@ -39,7 +40,7 @@ import torch
 
 from votesplat_ns.core.mask_source_base import MaskSource
 from votesplat_ns.core.ply_io import TEMP_MARKER
-from votesplat_ns.core.vote_cache import BUILD_THREADS, VoteCache, VoteOptions, progress_bar
+from votesplat_ns.core.vote_cache import BUILD_THREADS, VoteCache, VoteOptions, build_threads, progress_bar
 from votesplat_ns.errors import VoteSplatInputError, writing_into
 
 T = TypeVar("T")
@@ -97,11 +98,11 @@ def _make_entries(
     taken: Optional[Callable[[Sequence[str]], object]] = None,
 ) -> None:
     """Take views from ``work`` and make their entries until it says there are no more (``None``), or until
-    ``stop`` is set (looked at between takes). A source that reads files (``thread_safe``) takes up to
-    ``BUILD_THREADS`` views at a time, which ``build_all`` makes in threads, as one process does, and so does a
-    source that overlaps views (SAM, two at a time); another model's source takes one. ``taken(keys)``: told the
-    keys of the views being made, () when they are done."""
-    size = BUILD_THREADS if cache.source.thread_safe or cache.source.overlaps_views else 1
+    ``stop`` is set (looked at between takes). A source that ``build_all`` makes in threads (``build_threads``:
+    one that reads files, or SAM, two at a time) takes up to ``BUILD_THREADS`` views at a time, as one process
+    does; another model's source takes one. ``taken(keys)``: told the keys of the views being made, () when
+    they are done."""
+    size = BUILD_THREADS if build_threads(cache.source) > 1 else 1
     while True:
         items, last = _next_items(work, stop, size)
         if items:
