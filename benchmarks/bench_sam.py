@@ -408,6 +408,7 @@ def decoder_modes(device: str, prompts: int, repeats: int = 10) -> List[dict]:
     from segment_anything.modeling import MaskDecoder, PromptEncoder, TwoWayTransformer
 
     from votesplat_ns.core.sam_decoder import decode_multimask
+    from votesplat_ns.core.sam_masks import _compiled_decode_multimask
 
     torch.manual_seed(0)
     prompt_encoder = PromptEncoder(
@@ -428,9 +429,9 @@ def decoder_modes(device: str, prompts: int, repeats: int = 10) -> List[dict]:
             sparse, dense = prompt_encoder(points=(points, labels), boxes=None, masks=None)
             image_pe = prompt_encoder.get_dense_pe()
             outputs = {}
-            # on a GPU also the default decoder as SamSteps runs it there: through torch.compile (compiled first)
-            compiled = [("folded, compiled", torch.compile(decode_multimask, dynamic=False), "folded")]
-            runs = [(mode, decode_multimask, mode) for mode in DECODER_MODES] + (compiled if device == "cuda" else [])
+            runs = [(mode, decode_multimask, mode) for mode in DECODER_MODES]
+            if device == "cuda":  # also the default decoder as SamSteps runs it there (compiled at the warm-up)
+                runs.append(("folded, compiled", _compiled_decode_multimask(), "folded"))
             for name, decode, mode in runs:
                 decode(decoder, embedding, image_pe, sparse, dense, mode)  # warm-up
                 if device == "cuda":

@@ -13,6 +13,7 @@ import pytest
 import torch
 from sam_reference import ReferenceGenerator
 from sam_stand_in import StandInPredictor, scene
+from segment_anything import SamPredictor
 from test_mask_sources import blocks_image, tiny_sam
 
 from votesplat_ns.core.sam_masks import SamLevelsMaskGenerator
@@ -64,8 +65,6 @@ def test_stand_in_without_crops_or_small_region_removal(one_torch_thread):
 
 
 def test_tiny_random_sam_with_crops_equals_segment_anything(one_torch_thread):
-    from segment_anything import SamPredictor
-
     sam = tiny_sam()
     image = blocks_image()
     for options in (
@@ -99,8 +98,6 @@ def test_tiny_random_sam_with_crops_equals_segment_anything(one_torch_thread):
 def test_masks_upscaled_one_at_a_time_and_with_the_model_alongside_are_the_same(one_torch_thread):
     """A mask upscaled alone has the bits it has in a batch; the stand-in gives the same masks with a model running
     alongside (its timing mode), whose low-resolution logits then carry the stand-in's segments."""
-    from segment_anything import SamPredictor
-
     image, maps = scene(64, 96, seed=4, fine_cells=40)
     expected = ReferenceGenerator(NO_MODEL, StandInPredictor(image, maps, 1, seed=4), LEVELS, **LANGSPLAT).label_images(
         image
@@ -119,8 +116,6 @@ def test_masks_upscaled_one_at_a_time_and_with_the_model_alongside_are_the_same(
 
 
 def test_crops_encoded_in_one_call_get_the_features_of_one_call_each(one_torch_thread):
-    from segment_anything import SamPredictor
-
     from votesplat_ns.core.sam_masks import SamSteps
 
     sam = tiny_sam()
@@ -137,8 +132,6 @@ def test_crops_encoded_in_one_call_get_the_features_of_one_call_each(one_torch_t
 def test_sam_precisions(one_torch_thread):
     """tf32 is fp32 on a CPU (and leaves torch's matmul precision as it was); bf16 runs SAM under autocast: other
     logits, masks close to fp32's, and a cache key of its own."""
-    from segment_anything import SamPredictor
-
     from votesplat_ns.core.sam_masks import SamMaskSource, SamSteps
     from votesplat_ns.errors import VoteSplatInputError
 
@@ -246,8 +239,6 @@ def test_images_asked_for_from_two_threads_get_their_own_labels(one_torch_thread
     each image gets the labels it gets alone, in any interleaving."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from segment_anything import SamPredictor
-
     sam = tiny_sam()
     options = dict(
         points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1, min_mask_region_area=20
@@ -266,7 +257,6 @@ def vit_b_predictor(sam):
     """A SamPredictor over random-init vit_b whose image features are a fixed random tensor of the encoder's output
     shape: both paths get the same features either way, and a vit_b encoder pass takes over a minute on a CI CPU
     (the encoder itself runs in the tiny-model test above). Prompt encoder and mask decoder are vit_b's."""
-    from segment_anything import SamPredictor
 
     class FixedFeaturesPredictor(SamPredictor):
         def set_torch_image(self, transformed_image, original_image_size):
@@ -304,8 +294,6 @@ def test_random_vit_b_decoder_equals_segment_anything(one_torch_thread):
 def compiling_steps(sam, monkeypatch, compiled):
     """SamSteps whose decoder goes through its compiled path on the CPU (compiling is for CUDA devices), with
     ``torch.compile`` replaced by ``compiled(function) -> function``."""
-    from segment_anything import SamPredictor
-
     from votesplat_ns.core import sam_masks
     from votesplat_ns.core.sam_masks import SamSteps
 
@@ -338,7 +326,7 @@ def test_the_compiled_decoder_pads_a_short_batch_to_the_size_compiled_for(monkey
 
     labels = SamLevelsMaskGenerator(compiling_steps(sam, monkeypatch, compiled), LEVELS, **options).label_images(image)
     assert set(prompts_seen) == {7}  # 25 points per crop: three batches of 7 and one of 4, padded
-    assert_same_labels(SamLevelsMaskGenerator(predictor_of(sam), LEVELS, **options).label_images(image), labels)
+    assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
 
 
 def test_a_decoder_that_cannot_be_compiled_runs_uncompiled_after_one_warning(monkeypatch, one_torch_thread):
@@ -360,7 +348,7 @@ def test_a_decoder_that_cannot_be_compiled_runs_uncompiled_after_one_warning(mon
     ):
         labels = SamLevelsMaskGenerator(steps, LEVELS, **options).label_images(image)
     assert calls == [1] and not steps.compile_decoder
-    assert_same_labels(SamLevelsMaskGenerator(predictor_of(sam), LEVELS, **options).label_images(image), labels)
+    assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="torch.compile of the decoder runs on CUDA devices")
@@ -375,7 +363,7 @@ def test_the_compiled_decoder_on_cuda_gives_the_uncompiled_outputs():
     points = np.random.default_rng(0).uniform(0, 190, size=(64, 2))
     outputs = {}
     for compile_decoder in (False, True):
-        steps = SamSteps(predictor_of(sam), compile_decoder=compile_decoder)
+        steps = SamSteps(SamPredictor(sam), compile_decoder=compile_decoder)
         assert steps.compile_decoder == compile_decoder
         state = steps.encode_crops([image])[0]
         with torch.no_grad():
@@ -384,12 +372,6 @@ def test_the_compiled_decoder_on_cuda_gives_the_uncompiled_outputs():
         scale = eager_masks.abs().max()
         torch.testing.assert_close(masks, eager_masks, rtol=0, atol=1e-4 * scale)
         torch.testing.assert_close(iou, eager_iou, rtol=0, atol=1e-4)
-
-
-def predictor_of(sam):
-    from segment_anything import SamPredictor
-
-    return SamPredictor(sam)
 
 
 def random_blob_mask(rng, shape):
