@@ -1,7 +1,7 @@
 """A deterministic stand-in for SAM's prompt decoder, derived from label maps at three granularities.
 
 ``StandInPredictor`` has the ``SamPredictor`` interface the automatic mask generator uses, and the
-``SamSteps`` interface (``encode_crops`` / ``decode_points`` / ``upscale_masks``) that
+``SamSteps`` interface (``encode_crops`` / ``decode_points`` / ``upscale_masks`` / ``stability_and_boxes``) that
 ``SamLevelsMaskGenerator`` uses; both give the same masks. For a point prompt it answers, per
 granularity (output 0, 1, 2: fine, medium, coarse), the segment under the point as logits: a blurred
 indicator of the segment (so stability scores fall below 1 on thin or small segments), plus a fixed
@@ -228,3 +228,11 @@ class StandInPredictor:
         if model_state is not None and self.model_steps is not None:
             self.model_steps.upscale_masks(model_state, low_res)
         return self._logits(crop, low_res.reshape(len(low_res), -1)[:, :3])
+
+    def stability_and_boxes(self, logits: torch.Tensor, stability_offset: float):
+        """The model's own function (compiled where it compiles) on the stand-in's logits."""
+        from votesplat_ns.core.sam_masks import stability_and_boxes
+
+        if self.model_steps is not None:
+            return self.model_steps.stability_and_boxes(logits, stability_offset)
+        return stability_and_boxes(logits, self.mask_threshold, stability_offset)

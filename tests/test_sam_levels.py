@@ -298,11 +298,8 @@ def compiling_steps(sam, monkeypatch, compiled):
     from votesplat_ns.core.sam_masks import SamSteps
 
     monkeypatch.setattr(torch, "compile", lambda function, **options: compiled(function))
-    monkeypatch.setattr(
-        sam_masks,
-        "_compiled_decode_multimask",
-        functools.lru_cache(None)(sam_masks._compiled_decode_multimask.__wrapped__),
-    )
+    for name in ("_compiled_decode_multimask", "_compiled_stability_counts_and_boxes"):
+        monkeypatch.setattr(sam_masks, name, functools.lru_cache(None)(getattr(sam_masks, name).__wrapped__))
     steps = SamSteps(SamPredictor(sam), compile_decoder=True)
     assert not steps.compile_decoder  # a CPU device: not compiled
     steps.compile_decoder = True
@@ -315,17 +312,21 @@ def test_the_compiled_decoder_pads_a_short_batch_to_the_size_compiled_for(monkey
     options = dict(
         points_per_side=5, points_per_batch=7, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1
     )
-    prompts_seen = []
+    prompts_seen, masks_scored = [], []
 
     def compiled(function):
-        def run(mask_decoder, features, image_pe, sparse, dense, mode):
-            prompts_seen.append(sparse.shape[0])
-            return function(mask_decoder, features, image_pe, sparse, dense, mode)
+        def run(*arguments):
+            if function.__name__ == "stability_counts_and_boxes":
+                masks_scored.append(len(arguments[0]))
+            else:
+                prompts_seen.append(arguments[3].shape[0])  # sparse
+            return function(*arguments)
 
         return run
 
     labels = SamLevelsMaskGenerator(compiling_steps(sam, monkeypatch, compiled), LEVELS, **options).label_images(image)
     assert set(prompts_seen) == {7}  # 25 points per crop: three batches of 7 and one of 4, padded
+    assert sum(masks_scored) > 0  # the stability scores and boxes through their compiled path too
     assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
 
 
@@ -372,6 +373,45 @@ def test_the_compiled_decoder_on_cuda_gives_the_uncompiled_outputs():
         scale = eager_masks.abs().max()
         torch.testing.assert_close(masks, eager_masks, rtol=0, atol=1e-4 * scale)
         torch.testing.assert_close(iou, eager_iou, rtol=0, atol=1e-4)
+
+
+def test_stability_and_boxes_equal_segment_anything_s():
+    from segment_anything.utils.amg import batched_mask_to_box, calculate_stability_score
+
+    from votesplat_ns.core.sam_masks import stability_and_boxes
+
+    generator = torch.Generator().manual_seed(0)
+    for m, h, w in ((7, 13, 29), (5, 40, 3), (2, 1, 1)):
+        logits = 3.0 * torch.randn(m, h, w, generator=generator)
+        logits[0] = -5.0  # empty at the threshold and at both offsets
+        logits[-1, :, -1] = 0.5  # one column only: a box of width 1 on the last column (and all of it when w == 1)
+        for threshold, offset in ((0.0, 1.0), (0.5, 0.25)):
+            stability, boxes = stability_and_boxes(logits, threshold, offset)
+            expected = calculate_stability_score(logits, threshold, offset)
+            torch.testing.assert_close(stability, expected, rtol=0, atol=0, equal_nan=True)
+            expected_boxes = batched_mask_to_box(logits > threshold)
+            assert boxes.dtype == expected_boxes.dtype and torch.equal(boxes, expected_boxes)
+            assert boxes[0].tolist() == [0, 0, 0, 0]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="torch.compile of the mask filters runs on CUDA devices")
+def test_the_compiled_stability_and_boxes_on_cuda_equal_the_uncompiled_ones():
+    from segment_anything import sam_model_registry
+
+    from votesplat_ns.core.sam_masks import SamSteps, stability_and_boxes
+
+    sam = sam_model_registry["vit_b"](checkpoint=None).cuda().eval()
+    steps = SamSteps(SamPredictor(sam), compile_decoder=True)
+    generator = torch.Generator(device="cuda").manual_seed(0)
+    for m, h, w in ((37, 540, 960), (5, 540, 960), (11, 301, 517)):  # new counts and sizes reuse one compilation
+        logits = 4.0 * torch.randn(m, h, w, generator=generator, device="cuda")
+        logits[0] = -5.0
+        for offset in (1.0, 0.5):
+            stability, boxes = steps.stability_and_boxes(logits, offset)
+            expected_stability, expected_boxes = stability_and_boxes(logits, steps.mask_threshold, offset)
+            torch.testing.assert_close(stability, expected_stability, rtol=0, atol=0, equal_nan=True)
+            assert torch.equal(boxes, expected_boxes)
+    assert steps.compile_decoder and "stability" in steps._compiled_for
 
 
 def random_blob_mask(rng, shape):

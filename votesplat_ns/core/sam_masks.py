@@ -231,7 +231,8 @@ class SamSteps:
       low-resolution logits and the predicted IoUs (``SamPredictor.predict_torch`` up to ``postprocess_masks``);
     - ``upscale_masks``: ``Sam.postprocess_masks`` on some of those low-resolution logits. Its interpolations
       compute every output pixel from the input alone, so a mask upscaled in any batch has the bits it has in
-      ``predict_torch``'s batch.
+      ``predict_torch``'s batch;
+    - ``stability_and_boxes``: the stability scores and boxes of upscaled logits (:func:`stability_and_boxes`).
 
     ``precision`` (:data:`SAM_PRECISIONS`): ``"tf32"`` and ``"bf16"`` apply to encoder and decoder (their outputs
     come back as float32); the upscaling stays float32.
@@ -244,8 +245,9 @@ class SamSteps:
 
     ``compile_decoder``: on a CUDA device, the decoder runs through ``torch.compile`` (its elementwise work and
     normalisations fused: BENCHMARKS.md "SAM masks"), compiled once per process and prompt count; a short batch
-    is padded to the longest one so far (prompts do not interact), so that it reuses that compilation. If the
-    compilation fails, one warning says so and the decoder runs uncompiled. Not used on a CPU.
+    is padded to the longest one so far (prompts do not interact), so that it reuses that compilation. The
+    stability scores and boxes are compiled too, once for all sizes. If a compilation fails, one warning says so
+    and both run uncompiled. Not used on a CPU.
     """
 
     def __init__(
@@ -348,8 +350,6 @@ class SamSteps:
 
     def _decode_compiled(self, mask_decoder: Any, features: Any, image_pe: Any, sparse: Any, dense: Any):
         """``decode_multimask`` through ``torch.compile``, ``sparse`` padded to the most prompts compiled for."""
-        import warnings
-
         import torch
 
         from votesplat_ns.core.sam_decoder import decode_multimask
@@ -362,28 +362,51 @@ class SamSteps:
             if dense.shape[0] == prompts > 1:  # the prompt encoder's no-mask embedding, one per prompt
                 dense = torch.cat([dense, dense[-1:].expand(padding, -1, -1, -1)])
         arguments = (mask_decoder, features, image_pe, sparse, dense, self.decoder)
-        try:
-            if sparse.shape[0] in self._compiled_for:
-                low_res, iou_predictions = _compiled_decode_multimask()(*arguments)
-            else:  # the first call compiles: one thread at a time (so also one in the warnings filter)
-                with _COMPILE_LOCK, warnings.catch_warnings():
-                    warnings.filterwarnings("ignore", message=".*[Oo]nline softmax")  # inductor's note on its choice
-                    low_res, iou_predictions = _compiled_decode_multimask()(*arguments)
-                self._compiled_for.add(sparse.shape[0])
-        except Exception as error:  # a missing compiler, an unsupported GPU: the decoder as it is
-            warnings.warn(
-                f"SAM's decoder could not be compiled ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
-                "running it uncompiled (slower; the masks are the same up to float rounding)"
-            )
-            self.compile_decoder = False
+        compiled = self._compiled(_compiled_decode_multimask(), sparse.shape[0], *arguments)
+        if compiled is None:
             return decode_multimask(
                 mask_decoder, features, image_pe, sparse[:prompts], dense[: max(1, prompts)], self.decoder
             )
+        low_res, iou_predictions = compiled
         return low_res[:prompts], iou_predictions[:prompts]
 
     def upscale_masks(self, state: SamCropState, low_res: Any):
         """Mask logits [m, h, w] at the crop's size from m rows [m, 256, 256] of ``decode_points``' logits."""
         return self.model.postprocess_masks(low_res[:, None], state.input_size, state.original_size)[:, 0]
+
+    def stability_and_boxes(self, logits: Any, stability_offset: float):
+        """:func:`stability_and_boxes` of mask logits [m, h, w] at this model's mask threshold; with
+        ``compile_decoder`` on CUDA through ``torch.compile`` (one pass over the logits instead of six: the
+        same integers)."""
+        arguments = (logits, self.mask_threshold, float(stability_offset))
+        if not self.compile_decoder:
+            return stability_and_boxes(*arguments)
+        compiled = self._compiled(_compiled_stability_counts_and_boxes(), "stability", *arguments)
+        if compiled is None:
+            return stability_and_boxes(*arguments)
+        intersections, unions, boxes = compiled
+        return intersections / unions, boxes  # outside: inductor's division need not round as torch's does
+
+    def _compiled(self, function: Any, key: Any, *arguments: Any):
+        """``function(*arguments)``, compiled by ``torch.compile``: its first call per ``key`` (one compilation)
+        one thread at a time; ``None`` after one warning if it cannot compile (``compile_decoder`` is then off)."""
+        import warnings
+
+        try:
+            if key in self._compiled_for:
+                return function(*arguments)
+            with _COMPILE_LOCK, warnings.catch_warnings():  # one thread at a time, so also one in the filter
+                warnings.filterwarnings("ignore", message=".*[Oo]nline softmax")  # inductor's note on its choice
+                result = function(*arguments)
+            self._compiled_for.add(key)
+            return result
+        except Exception as error:  # a missing compiler, an unsupported GPU: the functions as they are
+            warnings.warn(
+                f"SAM's decoder could not be compiled ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
+                "running it uncompiled (slower; the masks are the same up to float rounding)"
+            )
+            self.compile_decoder = False
+            return None
 
 
 _COMPILE_LOCK = threading.Lock()
@@ -398,6 +421,45 @@ def _compiled_decode_multimask() -> Any:
     from votesplat_ns.core.sam_decoder import decode_multimask
 
     return torch.compile(decode_multimask, dynamic=False)
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled_stability_counts_and_boxes() -> Any:
+    """:func:`stability_counts_and_boxes` through ``torch.compile``, its sizes symbolic: one compilation for every
+    chunk and crop size."""
+    import torch
+
+    return torch.compile(stability_counts_and_boxes, dynamic=True)
+
+
+def stability_and_boxes(logits: Any, mask_threshold: float, stability_offset: float):
+    """segment_anything's ``calculate_stability_score(logits, mask_threshold, stability_offset)`` [m] and
+    ``batched_mask_to_box(logits > mask_threshold)`` [m, 4] (int64) of mask logits [m, h, w], the same values."""
+    intersections, unions, boxes = stability_counts_and_boxes(logits, mask_threshold, stability_offset)
+    return intersections / unions, boxes
+
+
+def stability_counts_and_boxes(logits: Any, mask_threshold: float, stability_offset: float):
+    """The pixel counts of a stability score (above ``mask_threshold`` plus and minus ``stability_offset``; int32
+    [m]) and the boxes of :func:`stability_and_boxes`. Integers, so the same whatever order they are reduced in
+    (segment_anything counts a row in int16, exact below 32768 columns). Written as reductions of the logits that
+    ``torch.compile`` fuses, so that no thresholded [m, h, w] mask is made."""
+    import torch
+
+    m, h, w = logits.shape
+    intersections = (logits > mask_threshold + stability_offset).sum((-2, -1), dtype=torch.int32)
+    unions = (logits > mask_threshold - stability_offset).sum((-2, -1), dtype=torch.int32)
+    above = logits > mask_threshold
+    in_height, in_width = above.any(-1), above.any(-2)  # [m, h], [m, w]
+    rows = torch.arange(h, device=logits.device)
+    columns = torch.arange(w, device=logits.device)
+    bottom = (in_height * rows).amax(-1)
+    top = torch.where(in_height, rows, h).amin(-1)
+    right = (in_width * columns).amax(-1)
+    left = torch.where(in_width, columns, w).amin(-1)
+    empty = (right < left) | (bottom < top)  # an empty mask's box is [0, 0, 0, 0]
+    boxes = torch.stack([left, top, right, bottom], dim=-1) * (~empty)[:, None]
+    return intersections, unions, boxes
 
 
 _MATMUL_PRECISION_LOCK = threading.Lock()
@@ -461,8 +523,8 @@ class SamLevelsMaskGenerator:
 
     ``predictor``: a ``SamPredictor`` (run by :class:`SamSteps` with ``precision``, ``crops_per_encoder_pass``,
     ``decoder`` and ``compile_decoder``),
-    or an object with ``SamSteps``' ``encode_crops`` / ``decode_points`` / ``upscale_masks`` / ``device`` /
-    ``mask_threshold``, used as it is. Set ``stage_seconds = {}`` to accumulate seconds per stage (the device is
+    or an object with ``SamSteps``' ``encode_crops`` / ``decode_points`` / ``upscale_masks`` /
+    ``stability_and_boxes`` / ``device`` / ``mask_threshold``, used as it is. Set ``stage_seconds = {}`` to accumulate seconds per stage (the device is
     synchronised at each stage boundary then, so only for measuring).
     """
 
@@ -604,13 +666,7 @@ class SamLevelsMaskGenerator:
         """SamAutomaticMaskGenerator._process_crop and _process_batch for every level: the crop's masks that each
         level keeps, with the low-resolution logits of those masks."""
         import torch
-        from segment_anything.utils.amg import (
-            MaskData,
-            batched_mask_to_box,
-            calculate_stability_score,
-            is_box_near_crop_edge,
-            uncrop_boxes_xyxy,
-        )
+        from segment_anything.utils.amg import MaskData, is_box_near_crop_edge, uncrop_boxes_xyxy
         from torchvision.ops.boxes import batched_nms
 
         x0, y0, x1, y1 = crop_box
@@ -636,11 +692,11 @@ class SamLevelsMaskGenerator:
             else:
                 rows = torch.arange(len(iou), device=device)
             stability, boxes = [], []
-            threshold = self.steps.mask_threshold
             for chunk in torch.split(rows, self._chunk(crop_size)) if len(rows) else ():
                 logits = self.steps.upscale_masks(state, low_res[chunk])
-                stability.append(calculate_stability_score(logits, threshold, self.stability_score_offset))
-                boxes.append(batched_mask_to_box(logits > threshold))
+                chunk_stability, chunk_boxes = self.steps.stability_and_boxes(logits, self.stability_score_offset)
+                stability.append(chunk_stability)
+                boxes.append(chunk_boxes)
                 del logits
             if stability:
                 stability_all, boxes_all = torch.cat(stability), torch.cat(boxes)
