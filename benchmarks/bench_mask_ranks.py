@@ -11,7 +11,9 @@ hash to the last entry written; the dataset parse before it is the same for ever
 ``--sam-checkpoint`` a RANDOMLY INITIALISED model of ``--sam-model-type`` is saved first and used by every run:
 the encoder and decoder cost what real weights cost, fewer masks survive the filters. Then every entry of each
 cache is compared with the 1-rank cache: the labels file byte for byte, the record's arrays value for value
-(its zip's dates aside). Give enough images that a rank's model load (seconds) is a small part of its share.
+(its zip's dates aside). Give enough images that a rank's start (its imports, the model's load, the decoder's
+compilation on a GPU: some 30 s) is a small part of its share: ``--copies K`` makes a capture of K times the
+dataset's images, copy c of each image shifted by c pixels (a different image, the same content).
 """
 
 from __future__ import annotations
@@ -47,6 +49,34 @@ def random_checkpoint(folder: Path, model_type: str, seed: int = 0) -> Path:
         torch.manual_seed(seed)
         torch.save(sam_model_registry[model_type](checkpoint=None).state_dict(), path)
     return path
+
+
+def copied_capture(data: Path, copies: int, folder: Path) -> Path:
+    """``data`` with each frame's image ``copies`` times (copy c rolled by c pixels), its other files shared."""
+    from PIL import Image
+
+    meta = json.loads((data / "transforms.json").read_text())
+    out = folder / f"{data.name}_x{copies}"
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "images").mkdir(parents=True)
+    frames, names = [], {}
+    for frame in meta["frames"]:
+        image = np.asarray(Image.open(data / frame["file_path"]).convert("RGB"))
+        for copy in range(copies):
+            name = f"images/{Path(frame['file_path']).stem}_c{copy}.png"
+            Image.fromarray(np.roll(image, copy, axis=1)).save(out / name)
+            frames.append({**frame, "file_path": name})
+            names.setdefault(Path(frame["file_path"]).name, []).append(Path(name).name)
+    for key in ("train_filenames", "val_filenames", "test_filenames"):
+        if key in meta:  # the splits name the copies of their images
+            meta[key] = [f"images/{copy}" for listed in meta[key] for copy in names.get(Path(listed).name, [])]
+    meta["frames"] = frames
+    for entry in data.iterdir():  # the mask, depth and point files the frames name
+        if entry.name not in ("images", "transforms.json"):
+            (out / entry.name).symlink_to(entry.resolve())
+    (out / "transforms.json").write_text(json.dumps(meta))
+    return out
 
 
 def run_masks(args, ranks: int, cache: Path, checkpoint: Optional[Path]) -> Dict[str, object]:
@@ -103,10 +133,13 @@ def main() -> None:
     parser.add_argument("--sam-device", default=None, help="cpu: the ranks are CPU processes")
     parser.add_argument("--max-long-side", type=int, default=1080)
     parser.add_argument("--work-dir", type=Path, default=Path("build/bench_mask_ranks"))
+    parser.add_argument("--copies", type=int, default=1, help="each image this many times (shifted copies)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
 
     args.work_dir.mkdir(parents=True, exist_ok=True)
+    if args.copies > 1:
+        args.data = copied_capture(args.data, args.copies, args.work_dir)
     checkpoint = None
     if args.source == "sam":
         checkpoint = args.sam_checkpoint or random_checkpoint(args.work_dir, args.sam_model_type)
@@ -115,8 +148,6 @@ def main() -> None:
     for ranks in args.ranks:
         cache = args.work_dir / f"cache_{ranks}_ranks"
         if cache.exists():
-            import shutil
-
             shutil.rmtree(cache)
         rows.append(run_masks(args, ranks, cache, checkpoint))
         caches[ranks] = entry_dir(cache)
