@@ -352,6 +352,28 @@ def test_a_decoder_that_cannot_be_compiled_runs_uncompiled_after_one_warning(mon
     assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
 
 
+def test_stability_scores_that_cannot_be_compiled_run_uncompiled_after_one_warning(monkeypatch, one_torch_thread):
+    sam = tiny_sam()
+    image = blocks_image()
+    options = dict(points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1)
+    failures = []
+
+    def compiled(function):
+        def run(*arguments):
+            if function.__name__ == "stability_counts_and_boxes":
+                failures.append(1)
+                raise RuntimeError("inductor failed")
+            return function(*arguments)
+
+        return run
+
+    steps = compiling_steps(sam, monkeypatch, compiled)
+    with pytest.warns(UserWarning, match=r"SAM's stability scores could not be compiled \(RuntimeError: inductor"):
+        labels = SamLevelsMaskGenerator(steps, LEVELS, **options).label_images(image)
+    assert failures == [1] and not steps.compile_decoder
+    assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="torch.compile of the decoder runs on CUDA devices")
 def test_the_compiled_decoder_on_cuda_gives_the_uncompiled_outputs():
     from segment_anything import sam_model_registry

@@ -362,7 +362,7 @@ class SamSteps:
             if dense.shape[0] == prompts > 1:  # the prompt encoder's no-mask embedding, one per prompt
                 dense = torch.cat([dense, dense[-1:].expand(padding, -1, -1, -1)])
         arguments = (mask_decoder, features, image_pe, sparse, dense, self.decoder)
-        compiled = self._compiled(_compiled_decode_multimask(), sparse.shape[0], *arguments)
+        compiled = self._compiled(_compiled_decode_multimask(), sparse.shape[0], "decoder", *arguments)
         if compiled is None:
             return decode_multimask(
                 mask_decoder, features, image_pe, sparse[:prompts], dense[: max(1, prompts)], self.decoder
@@ -381,15 +381,16 @@ class SamSteps:
         arguments = (logits, self.mask_threshold, float(stability_offset))
         if not self.compile_decoder:
             return stability_and_boxes(*arguments)
-        compiled = self._compiled(_compiled_stability_counts_and_boxes(), "stability", *arguments)
+        compiled = self._compiled(_compiled_stability_counts_and_boxes(), "stability", "stability scores", *arguments)
         if compiled is None:
             return stability_and_boxes(*arguments)
         intersections, unions, boxes = compiled
         return intersections / unions, boxes  # outside: inductor's division need not round as torch's does
 
-    def _compiled(self, function: Any, key: Any, *arguments: Any):
+    def _compiled(self, function: Any, key: Any, what: str, *arguments: Any):
         """``function(*arguments)``, compiled by ``torch.compile``: its first call per ``key`` (one compilation)
-        one thread at a time; ``None`` after one warning if it cannot compile (``compile_decoder`` is then off)."""
+        one thread at a time; ``None`` after one warning naming ``what`` if it cannot compile (``compile_decoder``
+        is then off, for the decoder and the stability scores alike)."""
         import warnings
 
         try:
@@ -402,8 +403,9 @@ class SamSteps:
             return result
         except Exception as error:  # a missing compiler, an unsupported GPU: the functions as they are
             warnings.warn(
-                f"SAM's decoder could not be compiled ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
-                "running it uncompiled (slower; the masks are the same up to float rounding)"
+                f"SAM's {what} could not be compiled ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
+                "running the decoder and the stability scores uncompiled (slower; the masks are the same up to float "
+                "rounding)"
             )
             self.compile_decoder = False
             return None
