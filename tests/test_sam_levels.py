@@ -330,29 +330,10 @@ def test_the_compiled_decoder_pads_a_short_batch_to_the_size_compiled_for(monkey
     assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
 
 
-def test_a_decoder_that_cannot_be_compiled_runs_uncompiled_after_one_warning(monkeypatch, one_torch_thread):
-    sam = tiny_sam()
-    image = blocks_image()
-    options = dict(points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1)
-    calls = []
-
-    def compiled(function):
-        def run(*arguments):
-            calls.append(1)
-            raise RuntimeError("no working C compiler\nsecond line")
-
-        return run
-
-    steps = compiling_steps(sam, monkeypatch, compiled)
-    with pytest.warns(
-        UserWarning, match=r"SAM's decoder could not be compiled \(RuntimeError: no working C compiler\)"
-    ):
-        labels = SamLevelsMaskGenerator(steps, LEVELS, **options).label_images(image)
-    assert calls == [1] and not steps.compile_decoder
-    assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
-
-
-def test_stability_scores_that_cannot_be_compiled_run_uncompiled_after_one_warning(monkeypatch, one_torch_thread):
+@pytest.mark.parametrize(
+    "failing, what", [("decode_multimask", "decoder"), ("stability_counts_and_boxes", "stability scores")]
+)
+def test_what_cannot_be_compiled_runs_uncompiled_after_one_warning(monkeypatch, one_torch_thread, failing, what):
     sam = tiny_sam()
     image = blocks_image()
     options = dict(points_per_side=4, pred_iou_thresh=0.0, stability_score_thresh=0.0, crop_n_layers=1)
@@ -360,17 +341,19 @@ def test_stability_scores_that_cannot_be_compiled_run_uncompiled_after_one_warni
 
     def compiled(function):
         def run(*arguments):
-            if function.__name__ == "stability_counts_and_boxes":
+            if function.__name__ == failing:
                 failures.append(1)
-                raise RuntimeError("inductor failed")
+                raise RuntimeError("no working C compiler\nsecond line")
             return function(*arguments)
 
         return run
 
     steps = compiling_steps(sam, monkeypatch, compiled)
-    with pytest.warns(UserWarning, match=r"SAM's stability scores could not be compiled \(RuntimeError: inductor"):
+    with pytest.warns(
+        UserWarning, match=rf"SAM's {what} could not be compiled \(RuntimeError: no working C compiler\)"
+    ):
         labels = SamLevelsMaskGenerator(steps, LEVELS, **options).label_images(image)
-    assert failures == [1] and not steps.compile_decoder
+    assert failures == [1] and not steps.compile_decoder  # one failure turns both off
     assert_same_labels(SamLevelsMaskGenerator(SamPredictor(sam), LEVELS, **options).label_images(image), labels)
 
 
