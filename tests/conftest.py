@@ -5,15 +5,21 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
+from typing import Dict, Optional, Sequence
 
 import pytest
+from preloaded_runner import PreloadedScripts
 
 # The environment this test session started with, before what it imports sets variables of its own (cv2,
 # sklearn, open3d and torch's compiler do): commands the tests start run under it, whichever tests ran before.
 STARTED_ENV = dict(os.environ)
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+BIN = Path(sys.executable).parent
+# the console scripts the tests run (``preloaded`` keeps a runner of each)
+CONSOLE_SCRIPTS = ("ns-train", "ns-export", "ns-viewer", "votesplat")
 # Short enough for CI on 2 cores, long enough for the votes to move well past their start.
 DEMO_STEPS = int(os.environ.get("VOTESPLAT_TEST_STEPS", "240"))
 DEMO_VOTE_START = 40
@@ -57,6 +63,75 @@ def run_benchmark(script: str, *args: str, expect_ok: bool = True) -> subprocess
     if expect_ok:
         assert done.returncode == 0, done.stderr[-2000:]
     return done
+
+
+def command_env(home: Optional[Path] = None) -> Dict[str, str]:
+    """The environment a console script runs under: the one this session started with (``STARTED_ENV``, not what
+    this process's imports have set since), pytest's name of the running test, a wide console, and the home
+    folder ``home``."""
+    env = dict(STARTED_ENV, COLUMNS="200")
+    if "PYTEST_CURRENT_TEST" in os.environ:
+        env["PYTEST_CURRENT_TEST"] = os.environ["PYTEST_CURRENT_TEST"]
+    if home is not None:
+        env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), MPLCONFIGDIR=str(home / ".matplotlib"))
+    return env
+
+
+@pytest.fixture(scope="session")
+def preloaded(tmp_path_factory):
+    """The console scripts (``CONSOLE_SCRIPTS``), each imported once in a runner of its own that forks a process
+    per command (tests/preloaded_runner.py), for the whole session. All four start together, so that their imports
+    run side by side rather than each before its first command; a test that also needs ``trained_demo`` asks for
+    it first, so that they do not slow its training. None (every command in a new interpreter) where CUDA is
+    available: a child forked after something initialised CUDA cannot use it. VOTESPLAT_TEST_PRELOAD=0 also
+    starts each command afresh."""
+    import torch
+
+    if os.environ.get("VOTESPLAT_TEST_PRELOAD", "1") == "0" or torch.cuda.is_available():
+        yield None
+        return
+    scripts = PreloadedScripts(tmp_path_factory.mktemp("preloaded"))
+    scripts.start([str(BIN / name) for name in CONSOLE_SCRIPTS], command_env())
+    yield scripts
+    scripts.close()
+    if scripts.declined:  # each ran in a new interpreter instead, correct but slow: say which and why
+        warnings.warn("commands not run preloaded: " + "; ".join(f"{argv}: {why}" for argv, why in scripts.declined))
+
+
+def run_script(
+    argv: Sequence[str],
+    env: Dict[str, str],
+    cwd: Path,
+    preloaded: Optional[PreloadedScripts],
+    timeout: float = 900,
+    drop_capabilities: Sequence[int] = (),
+    fresh_prefix: Sequence[str] = (),
+) -> subprocess.CompletedProcess:
+    """``subprocess.run(argv, env=env, cwd=cwd, timeout=timeout, capture_output=True, text=True)``: in a fork of
+    the preloaded runner of ``argv[0]`` (a console script) where there is one that can run it, else in a new
+    interpreter. ``drop_capabilities``: the fork runs without these capabilities, as ``fresh_prefix`` (setpriv)
+    leaves the new interpreter (the runner checks that the capability sets are the same)."""
+    if preloaded is not None:
+        done = preloaded.run(argv, env, cwd, timeout=timeout, drop_capabilities=drop_capabilities)
+        if done is not None:
+            return done
+    return subprocess.run(
+        [*fresh_prefix, *argv], capture_output=True, check=False, text=True, cwd=cwd, timeout=timeout, env=env
+    )
+
+
+@pytest.fixture
+def run_console_script(preloaded, tmp_path_factory):
+    """``run_console_script(argv, cwd=None, timeout=600)``: what ``subprocess.run(argv, capture_output=True, text=True)``
+    returns for the console script ``argv[0]`` (``BIN / name``), run under ``command_env`` with a new empty home
+    folder (outside the test's ``tmp_path``) in ``cwd`` (default: this process's), through ``preloaded``'s
+    runners."""
+
+    def run(argv: Sequence[str], cwd: Optional[Path] = None, timeout: float = 600) -> subprocess.CompletedProcess:
+        home = tmp_path_factory.mktemp("home")
+        return run_script(argv, command_env(home), cwd or Path.cwd(), preloaded, timeout)
+
+    return run
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:

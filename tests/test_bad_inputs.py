@@ -36,7 +36,6 @@ import json
 import os
 import shutil
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -49,12 +48,11 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 import pytest
 import torch
-from conftest import STARTED_ENV
+from conftest import BIN, command_env, run_script
 from PIL import Image
 from preloaded_runner import PreloadedScripts
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
-BIN = Path(sys.executable).parent
 # root ignores file permissions through these capabilities (their numbers in linux/capability.h); without them a
 # read-only folder is read-only
 ROOT_OVERRIDES = {"dac_override": 1, "dac_read_search": 2, "fowner": 3}
@@ -1682,42 +1680,20 @@ class Ran:
     stderr: str
 
 
-def command_env(home: Optional[Path] = None) -> Dict[str, str]:
-    """The environment a command runs under: the one this session started with (conftest.py ``STARTED_ENV``, not
-    what this process's imports have set since), pytest's name of the running test, a wide console, and the home
-    folder ``home``."""
-    env = dict(STARTED_ENV, COLUMNS="200")
-    if "PYTEST_CURRENT_TEST" in os.environ:
-        env["PYTEST_CURRENT_TEST"] = os.environ["PYTEST_CURRENT_TEST"]
-    if home is not None:
-        env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), MPLCONFIGDIR=str(home / ".matplotlib"))
-    return env
-
-
-def run_script(
-    argv: Sequence[str],
-    env: Dict[str, str],
-    cwd: Path,
-    preloaded: Optional[PreloadedScripts],
-    drop_root_overrides: bool = False,
-) -> subprocess.CompletedProcess:
-    """``argv`` in a process of its own: a fork of its console script's preloaded runner (tests/preloaded_runner.py)
-    where there is one that can run it, else a new interpreter. ``drop_root_overrides``: without the capabilities
-    that let root ignore file permissions, as ``setpriv`` (DROP_ROOT_OVERRIDES) leaves a command it executes; the
-    fork drops them itself, into the same capability sets (the runner checks them)."""
-    if preloaded is not None:
-        drop = list(ROOT_OVERRIDES.values()) if drop_root_overrides else []
-        done = preloaded.run(argv, env, cwd, timeout=900, drop_capabilities=drop)
-        if done is not None:
-            return done
-    prefix = DROP_ROOT_OVERRIDES if drop_root_overrides else []
-    return subprocess.run(
-        prefix + list(argv), capture_output=True, check=False, text=True, cwd=cwd, timeout=900, env=env
-    )
-
-
 def run_command(ws: Workspace, argv: Sequence[str], cwd: Path, preloaded: Optional[PreloadedScripts]) -> Ran:
-    result = run_script(argv, command_env(ws.home), cwd, preloaded, ws.drop_root_overrides)
+    """``argv`` in a process of its own (conftest.py ``run_script``: a fork of its console script's preloaded
+    runner where there is one that can run it); for a case that made a folder read-only, without the capabilities
+    that let root ignore file permissions, as ``setpriv`` (DROP_ROOT_OVERRIDES) leaves a command it executes (the
+    fork drops them itself, into the same capability sets: the runner checks them)."""
+    drop = ws.drop_root_overrides
+    result = run_script(
+        argv,
+        command_env(ws.home),
+        cwd,
+        preloaded,
+        drop_capabilities=list(ROOT_OVERRIDES.values()) if drop else [],
+        fresh_prefix=DROP_ROOT_OVERRIDES if drop else [],
+    )
     return Ran(result.returncode, result.stdout, result.stderr)
 
 
@@ -1853,24 +1829,6 @@ def run_case(name: str, ws: Workspace, fixtures: "Fixtures", preloaded: Optional
 class Fixtures:
     trained_demo: Path
     previous_export: Path
-
-
-@pytest.fixture(scope="module")
-def preloaded(tmp_path_factory):
-    """The catalogue's console scripts, each imported once in a runner of its own that forks a process per
-    command (tests/preloaded_runner.py). All four start together, so that their imports run side by side rather
-    than each before its first command; after ``trained_demo`` (a session fixture, set up first), whose training
-    they would slow. None (every command in a new interpreter) where CUDA is available: a child forked after
-    something initialised CUDA cannot use it. VOTESPLAT_TEST_PRELOAD=0 also starts each command afresh."""
-    if os.environ.get("VOTESPLAT_TEST_PRELOAD", "1") == "0" or torch.cuda.is_available():
-        yield None
-        return
-    scripts = PreloadedScripts(tmp_path_factory.mktemp("preloaded"))
-    scripts.start([str(BIN / name) for name in ("ns-train", "ns-export", "ns-viewer", "votesplat")], command_env())
-    yield scripts
-    scripts.close()
-    if scripts.declined:  # each ran in a new interpreter instead, correct but slow: say which and why
-        warnings.warn("commands not run preloaded: " + "; ".join(f"{argv}: {why}" for argv, why in scripts.declined))
 
 
 @pytest.fixture(scope="module")
