@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import copy
 import os
-import subprocess
-import sys
 from pathlib import Path
 from typing import List
 
 import pytest
 import torch
 import yaml
+from conftest import BIN
 
 from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.eval.synthetic.labels import write_scene_labels
@@ -27,7 +26,6 @@ from votesplat_ns.ns.run_config import RefusedTag, load_run_config, parse_run_co
 from votesplat_ns.ns.trainer import resume_state
 
 DEMO_SCENE = Path(__file__).resolve().parents[1] / "votesplat_ns" / "data" / "demo"
-BIN = Path(sys.executable).parent
 
 
 def votesplat_config(output_dir: Path):
@@ -52,11 +50,6 @@ class Payload:
 
     def __reduce__(self):
         return (os.system, (f"touch {self.marker}",))
-
-
-def run_command(argv: List[str]) -> subprocess.CompletedProcess:
-    env = dict(os.environ, COLUMNS="200")
-    return subprocess.run(argv, check=False, capture_output=True, text=True, timeout=600, env=env)
 
 
 # ------------------------------------------------------------------ config.yml
@@ -211,7 +204,7 @@ def commands(config: Path, tmp_path: Path, labels: Path) -> List[List[str]]:
 
 
 @pytest.mark.parametrize("index", range(6), ids=["export", "click", "query", "query-eval", "eval", "ns-export"])
-def test_every_command_refuses_a_crafted_config_in_one_line(index, tmp_path):
+def test_every_command_refuses_a_crafted_config_in_one_line(index, tmp_path, run_console_script):
     marker = tmp_path / "ran"
     config = tmp_path / "evil" / "config.yml"
     config.parent.mkdir()
@@ -219,7 +212,7 @@ def test_every_command_refuses_a_crafted_config_in_one_line(index, tmp_path):
     labels = tmp_path / "evil" / "labels"  # query-eval reads them first
     write_scene_labels(DEMO_SCENE, labels)
     argv = commands(config, tmp_path, labels)[index]
-    done = run_command(argv)
+    done = run_console_script(argv)
     assert done.returncode == 1, done.stderr
     assert "Traceback" not in done.stderr + done.stdout
     lines = [line for line in done.stderr.splitlines() if ": error: " in line]
@@ -326,7 +319,7 @@ def test_resume_refuses_a_payload_and_a_folder_without_a_good_checkpoint(tmp_pat
 
 
 @pytest.mark.parametrize("source", ["retrofit", "load-dir"])
-def test_ns_train_refuses_a_payload_checkpoint_in_one_line(source, tmp_path):
+def test_ns_train_refuses_a_payload_checkpoint_in_one_line(source, tmp_path, run_console_script):
     marker = tmp_path / "ran"
     models = tmp_path / "models"
     models.mkdir()
@@ -349,7 +342,7 @@ def test_ns_train_refuses_a_payload_checkpoint_in_one_line(source, tmp_path):
         str(tmp_path / "cache"),
         *flag,
     ]
-    done = run_command(argv)
+    done = run_console_script(argv)
     assert done.returncode == 1, done.stderr
     assert "Traceback" not in done.stderr + done.stdout
     lines = [line for line in done.stderr.splitlines() if ": error: " in line]
