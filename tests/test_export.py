@@ -4,7 +4,6 @@ import importlib
 import json
 import os
 import shutil
-import subprocess
 import sys
 import textwrap
 import typing
@@ -490,13 +489,10 @@ def console_script(name):
     return str(path) if path.exists() else shutil.which(name)
 
 
-def test_ns_export_lists_the_votesplat_subcommand():
+def test_ns_export_lists_the_votesplat_subcommand(run_console_script):
     ns_export = console_script("ns-export")
     assert ns_export, "ns-export is not installed next to this Python"
-    env = dict(os.environ, COLUMNS="200", PYTHONWARNINGS="ignore")
-    result = subprocess.run(
-        [ns_export, SUBCOMMAND_NAME, "--help"], capture_output=True, check=False, text=True, env=env, timeout=600
-    )
+    result = run_console_script([ns_export, SUBCOMMAND_NAME, "--help"])
     assert result.returncode == 0, result.stderr[-2000:]
     for option in (
         "--load-config",
@@ -512,17 +508,10 @@ def test_ns_export_lists_the_votesplat_subcommand():
         assert option in result.stdout, option
 
 
-def test_votesplat_export_console_script():
+def test_votesplat_export_console_script(run_console_script):
     script = console_script("votesplat")
     assert script, "votesplat is not installed (pip install -e .)"
-    result = subprocess.run(
-        [script, "export", "--help"],
-        capture_output=True,
-        check=False,
-        text=True,
-        env=dict(os.environ, COLUMNS="200"),
-        timeout=600,
-    )
+    result = run_console_script([script, "export", "--help"])
     assert result.returncode == 0, result.stderr[-2000:]
     assert "--load-config" in result.stdout and "--remove" in result.stdout
 

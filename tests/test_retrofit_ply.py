@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
+from conftest import BIN, DEMO_SCENE, assert_offsets_beat_zero, train_votesplat
 from gsplat.cuda._torch_impl import _quat_scale_to_covar_preci, _spherical_harmonics
 from nerfstudio.utils.eval_utils import eval_setup
 
@@ -39,7 +36,7 @@ from votesplat_ns.ns.retrofit import (
 )
 from votesplat_ns.ns.run import SPLAT_PARAM_NAMES, latest_checkpoint, load_gaussians
 
-NS_TRAIN = Path(sys.executable).parent / "ns-train"
+NS_TRAIN = BIN / "ns-train"
 
 
 def random_gaussians(n=40, sh_degree=3, seed=0):
@@ -478,7 +475,7 @@ def test_wrong_frame_stops_ns_train_before_training(ns_exported_ply, tmp_path):
     assert not list(tmp_path.rglob("*.ckpt"))
 
 
-def test_ns_train_with_a_ply_of_another_sh_degree_is_one_line(trained_demo, tmp_path):
+def test_ns_train_with_a_ply_of_another_sh_degree_is_one_line(trained_demo, tmp_path, run_console_script):
     g = trained_gaussians(Path(trained_demo))
     g["features_rest"] = g["features_rest"][:, :3]  # degree 1
     write_ply(tmp_path / "degree1.ply", g, select=exported_rows(g))
@@ -498,15 +495,7 @@ def test_ns_train_with_a_ply_of_another_sh_degree_is_one_line(trained_demo, tmp_
         "--pipeline.model.retrofit-from",
         str(tmp_path / "degree1.ply"),
     ]
-    result = subprocess.run(
-        command,
-        capture_output=True,
-        check=False,
-        text=True,
-        cwd=tmp_path,
-        timeout=600,
-        env=dict(os.environ, COLUMNS="200"),
-    )
+    result = run_console_script(command, cwd=tmp_path)
     assert result.returncode != 0 and "Traceback" not in result.stderr, result.stderr[-4000:]
     last = [line for line in result.stderr.splitlines() if line.strip()][-1]
     assert last.startswith("ns-train votesplat: error: --pipeline.model.retrofit-from "), last
