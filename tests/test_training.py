@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import torch
+from conftest import BIN
 from nerfstudio.utils.eval_utils import eval_setup
 
 from votesplat_ns.ns.model import VoteSplatModel
@@ -102,23 +100,10 @@ def test_checkpoint_round_trip_keeps_offsets_and_support(trained_demo, tmp_path)
     assert saved[-1].stem == f"step-{step:09d}"
 
 
-def test_ns_export_gaussian_splat_loads_the_checkpoint(trained_demo, tmp_path):
+def test_ns_export_gaussian_splat_loads_the_checkpoint(trained_demo, tmp_path, run_console_script):
     # nerfstudio's own exporter: loading needs our torch>=2.6 fix, rendering nothing.
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "nerfstudio.scripts.exporter",
-            "gaussian-splat",
-            "--load-config",
-            str(trained_demo),
-            "--output-dir",
-            str(tmp_path),
-        ],
-        capture_output=True,
-        check=False,
-        text=True,
-        timeout=600,
+    result = run_console_script(
+        [str(BIN / "ns-export"), "gaussian-splat", "--load-config", str(trained_demo), "--output-dir", str(tmp_path)]
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert (tmp_path / "splat.ply").stat().st_size > 1000
