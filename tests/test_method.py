@@ -71,6 +71,8 @@ def test_own_options_have_short_complete_docstrings():
 
 
 def test_help_starts_by_naming_the_methods_own_options():
+    # a new interpreter, not a preloaded runner's fork: the help is laid out for 100 columns (its first 20 lines
+    # must name the options), and the shared runners run under COLUMNS=200 (conftest.py command_env)
     env = dict(os.environ, COLUMNS="100", PYTHONWARNINGS="ignore")
     result = subprocess.run(
         [str(Path(sys.executable).parent / "ns-train"), "votesplat", "--help"],
