@@ -35,6 +35,7 @@ from votesplat_ns.ns.query import (
     run_query,
     write_json,
 )
+from votesplat_ns.ns.run import check_run
 from votesplat_ns.ns.run_instances import InstanceSettings
 from votesplat_ns.ns.selection import QueryScene
 
@@ -123,6 +124,8 @@ class Query(_EncoderArgs):
             )
         if self.output_dir is not None:
             check_writable_folder(self.output_dir, "--output-dir")
+        if scene is None:
+            check_run(self.load_config)  # a run that cannot load fails before the seconds of building CLIP
         encoder = encoder or self.encoder()
         check_text_length = getattr(encoder, "check_text_length", None)
         if check_text_length is not None:  # before the run is loaded
@@ -184,6 +187,8 @@ class QueryEval(_EncoderArgs):
         if self.output is not None:
             check_writable_folder(Path(self.output).parent, "--output", given=self.output)
         frames = load_scene_labels(self.labels, "--labels")
+        if scene is None:
+            check_run(self.load_config)  # a run that cannot load fails before the seconds of building CLIP
         encoder = encoder or self.encoder()
         scene = scene or self.load_scene()
         cache = features_cache_path(scene, self.features_cache)
