@@ -201,6 +201,30 @@ def test_unseen_fuzz_within_reach_of_an_object_joins_it_and_farther_stays_backgr
     assert (mixed[fuzz] == -1).any()
 
 
+def test_fringe_seen_in_an_object_s_masks_within_reach_joins_it_next_to_seen_background() -> None:
+    scene = Scene()
+    cube = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    # a layer a spacing off the cube's side, left out by the clustering, that views see in the cube's masks;
+    # two spacings behind it, within the contact distance, background that views see outside every mask (an
+    # unseen layer there would stay out)
+    fringe = scene.add(box_surface([1.1, 0.3, 0.3], [1.1, 0.7, 0.7]), -1, [1, -1, 2, -1, -1, -1])
+    behind = scene.add(box_surface([1.3, 0.0, 0.0], [1.3, 1.0, 1.0]), -1, [0, 0, 0, -1, -1, -1])
+    # the same a spacing off the opposite side, seen in another object's mask
+    other = scene.add(box_surface([-0.1, 0.3, 0.3], [-0.1, 0.7, 0.7]), -1, [9, -1, 9, -1, -1, -1])
+    means, labels, table = scene.build()
+    out, _, stats = run(means, labels, table)
+    assert (out[fringe] == out[cube[0]]).all()
+    assert (out[behind] == -1).all() and (out[other] == -1).all()
+    assert stats["hidden"]["reached_in_masks"] == len(fringe)
+    # switched off, only Gaussians no view sees are reached: the fringe stays background, and so would an
+    # unseen fringe there, too near the seen background
+    off, _, stats = run(means, labels, table, reach_in_masks=False)
+    assert (off[fringe] == -1).all() and stats["hidden"]["reached_in_masks"] == 0
+    table[:, fringe] = -1
+    unseen, _, _ = run(means, labels, table)
+    assert (unseen[fringe] == -1).all()
+
+
 def test_background_seen_outside_every_mask_stays_background() -> None:
     scene = Scene()
     cube = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])

@@ -56,7 +56,10 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   ``hidden_reach`` typical spacings of j's Gaussians and farther than the contact distance from any
   background a view saw: the hull of the visible members misses the fuzz just off an object's
   surface, which a removal would leave behind; the table hidden under an object continues the table
-  seen around it, so it stays out.
+  seen around it, so it stays out. With ``reach_in_masks``, one that views see in j's mask (at least
+  half of its sightings in a mask, as the hull asks of a seen one) takes j within the same reach on
+  the majority of its settled neighbours, near seen background or not: the masks place it, and it is
+  the fringe of an object that the vote clustering left out.
 * **Confidence** (always computed): per instance, the share of its sightings (views where it sits in
   a mask) that lie in its mask, times n / (n + ``min_views``) for its n views of evidence. A
   fragment or a cluster cut across masks sits in its mask in few views or with a low share, so it
@@ -358,13 +361,15 @@ def take_hidden(
     eligible: Optional[np.ndarray] = None,
     hidden_reach: float = DEFAULT_HIDDEN_REACH,
     contact_factor: float = DEFAULT_CONTACT_FACTOR,
+    reach_in_masks: bool = True,
 ) -> Tuple[np.ndarray, Dict[str, int]]:
     """Labels after the hidden-Gaussian rule (module docstring); ``eligible`` [N] bool limits the
     Gaussians that may join (default: all finite ones). Stats: Gaussians taken (of them, taken outside the
-    hull by ``hidden_reach``), and background kept because a view saw it outside every mask."""
+    hull by ``hidden_reach``, and of those, seen in the instance's masks), and background kept because a view
+    saw it outside every mask."""
 
     out = labels.copy()
-    stats = {"hidden_taken": 0, "hidden_reached": 0, "seen_background": 0}
+    stats = {"hidden_taken": 0, "hidden_reached": 0, "reached_in_masks": 0, "seen_background": 0}
     finite = np.isfinite(means).all(axis=1)
     open_ = (out < 0) & finite & (eligible if eligible is not None else True)
     outside = (table == 0).sum(axis=0)
@@ -407,19 +412,25 @@ def take_hidden(
         confirmed_in_mask = (masked > 0) & (agree >= 0.5 * masked)
         margin = np.where(confirmed_in_mask, 0.0, hidden_margin * spacing)
         keep = _inside_hull(means[chosen], means[members], margin) & (agree >= 0.5 * masked)
-        # outside the hull: hidden from every view, every settled neighbour of this instance, and close to it
-        # (the hull of the visible members misses the fuzz just off an object's surface)
-        reach = np.flatnonzero(~keep & unanimous[picked] & never_seen[picked])
+        # outside the hull, close to it (the hull of the visible members misses the fuzz just off an object's
+        # surface): hidden from every view and every settled neighbour of this instance; or (reach_in_masks)
+        # seen in this instance's masks, as the hull asks of one it takes that a view saw
+        reach = unanimous[picked] & never_seen[picked]
+        if reach_in_masks:
+            reach |= confirmed_in_mask
+        reach = np.flatnonzero(~keep & reach)
         if hidden_reach > 0 and reach.size:
             distance, _ = cKDTree(means[members]).query(means[chosen[reach]])
             within = reach[distance <= hidden_reach * spacing]
-            # and clear of the background that views saw: the table under an object continues the table seen
-            # around it, within the contact distance at the object's foot
+            # and, unseen, clear of the background that views saw: the table under an object continues the
+            # table seen around it, within the contact distance at the object's foot (one seen in the masks
+            # is placed by them)
             if within.size and background_tree is not None:
                 clearance, _ = background_tree.query(means[chosen[within]])
-                within = within[clearance > contact_factor * spacing]
+                within = within[(clearance > contact_factor * spacing) | confirmed_in_mask[within]]
             keep[within] = True
             stats["hidden_reached"] += int(within.size)
+            stats["reached_in_masks"] += int(confirmed_in_mask[within].sum())
         out[chosen[keep]] = label
         stats["hidden_taken"] += int(keep.sum())
     return out, stats
@@ -442,6 +453,7 @@ def whole_objects(
     hidden_margin: float = DEFAULT_HIDDEN_MARGIN,
     hidden_reach: float = DEFAULT_HIDDEN_REACH,
     contact_ratio: float = DEFAULT_CONTACT_RATIO,
+    reach_in_masks: bool = True,
     min_views: int = 2,
     min_share: float = 0.5,
     min_seen: int = 5,
@@ -497,6 +509,7 @@ def whole_objects(
             min_seen=min_seen,
             hidden_reach=hidden_reach,
             contact_factor=contact_factor,
+            reach_in_masks=reach_in_masks,
         )
     out = relabel_by_size(out)
     confidence = instance_confidence(out, table, min_views, min_share, min_seen)
