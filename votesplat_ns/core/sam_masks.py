@@ -526,8 +526,8 @@ class SamLevelsMaskGenerator:
     ``predictor``: a ``SamPredictor`` (run by :class:`SamSteps` with ``precision``, ``crops_per_encoder_pass``,
     ``decoder`` and ``compile_decoder``),
     or an object with ``SamSteps``' ``encode_crops`` / ``decode_points`` / ``upscale_masks`` /
-    ``stability_and_boxes`` / ``device`` / ``mask_threshold``, used as it is. Set ``stage_seconds = {}`` to accumulate seconds per stage (the device is
-    synchronised at each stage boundary then, so only for measuring).
+    ``stability_and_boxes`` / ``device`` / ``mask_threshold``, used as it is. Set ``stage_seconds = {}`` to
+    accumulate seconds per stage (the device is synchronised at each stage boundary then, so only for measuring).
     """
 
     def __init__(
