@@ -72,8 +72,8 @@ class SamMaskSource(MaskSource):
     box_nms_thresh=0.7, stability_score_thresh=0.85, crop_n_layers=1, min_mask_region_area=100), with
     ``points_per_batch`` prompts per decoder call (:data:`DEFAULT_POINTS_PER_BATCH`). ``precision="bf16"`` runs
     SAM's encoder and decoder in bfloat16, ``"tf32"`` their float32 matrix products on TensorFloat-32
-    (:class:`SamSteps`); the masks then differ a little from fp32's. On a GPU the prompt decoder is compiled
-    (``compile_decoder``, :class:`SamSteps`).
+    (:class:`SamSteps`); the masks then differ a little from fp32's. On a GPU the prompt decoder and the masks'
+    stability scores are compiled (``compile_decoder``, :class:`SamSteps`).
     Images whose long side exceeds ``max_long_side`` are downscaled before SAM (masks come back
     at that size; the vote maps are resized to the training resolution later).
 
@@ -379,13 +379,13 @@ class SamSteps:
         ``compile_decoder`` on CUDA through ``torch.compile`` (one pass over the logits instead of six: the
         same integers)."""
         arguments = (logits, self.mask_threshold, float(stability_offset))
-        if not self.compile_decoder:
-            return stability_and_boxes(*arguments)
-        compiled = self._compiled(_compiled_stability_counts_and_boxes(), "stability", "stability scores", *arguments)
-        if compiled is None:
-            return stability_and_boxes(*arguments)
-        intersections, unions, boxes = compiled
-        return intersections / unions, boxes  # outside: inductor's division need not round as torch's does
+        counted = None
+        if self.compile_decoder:
+            counted = self._compiled(
+                _compiled_stability_counts_and_boxes(), "stability", "stability scores", *arguments
+            )
+        intersections, unions, boxes = counted if counted is not None else stability_counts_and_boxes(*arguments)
+        return intersections / unions, boxes  # divided outside the graph: inductor's division need not round as torch's
 
     def _compiled(self, function: Any, key: Any, what: str, *arguments: Any):
         """``function(*arguments)``, compiled by ``torch.compile``: its first call per ``key`` (one compilation)

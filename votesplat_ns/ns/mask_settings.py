@@ -40,7 +40,7 @@ class SamOptions:
     sam_precision: Literal["fp32", "tf32", "bf16"] = "fp32"
     """SAM encoder and decoder arithmetic: fp32 (segment_anything's own masks); tf32 or bf16: faster on a GPU, masks differ a little."""
     sam_compile: bool = True
-    """On a GPU, run SAM's prompt decoder through torch.compile: about half its time in fp32, a third in bf16, after some 15 s of compiling per process (False: uncompiled)."""
+    """On a GPU, run SAM's prompt decoder and the masks' stability scores through torch.compile: about half the decoder's time in fp32, a third in bf16, after some 15 s of compiling per process (False: uncompiled)."""
 
     def sam_settings(self) -> Dict[str, Any]:
         """Every SAM option by field name, to hand to another config that takes them."""
