@@ -489,7 +489,8 @@ def main(argv=None) -> int:
         "--no-compile",
         dest="compile_decoder",
         action="store_false",
-        help="the one-pass path's decoder uncompiled on a GPU (compiled by default, as `votesplat masks` runs it)",
+        help="the one-pass path's decoder and stability scores uncompiled on a GPU (compiled by default, as `votesplat "
+        "masks` runs them)",
     )
     parser.add_argument("--points-per-batch", type=int, default=DEFAULT_POINTS_PER_BATCH, help="both paths")
     parser.add_argument("--crops-per-encoder-pass", type=int, default=None, help="default: 1 in fp32, else all")
