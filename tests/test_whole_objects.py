@@ -106,6 +106,26 @@ def test_instance_no_view_sees_dissolves_into_the_object_it_lies_in() -> None:
     assert len(set(kept[kept >= 0])) == 4
 
 
+def test_instance_that_views_show_only_a_few_members_of_becomes_background() -> None:
+    scene = Scene()
+    cube = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    # a cluster of 98 Gaussians, away from the cube, of which three views each see two members in a mask: no
+    # view shows enough of it (min_seen, 5 members) to make it an object a user could find
+    glimpsed = scene.add(box_surface([3, 0, 0], [3.3, 0.3, 0.3]), 1, [-1] * 6)
+    # a small object of 6 Gaussians seen whole in four views, and one of 3 seen whole in two: views show them
+    small = scene.add(box_surface([5, 0, 0], [5.1, 0.1, 0.1])[:6], 2, [5, 5, 6, 6, -1, -1])
+    tiny = scene.add(np.array([[7.0, 0, 0], [7.1, 0, 0], [7.0, 0.1, 0]]), 3, [7, 8, -1, -1, -1, -1])
+    means, labels, table = scene.build()
+    for view in range(3):
+        table[view, glimpsed[2 * view : 2 * view + 2]] = 4
+    out, _, stats = run(means, labels, table)
+    assert (out[glimpsed] == -1).all() and stats["floaters"]["floaters"] == 1
+    assert len({out[cube[0]], out[small[0]], out[tiny[0]]}) == 3 and stats["num_instances"] == 3
+    # counting a view that sees any member, three views see it in a mask: it stays an instance
+    kept, _, _ = run(means, labels, table, unseen_min_seen=False)
+    assert (kept[glimpsed] >= 0).all() and len(set(kept[kept >= 0])) == 4
+
+
 def test_small_object_with_its_own_masks_stays_apart() -> None:
     scene = Scene()
     bowl = scene.add(box_surface([0, 0, 0], [1.5, 1.5, 0.6]), 0, [1, 1, 2, 2, 3, 3])
