@@ -179,3 +179,23 @@ def test_sweep_table_averages_the_object_scores_over_scenes(tmp_path):
     assert cells["purity/object"] == "0.800"  # the scene without a matched object is left out, not counted as 0
     assert cells["#objects"] == "3.0" and cells["completeness/object"] == "0.900"
     assert cells["worst scene"] == "0.900 (a)" and cells["runs"] == "2"
+
+
+def test_replayed_rules_give_the_evals_instances_back_and_score_a_variant_against_them(trained_demo, tmp_path):
+    """benchmarks/replay_rules.py: the dump of a trained run replays to the instances and scores that ``votesplat
+    eval`` gave (the tool stops otherwise), without reading or writing the run's kept instances; a variant that
+    changes them is scored against the defaults at both levels."""
+    kept = trained_demo.parent / "votesplat_instances" / "instances.json"
+    kept_before = kept.read_bytes() if kept.exists() else None
+    run_benchmark("replay_rules.py", "dump", "--config", str(trained_demo), "--out", str(tmp_path))
+    assert (kept.read_bytes() if kept.exists() else None) == kept_before
+    dump = tmp_path / f"{trained_demo.parent.name}.npz"
+    table = run_benchmark(
+        "replay_rules.py", "replay", str(dump), "--variant", "same:objects=True", "none:objects=False"
+    )
+    rows = {(r["level"], r["variant"]): r for r in parse_table(table.stdout)}
+    assert set(rows) == {(level, name) for level in ("0", "1") for name in ("same", "none")}
+    for level in ("0", "1"):
+        assert rows[level, "same"]["Gaussians moved"] == "0" and "→" not in "".join(rows[level, "same"].values())
+    # without the whole-object rules the hidden Gaussians stay background: instances lose Gaussians
+    assert int(rows["0", "none"]["Gaussians moved"]) > 0 and "→" in rows["0", "none"]["mean_completeness_3d"]
