@@ -122,7 +122,7 @@ def score(dump: Dict[str, np.ndarray], level: int, ids: np.ndarray, confidence, 
 
     from votesplat_ns.core.cameras import PinholeView
     from votesplat_ns.eval.ground_truth import score_level
-    from votesplat_ns.eval.removal import ghost_fractions, mean_ghost_percent
+    from votesplat_ns.ns.evaluate import add_ghost_check_on
     from votesplat_ns.ns.rasterizer import rasterize
 
     gt_maps = list(dump[f"gt_maps_{level}"])
@@ -131,19 +131,13 @@ def score(dump: Dict[str, np.ndarray], level: int, ids: np.ndarray, confidence, 
     result = score_level(gt_maps, [m - 1 for m in gt_maps], gt, ids, None, 0.5, confidence=confidence)
     out = {key: result.get(key) for key in SCORES if key != "ghost_percent"}
     if ghost:
-        keep = dump["keep"]
-        kept_ids = np.asarray(ids)[keep]
-        removed = {
-            int(g): None if match is None else np.flatnonzero(kept_ids == int(match))
-            for g, match in result["scores_3d"]["per_gt_match"].items()
-        }
         views = [
             PinholeView(torch.tensor(v), torch.tensor(k), int(size[0]), int(size[1]))
             for v, k, size in zip(dump["viewmats"], dump["Ks"], dump["sizes"])
         ]
         gaussians = [torch.as_tensor(dump[name]) for name in ("g_means", "quats", "scales", "opacities")]
-        per_object = ghost_fractions(rasterize, *gaussians, gt[keep], removed, views, gt_maps)
-        out["ghost_percent"] = mean_ghost_percent(per_object)
+        add_ghost_check_on(result, gaussians, dump["keep"], gt, ids, views, gt_maps, rasterize)
+        out["ghost_percent"] = result["ghost_percent"]
     return out
 
 

@@ -244,10 +244,9 @@ def drop_floaters(
         outside = (sub == 0).sum(axis=1)
         inside = (sub >= 1).sum(axis=1)
         unmasked_views = int((seen_views & (outside > inside)).sum())
-        # views that see enough of it to show it to a user (unseen=False keeps the contact test for the rest)
-        evidence_views = int(seen_views.sum())
-        if unseen:
-            evidence_views = int(((sub >= 0).sum(axis=1) >= min(max(min_seen, 1), members.size)).sum())
+        # views that see enough of it to show it to a user (unseen=False: any member, the contact test decides the rest)
+        need = min(max(min_seen, 1), members.size) if unseen else 1
+        evidence_views = int(((sub >= 0).sum(axis=1) >= need).sum())
         if evidence_views >= min_views:
             floater = unmasked_views > 0.5 * seen_views.sum()
         elif unseen:

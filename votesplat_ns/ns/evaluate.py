@@ -358,7 +358,13 @@ def add_ghost_check(result: dict, scene: TrainedScene, gt_labels, pred_ids, view
     objects with GT pixels, None if none) and ``ghost_objects`` (how many were checked).
     """
     keep = scene.finite()
-    means, quats, scales, opacities = scene.gaussians(keep)[:4]
+    add_ghost_check_on(result, scene.gaussians(keep)[:4], keep, gt_labels, pred_ids, views, gt_maps, rasterize_fn)
+
+
+def add_ghost_check_on(result: dict, gaussians, keep, gt_labels, pred_ids, views, gt_maps, rasterize_fn) -> None:
+    """:func:`add_ghost_check` on Gaussians given as arrays: ``gaussians`` (means, quats, scales, opacities), the
+    activated tensors of the Gaussians where ``keep`` [N] is true (benchmarks/replay_rules.py replays with it)."""
+    means, quats, scales, opacities = gaussians
     pred_kept = np.asarray(pred_ids)[keep]
     removed = {}
     for key, match in result["scores_3d"]["per_gt_match"].items():
