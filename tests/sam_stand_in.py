@@ -80,6 +80,7 @@ class StandInPredictor:
             if model_predictor is not None
             else None
         )
+        self.precision = precision  # the generator holds tf32's matmul precision over each image, as for SamSteps
         self.image = image
         self.device = torch.device(device)
         self.transform = ResizeLongestSide(1024)

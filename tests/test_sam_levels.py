@@ -161,6 +161,23 @@ def test_sam_precisions(one_torch_thread):
         SamMaskSource(sam_model=sam, precision="fp16")
 
 
+def test_default_sam_precision_is_bf16_on_a_gpu_with_bfloat16_and_fp32_on_a_cpu(monkeypatch):
+    """``auto`` (the default) is decided when the source is made, so the cache key names the arithmetic that made
+    the masks: a CPU's cache is not taken for a GPU's."""
+    from votesplat_ns.core.sam_masks import SamMaskSource, default_sam_precision
+    from votesplat_ns.ns.mask_settings import SamOptions
+
+    sam = tiny_sam()
+    assert SamOptions().sam_precision == "auto"
+    assert default_sam_precision("cpu") == "fp32"
+    assert SamMaskSource(sam_model=sam, device="cpu").config_key()["precision"] == "fp32"
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
+    assert default_sam_precision("cuda:1") == "bf16"
+    assert SamMaskSource(sam_model=sam, device="cuda").config_key()["precision"] == "bf16"
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: False)
+    assert default_sam_precision("cuda") == "fp32"  # a GPU older than Ampere
+
+
 def test_tf32_precision_is_held_while_any_thread_needs_it_and_restored_after_the_last():
     """tf32 sets torch's float32 matmul precision, which is global: with two threads inside at once, the one that
     leaves first must not restore it under the other."""

@@ -44,6 +44,23 @@ SAM_PRECISIONS = ("fp32", "tf32", "bf16")
 on a CPU the same as fp32); ``bf16``: under ``torch.autocast`` in bfloat16. The last two are faster on a GPU and
 give masks that differ a little from fp32's."""
 
+SAM_PRECISION_CHOICES = ("auto",) + SAM_PRECISIONS
+"""What a user may ask for: ``auto`` is :func:`default_sam_precision` of the device SAM runs on."""
+
+
+def default_sam_precision(device: Optional[str] = None) -> str:
+    """``bf16`` on a CUDA device that computes in bfloat16, else ``fp32``: vit_h in fp32 takes 1.8-2.0 s per
+    1080p image on an H200 (its five encoder passes alone 1.0 s), in bf16 0.92-0.95 s, and bf16's masks agree with
+    fp32's at mask IoU 0.99 with no filter decision changed (BENCHMARKS.md, "SAM masks"); SAM 2's predictor runs
+    in bfloat16 likewise. ``device`` None: cuda when available."""
+    import torch
+
+    resolved = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if resolved.type == "cuda" and torch.cuda.is_bf16_supported():
+        return "bf16"
+    return "fp32"
+
+
 DEFAULT_POINTS_PER_BATCH = 256
 """Point prompts per decoder call. The decoder's activations take some 20-30 MiB per prompt in fp32 (the image
 embedding is repeated per prompt through its two-way transformer and upscaling), whatever the image's size: 5-8 GiB
@@ -72,7 +89,8 @@ class SamMaskSource(MaskSource):
     box_nms_thresh=0.7, stability_score_thresh=0.85, crop_n_layers=1, min_mask_region_area=100), with
     ``points_per_batch`` prompts per decoder call (:data:`DEFAULT_POINTS_PER_BATCH`). ``precision="bf16"`` runs
     SAM's encoder and decoder in bfloat16, ``"tf32"`` their float32 matrix products on TensorFloat-32
-    (:class:`SamSteps`); the masks then differ a little from fp32's. On a GPU the prompt decoder and the masks'
+    (:class:`SamSteps`); the masks then differ a little from fp32's. ``"auto"`` (default) is bf16 on a CUDA
+    device with bfloat16 and fp32 elsewhere (:func:`default_sam_precision`), decided when the source is made. On a GPU the prompt decoder and the masks'
     stability scores are compiled (``compile_decoder``, :class:`SamSteps`).
     Images whose long side exceeds ``max_long_side`` are downscaled before SAM (masks come back
     at that size; the vote maps are resized to the training resolution later).
@@ -99,7 +117,7 @@ class SamMaskSource(MaskSource):
         crop_n_points_downscale_factor: int = 1,
         min_mask_region_area: int = 100,
         max_long_side: Optional[int] = 1080,
-        precision: str = "fp32",
+        precision: str = "auto",
         compile_decoder: bool = True,
         sam_model: Any = None,
     ):
@@ -111,8 +129,10 @@ class SamMaskSource(MaskSource):
         unknown = [level for level in self.levels if level not in SAM_LEVELS]
         if unknown:
             raise VoteSplatInputError(f"unknown SAM mask levels {unknown}; use a subset of {list(SAM_LEVELS)}")
-        if precision not in SAM_PRECISIONS:
-            raise VoteSplatInputError(f"unknown SAM precision '{precision}'; use one of {list(SAM_PRECISIONS)}")
+        if precision not in SAM_PRECISION_CHOICES:
+            raise VoteSplatInputError(f"unknown SAM precision '{precision}'; use one of {list(SAM_PRECISION_CHOICES)}")
+        if precision == "auto":  # resolved here, so that the cache key names the arithmetic that made the masks
+            precision = default_sam_precision(device)
         if max_long_side is not None and max_long_side < 16:
             raise VoteSplatInputError(f"max_long_side={max_long_side} is too small; use >= 16 or None")
         self.model_type = model_type
@@ -610,7 +630,10 @@ class SamLevelsMaskGenerator:
         that order."""
         import torch
 
-        with torch.no_grad():
+        # tf32's matmul precision is global, and torch.compile's graphs guard on it: held over the whole image (its
+        # filters do no float32 matmul), two threads never flip it under each other's compiled graphs
+        tf32 = _float32_matmul_precision("high") if getattr(self.steps, "precision", None) == "tf32" else nullcontext()
+        with torch.no_grad(), tf32:
             return self._label_images(image)
 
     def _label_images(self, image: np.ndarray) -> List[np.ndarray]:
