@@ -171,11 +171,17 @@ def test_default_sam_precision_is_bf16_on_a_gpu_with_bfloat16_and_fp32_on_a_cpu(
     assert SamOptions().sam_precision == "auto"
     assert default_sam_precision("cpu") == "fp32"
     assert SamMaskSource(sam_model=sam, device="cpu").config_key()["precision"] == "fp32"
-    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: True)
-    assert default_sam_precision("cuda:1") == "bf16"
+    capability = {"cuda:0": 9, "cuda:1": 7}  # an H100 and a T4 (which only emulates bfloat16)
+    asked = []
+
+    def properties(device):
+        asked.append(str(device))
+        return SimpleNamespace(major=capability[str(device) if device.index is not None else "cuda:0"])
+
+    monkeypatch.setattr(torch.cuda, "get_device_properties", properties)
+    assert default_sam_precision("cuda:0") == "bf16" and default_sam_precision("cuda:1") == "fp32"
     assert SamMaskSource(sam_model=sam, device="cuda").config_key()["precision"] == "bf16"
-    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: False)
-    assert default_sam_precision("cuda") == "fp32"  # a GPU older than Ampere
+    assert asked == ["cuda:0", "cuda:1", "cuda"]
 
 
 def test_tf32_precision_is_held_while_any_thread_needs_it_and_restored_after_the_last():

@@ -49,14 +49,15 @@ SAM_PRECISION_CHOICES = ("auto",) + SAM_PRECISIONS
 
 
 def default_sam_precision(device: Optional[str] = None) -> str:
-    """``bf16`` on a CUDA device that computes in bfloat16, else ``fp32``: vit_h in fp32 takes 1.8-2.0 s per
-    1080p image on an H200 (its five encoder passes alone 1.0 s), in bf16 0.92-0.95 s, and bf16's masks agree with
-    fp32's at mask IoU 0.99 with no filter decision changed (BENCHMARKS.md, "SAM masks"); SAM 2's predictor runs
-    in bfloat16 likewise. ``device`` None: cuda when available."""
+    """``bf16`` on a CUDA device that computes in bfloat16 (compute capability 8.0 or newer; older GPUs only emulate
+    it, slowly), else ``fp32``: vit_h in fp32 takes 1.8-2.0 s per 1080p image on an H200 (its five encoder passes
+    alone 1.0 s), in bf16 0.92-1.02 s, and bf16's masks agree with fp32's at mask IoU 0.99 with no filter decision
+    changed (BENCHMARKS.md, "SAM masks"); SAM 2's predictor runs in bfloat16 likewise. ``device`` None: cuda when
+    available."""
     import torch
 
     resolved = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    if resolved.type == "cuda" and torch.cuda.is_bf16_supported():
+    if resolved.type == "cuda" and torch.cuda.get_device_properties(resolved).major >= 8:
         return "bf16"
     return "fp32"
 
@@ -90,8 +91,8 @@ class SamMaskSource(MaskSource):
     ``points_per_batch`` prompts per decoder call (:data:`DEFAULT_POINTS_PER_BATCH`). ``precision="bf16"`` runs
     SAM's encoder and decoder in bfloat16, ``"tf32"`` their float32 matrix products on TensorFloat-32
     (:class:`SamSteps`); the masks then differ a little from fp32's. ``"auto"`` (default) is bf16 on a CUDA
-    device with bfloat16 and fp32 elsewhere (:func:`default_sam_precision`), decided when the source is made. On a GPU the prompt decoder and the masks'
-    stability scores are compiled (``compile_decoder``, :class:`SamSteps`).
+    device with bfloat16 and fp32 elsewhere (:func:`default_sam_precision`), decided when the source is made. On a
+    GPU the prompt decoder and the masks' stability scores are compiled (``compile_decoder``, :class:`SamSteps`).
     Images whose long side exceeds ``max_long_side`` are downscaled before SAM (masks come back
     at that size; the vote maps are resized to the training resolution later).
 
