@@ -846,6 +846,18 @@ def truncated_sam_checkpoint(ws, fixtures):
 
 
 @case
+def sam_device_without_cuda(ws, fixtures):
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here, so --sam-device cuda is valid input")
+    scene = ws.scene()
+    checkpoint = ws.root / "sam_vit_b_01ec64.pth"
+    torch.save({}, checkpoint)  # refused before the checkpoint is read
+    argv = sam_masks(ws, scene, checkpoint)
+    argv[argv.index("--sam-device") + 1] = "cuda"
+    return Expect(argv, needles=["SAM device 'cuda': CUDA is not available on this machine", "--sam-device"])
+
+
+@case
 def sixteen_bit_grey_image_for_sam(ws, fixtures):
     scene = ws.scene()
     image = scene / "images" / "frame_00005.png"

@@ -6,6 +6,7 @@ label maps (tests/sam_stand_in.py) with which dozens of masks per level survive 
 """
 
 import functools
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -179,9 +180,36 @@ def test_default_sam_precision_is_bf16_on_a_gpu_with_bfloat16_and_fp32_on_a_cpu(
         return SimpleNamespace(major=capability[str(device) if device.index is not None else "cuda:0"])
 
     monkeypatch.setattr(torch.cuda, "get_device_properties", properties)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # for the source's device check
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     assert default_sam_precision("cuda:0") == "bf16" and default_sam_precision("cuda:1") == "fp32"
     assert SamMaskSource(sam_model=sam, device="cuda").config_key()["precision"] == "bf16"
     assert asked == ["cuda:0", "cuda:1", "cuda"]
+
+
+def test_a_sam_device_this_machine_lacks_is_refused_in_one_line(monkeypatch):
+    """Before any model is built: a device name torch does not know, CUDA where there is none, a GPU index past the
+    last GPU, MPS off a Mac; each line names both commands' flags."""
+    from votesplat_ns.core.sam_masks import SamMaskSource, check_sam_device
+    from votesplat_ns.errors import VoteSplatInputError
+
+    sam = tiny_sam()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    for device, why in (
+        ("gpu0", "is not a device"),
+        ("cuda", "CUDA is not available on this machine"),
+        ("mps", "MPS (Apple GPU) is not available"),
+    ):
+        with pytest.raises(VoteSplatInputError, match=re.escape(why)) as refused:
+            SamMaskSource(sam_model=sam, device=device)
+        assert "--sam-device" in str(refused.value) and "--pipeline.datamanager.sam-device" in str(refused.value)
+    check_sam_device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    check_sam_device("cuda:1")
+    with pytest.raises(VoteSplatInputError, match=r"this machine has 2 GPUs \(cuda:0 to cuda:1\)"):
+        check_sam_device("cuda:2")
 
 
 def test_tf32_precision_is_held_while_any_thread_needs_it_and_restored_after_the_last():

@@ -62,6 +62,37 @@ def default_sam_precision(device: Optional[str] = None) -> str:
     return "fp32"
 
 
+def check_sam_device(device: str) -> None:
+    """A one-line :class:`VoteSplatInputError` for a SAM device this machine does not have (or no device at all)."""
+    import torch
+
+    flags = "--sam-device (votesplat masks) or --pipeline.datamanager.sam-device (ns-train)"
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError) as error:
+        raise VoteSplatInputError(
+            f"SAM device '{device}' is not a device: give cpu, cuda or cuda:N to {flags}"
+        ) from error
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise VoteSplatInputError(
+                f"SAM device '{device}': CUDA is not available on this machine; give cpu to {flags}, or leave it out "
+                "(cuda where available, else cpu)"
+            )
+        if parsed.index is not None and parsed.index >= count:
+            raise VoteSplatInputError(
+                f"SAM device '{device}': this machine has {count} GPU{'s' if count != 1 else ''} "
+                f"(cuda:0 to cuda:{count - 1}); give one of them, or cpu, to {flags}"
+            )
+    elif parsed.type == "mps" and not torch.backends.mps.is_available():
+        raise VoteSplatInputError(
+            f"SAM device '{device}': MPS (Apple GPU) is not available on this machine; give cpu to {flags}"
+        )
+    elif parsed.type not in ("cpu", "mps"):
+        raise VoteSplatInputError(f"SAM device '{device}': SAM runs on cpu, cuda or mps; give one of them to {flags}")
+
+
 DEFAULT_POINTS_PER_BATCH = 256
 """Point prompts per decoder call. The decoder's activations take some 20-30 MiB per prompt in fp32 (the image
 embedding is repeated per prompt through its two-way transformer and upscaling), whatever the image's size: 5-8 GiB
@@ -132,6 +163,8 @@ class SamMaskSource(MaskSource):
             raise VoteSplatInputError(f"unknown SAM mask levels {unknown}; use a subset of {list(SAM_LEVELS)}")
         if precision not in SAM_PRECISION_CHOICES:
             raise VoteSplatInputError(f"unknown SAM precision '{precision}'; use one of {list(SAM_PRECISION_CHOICES)}")
+        if device is not None:
+            check_sam_device(device)
         if precision == "auto":  # resolved here, so that the cache key names the arithmetic that made the masks
             precision = default_sam_precision(device)
         if max_long_side is not None and max_long_side < 16:
