@@ -91,19 +91,39 @@ def install_excepthook() -> None:
     sys.excepthook = excepthook
 
 
+def device_problem(device: Union[str, torch.device]) -> Optional[str]:
+    """Why this machine cannot compute on ``device``, as a clause for a one-line error ("CUDA is not available on
+    this machine", a GPU index past the last, no MPS, a name torch does not parse); None when it can."""
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError):
+        return f"'{device}' is not a device (cpu, cuda, cuda:N or mps)"
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            return "CUDA is not available on this machine"
+        if parsed.index is not None and parsed.index >= count:
+            return f"this machine has {count} GPU{'s' if count != 1 else ''} (cuda:0 to cuda:{count - 1})"
+    if parsed.type == "mps" and not torch.backends.mps.is_available():
+        return "MPS (Apple GPU) is not available on this machine"
+    return None
+
+
 def check_device_available(device: Union[str, torch.device]) -> None:
-    """Raise :class:`VoteSplatInputError` when ``device`` is a CUDA or MPS device this machine does not have."""
+    """Raise :class:`VoteSplatInputError` when ``device`` (ns-train's ``--machine.device-type``) is a device this
+    machine does not have (:func:`device_problem`)."""
+    problem = device_problem(device)
+    if problem is None:
+        return
     kind = torch.device(device).type
-    if kind == "cuda" and not torch.cuda.is_available():
+    if kind == "cuda":
         raise VoteSplatInputError(
-            "CUDA is not available on this machine (ns-train uses --machine.device-type cuda unless told otherwise); "
+            f"{problem} (ns-train uses --machine.device-type cuda unless told otherwise); "
             "use --machine.device-type cpu (small scenes only) or run on a GPU"
         )
-    if kind == "mps" and not torch.backends.mps.is_available():
-        raise VoteSplatInputError(
-            "MPS (Apple GPU) is not available on this machine; use --machine.device-type cpu (small scenes only), "
-            "or --machine.device-type cuda on an NVIDIA GPU"
-        )
+    raise VoteSplatInputError(
+        f"{problem}; use --machine.device-type cpu (small scenes only), or --machine.device-type cuda on an NVIDIA GPU"
+    )
 
 
 @contextlib.contextmanager

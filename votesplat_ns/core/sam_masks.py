@@ -21,7 +21,7 @@ from PIL import Image
 from votesplat_ns.core.image_files import PathLike
 from votesplat_ns.core.mask_source_base import MaskSource, validate_levels
 from votesplat_ns.core.sam_decoder import DECODER_MODES, DEFAULT_DECODER
-from votesplat_ns.errors import VoteSplatInputError, load_failure_reason
+from votesplat_ns.errors import VoteSplatInputError, device_problem, load_failure_reason
 
 SAM_CHECKPOINT_FILES = {
     "vit_h": "sam_vit_h_4b8939.pth",
@@ -63,34 +63,14 @@ def default_sam_precision(device: Optional[str] = None) -> str:
 
 
 def check_sam_device(device: str) -> None:
-    """A one-line :class:`VoteSplatInputError` for a SAM device this machine does not have (or no device at all)."""
-    import torch
-
-    flags = "--sam-device (votesplat masks) or --pipeline.datamanager.sam-device (ns-train)"
-    try:
-        parsed = torch.device(device)
-    except (RuntimeError, ValueError) as error:
+    """A one-line :class:`VoteSplatInputError` for a SAM device this machine does not have
+    (:func:`votesplat_ns.errors.device_problem`)."""
+    problem = device_problem(device)
+    if problem is not None:
         raise VoteSplatInputError(
-            f"SAM device '{device}' is not a device: give cpu, cuda or cuda:N to {flags}"
-        ) from error
-    if parsed.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            raise VoteSplatInputError(
-                f"SAM device '{device}': CUDA is not available on this machine; give cpu to {flags}, or leave it out "
-                "(cuda where available, else cpu)"
-            )
-        if parsed.index is not None and parsed.index >= count:
-            raise VoteSplatInputError(
-                f"SAM device '{device}': this machine has {count} GPU{'s' if count != 1 else ''} "
-                f"(cuda:0 to cuda:{count - 1}); give one of them, or cpu, to {flags}"
-            )
-    elif parsed.type == "mps" and not torch.backends.mps.is_available():
-        raise VoteSplatInputError(
-            f"SAM device '{device}': MPS (Apple GPU) is not available on this machine; give cpu to {flags}"
+            f"SAM device '{device}': {problem}; give cpu or a device it has to --sam-device (votesplat masks) or "
+            "--pipeline.datamanager.sam-device (ns-train), or leave it out (cuda where available, else cpu)"
         )
-    elif parsed.type not in ("cpu", "mps"):
-        raise VoteSplatInputError(f"SAM device '{device}': SAM runs on cpu, cuda or mps; give one of them to {flags}")
 
 
 DEFAULT_POINTS_PER_BATCH = 256
