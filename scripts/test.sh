@@ -24,7 +24,8 @@ interpreter_pid=
 for arg in "$@"; do case $arg in tests*|*.py|*::*) interpreter_pid=none ;; esac; done
 if [ -z "$interpreter_pid" ]; then
   interpreter_dir=$(mktemp -d)
-  trap 'kill "$interpreter_pid" 2>/dev/null; rm -rf "$interpreter_dir"' EXIT
+  # `|| true`: once waited for, the pass is gone and kill fails, which set -e would turn into the script's status
+  trap 'kill "$interpreter_pid" 2>/dev/null || true; rm -rf "$interpreter_dir"' EXIT
   TRITON_INTERPRET=1 .venv/bin/python -m pytest "$@" -p no:cacheprovider --basetemp "$interpreter_dir/tmp" \
     -m interpreter tests/test_vote_fused.py >"$interpreter_dir/log" 2>&1 &
   interpreter_pid=$!
