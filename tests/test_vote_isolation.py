@@ -15,7 +15,7 @@ from test_resume import BUDGET, make_trainer
 
 from votesplat_ns.ns.method import setup_trainer, trainer_config_in_process
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES
-from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
+from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, metrics_at_first_use
 
 STEPS = 22  # densifies at steps 10 and 20
 
@@ -75,7 +75,7 @@ def test_without_votes_and_with_splatfactos_adam_it_trains_splatfactos_gaussians
     # splatfacto on CPU as votesplat runs it: its hard-coded .cuda() calls kept on the CPU, LPIPS offline and the
     # rasterizer of ns/rasterizer.py (gsplat's own is CUDA-only; on CUDA that one calls gsplat's)
     install_rasterizer_in_splatfacto()
-    with cuda_calls_stay_on_cpu(model_on_cpu=True), offline_lpips():
+    with cuda_calls_stay_on_cpu(model_on_cpu=True), metrics_at_first_use():
         for method, method_config in (("splatfacto", splatfacto_like(config)), ("votesplat", config)):
             trainer = setup_trainer(method_config)
             assert trainer.config.method_name == method

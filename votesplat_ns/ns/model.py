@@ -32,7 +32,7 @@ from votesplat_ns.core.vote_maps import pixels_and_targets
 from votesplat_ns.core.vote_render import DIVERGED_VOTES, VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
 from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.compat import UnavailableMetric
-from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, offline_lpips
+from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, metrics_at_first_use
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit_source import retrofit_gaussians
 from votesplat_ns.ns.run import SPLAT_PARAM_NAMES
@@ -145,7 +145,7 @@ class VoteSplatModel(SplatfactoModel):
             # read (a retrofit's PLY read and its frame rendered), the optimizers, the first step's forward
             self._start_kernel_warm_up(torch.device(self.kwargs.get("device") or "cpu"))
         # built on the CPU (splatfacto hard-codes one .cuda()); the pipeline moves the model to its device
-        with offline_lpips(), cuda_calls_stay_on_cpu(model_on_cpu=True):
+        with metrics_at_first_use(), cuda_calls_stay_on_cpu(model_on_cpu=True):
             super().populate_modules()
         self.retrofitted = False
         self.retrofit_source_frame: Optional[str] = None  # the frame a retrofit PLY was read in
@@ -385,7 +385,7 @@ class VoteSplatModel(SplatfactoModel):
 
     def get_image_metrics_and_images(self, outputs, batch):
         metrics, images = super().get_image_metrics_and_images(outputs, batch)
-        if isinstance(self.lpips, UnavailableMetric):
+        if isinstance(getattr(self.lpips, "built", self.lpips), UnavailableMetric):
             metrics.pop("lpips", None)
         return metrics, images
 

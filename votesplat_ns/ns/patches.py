@@ -29,9 +29,10 @@ Scoped, applied where they are needed (listed here so that an upgrade checks the
 * ``splatfacto rasterization`` (:func:`install_rasterizer_in_splatfacto`, when the model is built):
   rebinds ``nerfstudio.models.splatfacto.rasterization`` to ``ns/rasterizer.py`` ``rasterize``
   (torch rasteriser on CPU, cameras recorded for the vote pass).
-* ``Tensor.cuda on CPU`` (:func:`cuda_calls_stay_on_cpu`) and ``LPIPS offline``
-  (:func:`offline_lpips`): context managers around nerfstudio code that calls ``.cuda()``
-  unconditionally or downloads AlexNet at init.
+* ``Tensor.cuda on CPU`` (:func:`cuda_calls_stay_on_cpu`) and ``metrics at first use``
+  (:func:`metrics_at_first_use`): context managers around nerfstudio code that calls ``.cuda()``
+  unconditionally, or that imports torchmetrics (seconds) and downloads AlexNet to build metrics that
+  most commands never call.
 * ``resume trains`` (``ns/model.py``, ``load_state_dict`` / ``adopt_optimizers``): overrides in our
   model subclass, not a patch of upstream objects; nerfstudio builds the optimisers before loading a
   checkpoint and splatfacto replaces the parameters (#3554).
@@ -54,6 +55,7 @@ ours), and swapping it in only for votesplat runs protects nothing: the file nam
 from __future__ import annotations
 
 import contextlib
+import importlib
 import importlib.abc
 import sys
 import threading
@@ -360,35 +362,74 @@ def cuda_calls_stay_on_cpu(model_on_cpu: bool = False) -> Iterator[None]:
                 torch.Tensor.cuda = _original_tensor_cuda  # type: ignore[method-assign]
 
 
-# ----------------------------------------------------------------------------- LPIPS offline
+# ----------------------------------------------------------------------------- splatfacto's metrics at first use
+
+# the modules splatfacto's populate_modules imports its metrics from, and the names it takes
+_METRIC_MODULES = {
+    "torchmetrics.image": "PeakSignalNoiseRatio",
+    "torchmetrics.image.lpip": "LearnedPerceptualImagePatchSimilarity",
+}
+_STAND_IN_DOC = "stands in for torchmetrics within votesplat_ns.ns.patches.metrics_at_first_use"
+
+
+def _torchmetrics_class(module_name: str, attribute: str):
+    """torchmetrics' own ``module_name.attribute``, imported now, also when a block is still open (a metric called
+    inside one): its stand-in modules give way to the real package, and a name a block replaced on it is followed
+    back to the class it replaced."""
+    for name in ("torchmetrics", *_METRIC_MODULES):
+        if getattr(sys.modules.get(name), "__doc__", None) == _STAND_IN_DOC:
+            del sys.modules[name]
+    found = getattr(importlib.import_module(module_name), attribute)
+    while hasattr(found, "replaced"):
+        found = found.replaced
+    return found
 
 
 @contextlib.contextmanager
-def offline_lpips() -> Iterator[None]:
-    """Within the block, constructing torchmetrics' LPIPS never touches the network.
+def metrics_at_first_use() -> Iterator[None]:
+    """Within the block, splatfacto's PSNR and LPIPS are made as :class:`votesplat_ns.ns.compat.MetricAtFirstUse`.
 
-    splatfacto builds ``LearnedPerceptualImagePatchSimilarity`` in ``populate_modules``, which
-    downloads AlexNet; inside the block the name makes :func:`votesplat_ns.ns.compat.make_lpips_metric`
-    instead (LPIPS from the local cache, or a NaN-reporting stand-in).
+    splatfacto's ``populate_modules`` imports them from torchmetrics and builds them, which costs torchmetrics'
+    package import (1.4-6 s, see ``MetricAtFirstUse``) and downloads AlexNet for LPIPS. Inside the block both
+    names give a metric built at its first call: PSNR as splatfacto asked for it, LPIPS through
+    :func:`votesplat_ns.ns.compat.make_lpips_metric` (the local weights, or a NaN-reporting stand-in, never a
+    download). Where torchmetrics is not imported yet, stand-in modules that hold only those two names take its
+    place in ``sys.modules`` for the block, so that it is not imported (any other import of torchmetrics inside
+    the block would fail: keep the block to ``populate_modules``); where it is, the two names are replaced on it
+    for the block.
     """
-    import torchmetrics.image.lpip as lpip_module
+    from votesplat_ns.ns.compat import MetricAtFirstUse, make_lpips_metric
 
-    from votesplat_ns.ns.compat import make_lpips_metric
+    def psnr(*args, **kwargs):
+        return MetricAtFirstUse(
+            lambda: _torchmetrics_class("torchmetrics.image", "PeakSignalNoiseRatio")(*args, **kwargs)
+        )
 
-    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+    def lpips(*args, **kwargs):  # splatfacto asks for normalize=True, which make_lpips_metric builds
+        return MetricAtFirstUse(make_lpips_metric)
 
-    def factory(*args, **kwargs):
-        lpip_module.LearnedPerceptualImagePatchSimilarity = original
-        try:
-            return make_lpips_metric()
-        finally:
-            lpip_module.LearnedPerceptualImagePatchSimilarity = factory
-
-    lpip_module.LearnedPerceptualImagePatchSimilarity = factory
+    factories = dict(zip(_METRIC_MODULES, (psnr, lpips)))
+    stand_ins = {}
+    replaced = []
+    if "torchmetrics" not in sys.modules:
+        for name in ("torchmetrics", *_METRIC_MODULES):
+            stand_ins[name] = sys.modules[name] = types.ModuleType(name, _STAND_IN_DOC)
+            if name in factories:
+                setattr(stand_ins[name], _METRIC_MODULES[name], factories[name])
+    else:
+        for name, attribute in _METRIC_MODULES.items():
+            module = importlib.import_module(name)
+            factories[name].replaced = getattr(module, attribute)  # type: ignore[attr-defined]
+            replaced.append((module, attribute, factories[name].replaced))  # type: ignore[attr-defined]
+            setattr(module, attribute, factories[name])
     try:
         yield
     finally:
-        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+        for name, module in stand_ins.items():
+            if sys.modules.get(name) is module:  # not if a metric called inside the block imported the real one
+                del sys.modules[name]
+        for module, attribute, original in replaced:
+            setattr(module, attribute, original)
 
 
 # ----------------------------------------------------------------------------- the list and apply()
