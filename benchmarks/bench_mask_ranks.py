@@ -1,10 +1,11 @@
-"""Images per second of ``votesplat masks`` on 1 and on N GPUs (``--num-gpus``), on the same images, and whether
-the caches they make hold the same entries.
+"""Images per second of ``votesplat masks`` on 1 and on N GPUs (``--num-gpus``), with K processes on each
+(``--processes-per-gpu``), on the same images, and whether the caches they make hold the same entries.
 
     python benchmarks/bench_mask_ranks.py --data <nerfstudio dataset> --ranks 1 2 --json out.json
+    python benchmarks/bench_mask_ranks.py --data <dataset> --ranks 1 --processes-per-gpu 1 2   # one GPU, 1 and 2
     python benchmarks/bench_mask_ranks.py --data <dataset> --source dataset --ranks 1 2 --sam-device cpu   # plumbing, CPU
 
-Each count of ranks runs the real command (``votesplat masks --source sam --num-gpus N``) in a subprocess, into a
+Each count of ranks runs the real command (``votesplat masks --source sam --num-gpus N --processes-per-gpu K``) in a subprocess, into a
 cache of its own, so process start, the SAM model's load on every rank and the cache writes are all counted;
 the command's own line ``made K in T s (X images/s, N processes)`` gives the build's time (from the first image's
 hash to the last entry written; the dataset parse before it is the same for every N). Without
@@ -79,9 +80,9 @@ def copied_capture(data: Path, copies: int, folder: Path) -> Path:
     return out
 
 
-def run_masks(args, ranks: int, cache: Path, checkpoint: Optional[Path]) -> Dict[str, object]:
+def run_masks(args, ranks: int, cache: Path, checkpoint: Optional[Path], per_gpu: int = 1) -> Dict[str, object]:
     command = [str(VOTESPLAT), "masks", "--data", str(args.data), "--cache-dir", str(cache), "--source", args.source]
-    command += ["--num-gpus", str(ranks)]
+    command += ["--num-gpus", str(ranks), "--processes-per-gpu", str(per_gpu)]
     if args.source == "sam":
         command += ["--sam-checkpoint", str(checkpoint), "--sam-model-type", args.sam_model_type]
         command += ["--sam-max-long-side", str(args.max_long_side)]
@@ -93,7 +94,7 @@ def run_masks(args, ranks: int, cache: Path, checkpoint: Optional[Path]) -> Dict
     if result.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed:\n{result.stderr[-3000:]}")
     found = MADE.search(result.stdout)
-    row: Dict[str, object] = {"ranks": ranks, "command_wall_s": round(wall, 2)}
+    row: Dict[str, object] = {"ranks": ranks, "processes_per_gpu": per_gpu, "command_wall_s": round(wall, 2)}
     if found:
         made, seconds = int(found.group(1)), float(found.group(2))
         row.update(images=made, build_s=round(seconds, 2), images_per_s=round(made / seconds, 3))
@@ -127,6 +128,13 @@ def main() -> None:
     parser.add_argument(
         "--ranks", type=int, nargs="+", default=[1, 2], help="--num-gpus values; the first is the baseline"
     )
+    parser.add_argument(
+        "--processes-per-gpu",
+        type=int,
+        nargs="+",
+        default=[1],
+        help="--processes-per-gpu values, each run with each --ranks value (the first pair is the baseline)",
+    )
     parser.add_argument("--source", choices=["sam", "dataset", "folder"], default="sam")
     parser.add_argument("--sam-checkpoint", type=Path, default=None, help="default: a random-init model, saved first")
     parser.add_argument("--sam-model-type", default="vit_h")
@@ -144,21 +152,22 @@ def main() -> None:
     if args.source == "sam":
         checkpoint = args.sam_checkpoint or random_checkpoint(args.work_dir, args.sam_model_type)
     rows: List[Dict[str, object]] = []
-    caches = {}
+    caches = []
     for ranks in args.ranks:
-        cache = args.work_dir / f"cache_{ranks}_ranks"
-        if cache.exists():
-            shutil.rmtree(cache)
-        rows.append(run_masks(args, ranks, cache, checkpoint))
-        caches[ranks] = entry_dir(cache)
-        print(json.dumps(rows[-1]), flush=True)
+        for per_gpu in args.processes_per_gpu:
+            cache = args.work_dir / f"cache_{ranks}_gpus_{per_gpu}_each"
+            if cache.exists():
+                shutil.rmtree(cache)
+            rows.append(run_masks(args, ranks, cache, checkpoint, per_gpu))
+            caches.append(entry_dir(cache))
+            print(json.dumps(rows[-1]), flush=True)
     base = rows[0]
-    for row in rows:
-        row["identical_to_baseline"] = same_entries(caches[int(base["ranks"])], caches[int(row["ranks"])])  # type: ignore[arg-type]
+    for row, cache in zip(rows, caches):
+        row["identical_to_baseline"] = same_entries(caches[0], cache)
         if "images_per_s" in row and "images_per_s" in base:
             speedup = float(row["images_per_s"]) / float(base["images_per_s"])  # type: ignore[arg-type]
             row["speedup"] = round(speedup, 3)
-            row["speedup_per_rank"] = round(speedup * int(base["ranks"]) / int(row["ranks"]), 3)  # type: ignore[arg-type]
+            row["speedup_per_gpu"] = round(speedup * int(base["ranks"]) / int(row["ranks"]), 3)  # type: ignore[arg-type]
     result = {"data": str(args.data), "source": args.source, "model_type": args.sam_model_type, "runs": rows}
     print(json.dumps(result, indent=2))
     if args.json:

@@ -770,6 +770,14 @@ def more_mask_processes_than_gpus(ws, fixtures):
 
 
 @case
+def more_mask_processes_per_gpu_than_gpus(ws, fixtures):
+    scene = ws.scene()
+    too_many = torch.cuda.device_count() + 1
+    argv = masks(scene, "--num-gpus", str(too_many), "--processes-per-gpu", "2", "--cache-dir", str(ws.root / "cache"))
+    return Expect(argv, needles=[f"--num-gpus {too_many} --processes-per-gpu 2: this machine has"])
+
+
+@case
 def read_only_cache_folder_of_votesplat_masks_on_two_processes(ws, fixtures):
     scene = ws.scene()
     cache = ws.read_only(ws.root / "cache")

@@ -309,3 +309,33 @@ def test_votesplat_masks_on_two_cpu_processes_makes_the_one_process_cache(tmp_pa
     assert sorted(p.name for p in two["entry_dir"].iterdir()) == sorted(p.name for p in one["entry_dir"].iterdir())
     for key in one["keys"]:
         assert_same_entry_files(one["entry_dir"], two["entry_dir"], key)
+
+
+def test_rank_devices_give_each_gpu_its_processes_and_refuse_what_the_machine_lacks_in_one_line(monkeypatch):
+    import torch
+
+    from votesplat_ns.ns.masks import rank_devices
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert rank_devices(1, None) == [] and rank_devices(1, "cuda:1") == []  # one process, on --sam-device
+    assert rank_devices(2, None) == ["cuda:0", "cuda:1"]
+    assert rank_devices(2, None, 2) == ["cuda:0", "cuda:1", "cuda:0", "cuda:1"]  # rank 0, this process, on cuda:0
+    assert rank_devices(1, None, 2) == ["cuda:0", "cuda:0"]
+    assert rank_devices(1, "cuda:1", 3) == ["cuda:1"] * 3
+    assert rank_devices(3, "cpu") == ["cpu"] * 3
+    refused = {
+        (1, None, 0): "--processes-per-gpu 0: give 1 or more processes per GPU",
+        (2, "cpu", 2): "--processes-per-gpu 2 shares a GPU, and --sam-device cpu runs on the CPU",
+        (3, None, 2): "--num-gpus 3 --processes-per-gpu 2: this machine has 2 GPUs; give --num-gpus 2 or less",
+        (3, None, 1): "--num-gpus 3: this machine has 2 GPUs",
+        (1, "cuda:2", 2): "SAM device 'cuda:2': this machine has 2 GPUs",
+        (2, "cuda:1", 2): "--sam-device cuda:1 names one device",
+    }
+    for args, needle in refused.items():
+        with pytest.raises(VoteSplatInputError, match=re.escape(needle)):
+            rank_devices(*args)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    with pytest.raises(VoteSplatInputError, match=re.escape("CUDA is not available); leave --processes-per-gpu at 1")):
+        rank_devices(1, None, 2)

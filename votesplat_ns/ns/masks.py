@@ -28,6 +28,7 @@ from typing import Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from votesplat_ns.core.sam_masks import check_sam_device
 from votesplat_ns.core.vote_cache import VoteCache, VoteOptions, load_image_rgb
 from votesplat_ns.core.vote_cache_ranks import build_on_ranks, rank_share
 from votesplat_ns.core.vote_maps import DEFAULT_BORDER_MASKS
@@ -68,34 +69,58 @@ class MasksConfig(SamOptions, _MasksInput):
     """Number of views to save a picture of the masks and centroids for."""
     num_gpus: int = 1
     """Processes making the masks, one per GPU (rank r on cuda:r takes the next image whenever it is free), all into one cache; with --sam-device cpu, N CPU processes. Under torchrun leave it at 1."""
+    processes_per_gpu: int = 1
+    """Processes making the masks on each GPU (of --num-gpus, or --sam-device's): each loads SAM, and does its host work (filters, small regions, labels) beside the others' instead of in one Python interpreter. Under torchrun leave it at 1."""
 
 
 # a rank started by torchrun may wait this long at the end for the slowest rank
 RANKS_TIMEOUT = timedelta(days=1)
 
 
-def rank_devices(num_gpus: int, sam_device: Optional[str]) -> List[str]:
-    """The devices of ``--num-gpus`` ranks (one line when this machine lacks them): cuda:0..N-1, or N times cpu
-    with ``--sam-device cpu``; [] for one process (it runs on ``--sam-device``)."""
+def rank_devices(num_gpus: int, sam_device: Optional[str], processes_per_gpu: int = 1) -> List[str]:
+    """The devices of the ranks of ``--num-gpus`` and ``--processes-per-gpu`` (one line when this machine lacks
+    them): cuda:0..N-1, each K times, or N times cpu with ``--sam-device cpu``; [] for one process (it runs on
+    ``--sam-device``). One GPU named by ``--sam-device`` takes the K processes of ``--num-gpus 1``."""
     if num_gpus < 1:
         raise VoteSplatInputError(f"--num-gpus {num_gpus}: give 1 or more processes")
-    if num_gpus == 1:
-        return []
+    if processes_per_gpu < 1:
+        raise VoteSplatInputError(f"--processes-per-gpu {processes_per_gpu}: give 1 or more processes per GPU")
     if sam_device == "cpu":
-        return ["cpu"] * num_gpus
-    if sam_device not in (None, "cuda"):
-        raise VoteSplatInputError(
-            f"--num-gpus {num_gpus} runs rank r on cuda:r, but --sam-device {sam_device} names one device: "
-            f"leave --sam-device out, or give --sam-device cpu for {num_gpus} CPU processes"
-        )
+        if processes_per_gpu > 1:
+            raise VoteSplatInputError(
+                f"--processes-per-gpu {processes_per_gpu} shares a GPU, and --sam-device cpu runs on the CPU: "
+                "leave --processes-per-gpu at 1 (--num-gpus N runs N CPU processes)"
+            )
+        return ["cpu"] * num_gpus if num_gpus > 1 else []
+    if num_gpus == 1 and processes_per_gpu == 1:
+        return []
     available = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    have = f"{available} GPU{'s' if available != 1 else ''}" + (" (CUDA is not available)" if not available else "")
+    if sam_device not in (None, "cuda"):
+        if num_gpus > 1:
+            raise VoteSplatInputError(
+                f"--num-gpus {num_gpus} runs rank r on cuda:r, but --sam-device {sam_device} names one device: "
+                f"leave --sam-device out, or give --sam-device cpu for {num_gpus} CPU processes"
+            )
+        check_sam_device(sam_device)
+        if torch.device(sam_device).type != "cuda":
+            raise VoteSplatInputError(
+                f"--processes-per-gpu {processes_per_gpu} shares a CUDA GPU, and --sam-device {sam_device} is not "
+                "one: give --sam-device cuda:<index>, or leave --processes-per-gpu at 1"
+            )
+        return [sam_device] * processes_per_gpu
     if num_gpus > available:
-        have = f"{available} GPU{'s' if available != 1 else ''}" + (" (CUDA is not available)" if not available else "")
+        if processes_per_gpu > 1:
+            fix = f"give --num-gpus {available} or less" if available else "leave --processes-per-gpu at 1"
+            raise VoteSplatInputError(
+                f"--num-gpus {num_gpus} --processes-per-gpu {processes_per_gpu}: this machine has {have}; {fix}"
+            )
         raise VoteSplatInputError(
             f"--num-gpus {num_gpus}: this machine has {have}; give --num-gpus {max(1, available)} or less, "
             f"or add --sam-device cpu to run {num_gpus} CPU processes"
         )
-    return [f"cuda:{rank}" for rank in range(num_gpus)]
+    # rank 0 (this process) on cuda:0, and each GPU's processes spread over the ranks
+    return [f"cuda:{rank % num_gpus}" for rank in range(num_gpus * processes_per_gpu)]
 
 
 def launcher_rank() -> Optional[Tuple[int, int, int]]:
@@ -178,12 +203,16 @@ def make_masks(config: MasksConfig) -> Dict[str, object]:
 
     if config.preview < 0:
         raise VoteSplatInputError(f"--preview must be >= 0, got {config.preview}")
-    devices = rank_devices(config.num_gpus, config.sam_device)
+    devices = rank_devices(config.num_gpus, config.sam_device, config.processes_per_gpu)
     launched = launcher_rank()
     if launched is not None and devices:
+        flags = f"--num-gpus {config.num_gpus}" + (
+            f" --processes-per-gpu {config.processes_per_gpu}" if config.processes_per_gpu > 1 else ""
+        )
         raise VoteSplatInputError(
-            f"--num-gpus {config.num_gpus} starts its own processes, and torchrun started this one as rank "
-            f"{launched[0]} of {launched[1]}: use one of the two (under torchrun leave --num-gpus at 1)"
+            f"{flags} starts its own processes, and torchrun started this one as rank "
+            f"{launched[0]} of {launched[1]}: use one of the two (under torchrun leave --num-gpus and "
+            "--processes-per-gpu at 1)"
         )
     manager_config = VoteDataManagerConfig(
         data=config.data,
