@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -52,18 +53,29 @@ def random_checkpoint(folder: Path, model_type: str, seed: int = 0) -> Path:
     return path
 
 
-def copied_capture(data: Path, copies: int, folder: Path) -> Path:
-    """``data`` with each frame's image ``copies`` times (copy c rolled by c pixels), its other files shared."""
+def copied_capture(data: Path, copies: int, folder: Path, height: Optional[int] = None) -> Path:
+    """``data`` with each frame's image ``copies`` times (copy c rolled by c pixels), resized to ``height`` pixels
+    high (the intrinsics scaled with it) when given, its other files shared."""
     from PIL import Image
 
     meta = json.loads((data / "transforms.json").read_text())
-    out = folder / f"{data.name}_x{copies}"
+    out = folder / (f"{data.name}_x{copies}" + (f"_{height}p" if height else ""))
     if out.exists():
         shutil.rmtree(out)
     (out / "images").mkdir(parents=True)
+    scale = height / float(meta["h"]) if height else 1.0
+    for key in ("fl_x", "fl_y", "cx", "cy"):
+        if key in meta:
+            meta[key] = meta[key] * scale
+    for key in ("w", "h"):
+        if key in meta:
+            meta[key] = int(round(meta[key] * scale))
     frames, names = [], {}
     for frame in meta["frames"]:
-        image = np.asarray(Image.open(data / frame["file_path"]).convert("RGB"))
+        picture = Image.open(data / frame["file_path"]).convert("RGB")
+        if height:
+            picture = picture.resize((int(round(picture.width * scale)), height), Image.Resampling.BICUBIC)
+        image = np.asarray(picture)
         for copy in range(copies):
             name = f"images/{Path(frame['file_path']).stem}_c{copy}.png"
             Image.fromarray(np.roll(image, copy, axis=1)).save(out / name)
@@ -88,6 +100,7 @@ def run_masks(args, ranks: int, cache: Path, checkpoint: Optional[Path], per_gpu
         command += ["--sam-max-long-side", str(args.max_long_side)]
     if args.sam_device:
         command += ["--sam-device", args.sam_device]
+    command += shlex.split(args.masks_args)
     wall = time.perf_counter()
     result = subprocess.run(command, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - wall
@@ -142,12 +155,19 @@ def main() -> None:
     parser.add_argument("--max-long-side", type=int, default=1080)
     parser.add_argument("--work-dir", type=Path, default=Path("build/bench_mask_ranks"))
     parser.add_argument("--copies", type=int, default=1, help="each image this many times (shifted copies)")
+    parser.add_argument("--height", type=int, default=None, help="resize the images to this height (e.g. 1080)")
+    parser.add_argument(
+        "--masks-args",
+        default="",
+        help="more flags for every votesplat masks run, e.g. '--sam-precision fp32' (random weights keep at most a "
+        "mask or two per image whatever the filters: the host's share of a real capture is not in these runs)",
+    )
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
 
     args.work_dir.mkdir(parents=True, exist_ok=True)
-    if args.copies > 1:
-        args.data = copied_capture(args.data, args.copies, args.work_dir)
+    if args.copies > 1 or args.height:
+        args.data = copied_capture(args.data, args.copies, args.work_dir, args.height)
     checkpoint = None
     if args.source == "sam":
         checkpoint = args.sam_checkpoint or random_checkpoint(args.work_dir, args.sam_model_type)
