@@ -64,11 +64,12 @@ def make_lpips_metric() -> torch.nn.Module:
 class MetricAtFirstUse(torch.nn.Module):
     """One of splatfacto's image metrics (PSNR, LPIPS), built by ``build`` at its first call.
 
-    Building one imports torchmetrics, whose package import loads every metric it has: 1.4 s on the 2-core
-    development machine, 6 s where ``transformers`` is installed (torchmetrics' BERTScore imports it), in every
-    process that builds a model, each rank of a run of several included. A retrofit's vote-only steps,
-    ``ns-export``, ``ns-viewer`` and ``votesplat click`` / ``query`` / ``eval`` never call these metrics, so they
-    never pay for them; colour training pays at its first step's PSNR, as before at set-up.
+    Building one imports torchmetrics, whose package import loads every metric it has (``transformers`` too, where
+    it is installed), in every process that builds a model, each rank of a run of several included: 1.4 s on the
+    2-core development machine; without it a retrofit's set-up on an H200 host is 1.6 s shorter (BENCHMARKS.md,
+    "Several GPUs"). A retrofit's vote-only steps, ``ns-export``, ``ns-viewer`` and ``votesplat click`` / ``query`` /
+    ``eval`` never call these metrics, so they never pay for them; colour training pays at its first step's PSNR,
+    as before at set-up.
 
     The built metric is not a submodule: its weights (LPIPS's AlexNet) are constant, so they stay out of the
     checkpoint and out of DistributedDataParallel's parameters. It follows its inputs' device instead.

@@ -390,7 +390,7 @@ def metrics_at_first_use() -> Iterator[None]:
     """Within the block, splatfacto's PSNR and LPIPS are made as :class:`votesplat_ns.ns.compat.MetricAtFirstUse`.
 
     splatfacto's ``populate_modules`` imports them from torchmetrics and builds them, which costs torchmetrics'
-    package import (1.4-6 s, see ``MetricAtFirstUse``) and downloads AlexNet for LPIPS. Inside the block both
+    package import (seconds, see ``MetricAtFirstUse``) and downloads AlexNet for LPIPS. Inside the block both
     names give a metric built at its first call: PSNR as splatfacto asked for it, LPIPS through
     :func:`votesplat_ns.ns.compat.make_lpips_metric` (the local weights, or a NaN-reporting stand-in, never a
     download). Where torchmetrics is not imported yet, stand-in modules that hold only those two names take its
