@@ -206,6 +206,8 @@ def test_device_check(monkeypatch):
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
     with pytest.raises(VoteSplatInputError, match="MPS"):
         check_device_available("mps")
+    with pytest.raises(VoteSplatInputError, match="'gpu0' is not a device"):
+        check_device_available("gpu0")
 
 
 def config_for(data: Path, **dataparser) -> VoteDataManagerConfig:

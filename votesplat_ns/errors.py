@@ -115,8 +115,7 @@ def check_device_available(device: Union[str, torch.device]) -> None:
     problem = device_problem(device)
     if problem is None:
         return
-    kind = torch.device(device).type
-    if kind == "cuda":
+    if str(device).split(":")[0] == "cuda":  # not torch.device(): the problem may be that the name does not parse
         raise VoteSplatInputError(
             f"{problem} (ns-train uses --machine.device-type cuda unless told otherwise); "
             "use --machine.device-type cpu (small scenes only) or run on a GPU"
