@@ -92,9 +92,9 @@ def _sh_with_storage_of_their_own(trainer) -> None:
 
 def _timed_training(config, variant: str) -> List[float]:
     from votesplat_ns.ns.method import setup_trainer
-    from votesplat_ns.ns.patches import metrics_at_first_use
+    from votesplat_ns.ns.patches import splatfacto_metrics_at_first_use
 
-    with metrics_at_first_use():  # stock splatfacto builds torchmetrics' LPIPS, which downloads AlexNet otherwise
+    with splatfacto_metrics_at_first_use():  # stock splatfacto's LPIPS would download AlexNet otherwise
         trainer = setup_trainer(config)
     if variant == "splatfacto-lean-adam":
         _sh_with_storage_of_their_own(trainer)

@@ -11,11 +11,17 @@ import dataclasses
 
 import torch
 from conftest import DEMO_SCENE
+from nerfstudio.models.splatfacto import SplatfactoModel
 from test_resume import BUDGET, make_trainer
 
+from votesplat_ns.ns.compat import MetricAtFirstUse
 from votesplat_ns.ns.method import setup_trainer, trainer_config_in_process
 from votesplat_ns.ns.model import SPLAT_PARAM_NAMES
-from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, metrics_at_first_use
+from votesplat_ns.ns.patches import (
+    cuda_calls_stay_on_cpu,
+    install_rasterizer_in_splatfacto,
+    splatfacto_metrics_at_first_use,
+)
 
 STEPS = 22  # densifies at steps 10 and 20
 
@@ -75,7 +81,8 @@ def test_without_votes_and_with_splatfactos_adam_it_trains_splatfactos_gaussians
     # splatfacto on CPU as votesplat runs it: its hard-coded .cuda() calls kept on the CPU, LPIPS offline and the
     # rasterizer of ns/rasterizer.py (gsplat's own is CUDA-only; on CUDA that one calls gsplat's)
     install_rasterizer_in_splatfacto()
-    with cuda_calls_stay_on_cpu(model_on_cpu=True), metrics_at_first_use():
+    populate_modules = SplatfactoModel.populate_modules
+    with cuda_calls_stay_on_cpu(model_on_cpu=True), splatfacto_metrics_at_first_use():
         for method, method_config in (("splatfacto", splatfacto_like(config)), ("votesplat", config)):
             trainer = setup_trainer(method_config)
             assert trainer.config.method_name == method
@@ -84,6 +91,8 @@ def test_without_votes_and_with_splatfactos_adam_it_trains_splatfactos_gaussians
             trainer.train()
             model = trainer.pipeline.model
             runs[method] = {name: model.gauss_params[name].detach().clone() for name in SPLAT_PARAM_NAMES}
+            assert isinstance(model.psnr, MetricAtFirstUse) and model.psnr.built is not None  # built by training
+    assert SplatfactoModel.populate_modules is populate_modules  # the block's wrapper is gone with it
     assert runs["splatfacto"]["means"].shape[0] != initial_counts["splatfacto"]  # the runs densified
     for name in SPLAT_PARAM_NAMES:
         assert torch.equal(runs["votesplat"][name], runs["splatfacto"][name]), name

@@ -137,20 +137,7 @@ def _write_stats():
 atexit.register(_write_stats)
 command = sys.argv[1]
 sys.argv = [f"ns-{command}"] + sys.argv[2:]
-from nerfstudio.models.splatfacto import SplatfactoModel
-
-from votesplat_ns.ns.patches import metrics_at_first_use
-
-# both methods build their PSNR and LPIPS at first use (LPIPS from a local AlexNet or none: no download offline)
-populate_modules = SplatfactoModel.populate_modules
-
-
-def populate_modules_with_metrics_at_first_use(self):
-    with metrics_at_first_use():
-        populate_modules(self)
-
-
-SplatfactoModel.populate_modules = populate_modules_with_metrics_at_first_use
+from votesplat_ns.ns.patches import splatfacto_metrics_at_first_use
 
 if os.environ.get("VOTESPLAT_STEP_TIMES") and command == "train":  # every step's wall (and phases), no profiler
     from benchmarks.step_times import install_step_times
@@ -164,7 +151,9 @@ elif command == "eval":
     from nerfstudio.scripts.eval import entrypoint
 else:
     sys.exit(f"ns_launch.py: unknown command {command!r} (train or eval)")
-entrypoint()
+# both methods build their PSNR and LPIPS at first use (LPIPS from a local AlexNet or none: no download offline)
+with splatfacto_metrics_at_first_use():
+    entrypoint()
 PY
   mv /tmp/ns_launch.py.$$ /tmp/ns_launch.py  # its own temporary: run.sh may run several times at once
 }

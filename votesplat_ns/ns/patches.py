@@ -32,7 +32,8 @@ Scoped, applied where they are needed (listed here so that an upgrade checks the
 * ``Tensor.cuda on CPU`` (:func:`cuda_calls_stay_on_cpu`) and ``metrics at first use``
   (:func:`metrics_at_first_use`): context managers around nerfstudio code that calls ``.cuda()``
   unconditionally, or that imports torchmetrics (seconds) and downloads AlexNet to build metrics that
-  most commands never call.
+  most commands never call. :func:`splatfacto_metrics_at_first_use` applies the latter to stock splatfacto for
+  the benchmarks that run it.
 * ``resume trains`` (``ns/model.py``, ``load_state_dict`` / ``adopt_optimizers``): overrides in our
   model subclass, not a patch of upstream objects; nerfstudio builds the optimisers before loading a
   checkpoint and splatfacto replaces the parameters (#3554).
@@ -430,6 +431,27 @@ def metrics_at_first_use() -> Iterator[None]:
                 del sys.modules[name]
         for module, attribute, original in replaced:
             setattr(module, attribute, original)
+
+
+@contextlib.contextmanager
+def splatfacto_metrics_at_first_use() -> Iterator[None]:
+    """Within the block, every splatfacto model built (nerfstudio's own ``splatfacto`` too) builds its metrics under
+    :func:`metrics_at_first_use`: for the benchmarks that run stock splatfacto beside votesplat, offline and alike
+    (votesplat's ``populate_modules`` opens its own block; blocks nest). Only ``populate_modules`` runs inside
+    :func:`metrics_at_first_use`, so the rest of the block may import torchmetrics."""
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    populate_modules = SplatfactoModel.populate_modules
+
+    def populate_modules_with_metrics_at_first_use(self):
+        with metrics_at_first_use():
+            populate_modules(self)
+
+    SplatfactoModel.populate_modules = populate_modules_with_metrics_at_first_use  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        SplatfactoModel.populate_modules = populate_modules  # type: ignore[method-assign]
 
 
 # ----------------------------------------------------------------------------- the list and apply()
