@@ -5,8 +5,9 @@
     python benchmarks/bench_mask_ranks.py --data <dataset> --ranks 1 --processes-per-gpu 1 2   # one GPU, 1 and 2
     python benchmarks/bench_mask_ranks.py --data <dataset> --source dataset --ranks 1 2 --sam-device cpu   # plumbing, CPU
 
-Each count of ranks runs the real command (``votesplat masks --source sam --num-gpus N --processes-per-gpu K``) in a subprocess, into a
-cache of its own, so process start, the SAM model's load on every rank and the cache writes are all counted;
+Each pair of counts runs the real command (``votesplat masks --source sam --num-gpus N --processes-per-gpu K``) in
+a subprocess, into a cache of its own, so process start, the SAM model's load on every rank and the cache writes are
+all counted;
 the command's own line ``made K in T s (X images/s, N processes)`` gives the build's time (from the first image's
 hash to the last entry written; the dataset parse before it is the same for every N). Without
 ``--sam-checkpoint`` a RANDOMLY INITIALISED model of ``--sam-model-type`` is saved first and used by every run:
