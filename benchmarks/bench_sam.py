@@ -5,6 +5,8 @@
     python benchmarks/bench_sam.py --workloads stand-in --no-model --images 10 --first-seed 10 --repeats 1
                                                                              # labels against the oracle only
     python benchmarks/bench_sam.py --precision fp32 tf32 bf16                 # faster precisions, agreement with fp32
+    python benchmarks/bench_sam.py --workloads stand-in --one-pass-only --stream --processes 2
+                                                                             # two interpreters on one GPU at once
 
 No checkpoint can be downloaded here, so the weights are RANDOMLY INITIALISED. Two workloads, each
 timed for both paths in the same call, with LangSplat's generator settings (32 x 32 points, one
@@ -232,7 +234,9 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
                 pixels += sum(a.size for a in expected)
                 print(f"  image {seed}: {differing[-1]} of {sum(a.size for a in expected)} pixels differ", flush=True)
             del reference
-    streams = {p: stream_seconds(images, one_pass, p, labels_of[p]) for p in precisions} if args.stream else {}
+    streams = (
+        {p: stream_seconds(images, one_pass, p, labels_of[p], args.together) for p in precisions} if args.stream else {}
+    )
     rows = []
     for precision in precisions:
         split = {name: float(np.median(values)) for name, values in stages[precision].items()}
@@ -270,11 +274,13 @@ def bench_workload(sam, workload: str, images, levels, args, settings) -> dict:
     return {"rows": rows}
 
 
-def stream_seconds(images, one_pass, precision: str, labels_alone: list) -> dict:
+def stream_seconds(images, one_pass, precision: str, labels_alone: list, together=None) -> dict:
     """Seconds per image over all ``images`` one after another, and with two threads (what the cache build does:
     the device works on one image while the host works on the other). Each image has its generator (the
     stand-in belongs to one image), all sharing one encoder lock as one generator's calls do; each image's labels
-    are checked against those it got alone."""
+    are checked against those it got alone. ``together(name)`` returns when every process of ``--processes`` has
+    reached the stream ``name``, so that they stream at the same time; each stream's wall-clock start and end are
+    kept for the parent's count."""
     from concurrent.futures import ThreadPoolExecutor
 
     generators = [one_pass(image, maps, seed, precision) for seed, image, maps in images]
@@ -288,12 +294,16 @@ def stream_seconds(images, one_pass, precision: str, labels_alone: list) -> dict
 
     result = {}
     for name, threads in (("stream_one_at_a_time_s", 1), ("stream_overlapped_s", 2)):
+        if together is not None:
+            together(name)
         before = reset_peak()
+        result[name.replace("_s", "_began")] = time.time()
         start = time.perf_counter()
         with ThreadPoolExecutor(max_workers=threads) as pool:
             labels = list(pool.map(label, range(len(images))))
         synchronize()
         result[name] = (time.perf_counter() - start) / len(images)
+        result[name.replace("_s", "_ended")] = time.time()
         result[name.replace("_s", "_peak_mib")] = round(peak_mib(), 1)
         result[name.replace("_s", "_working_peak_mib")] = round(peak_mib() - before, 1)  # less the images' stand-ins
         same = all(np.array_equal(a, b) for got, want in zip(labels, labels_alone) for a, b in zip(got, want))
@@ -458,6 +468,74 @@ def decoder_modes(device: str, prompts: int, repeats: int = 10) -> List[dict]:
     return rows
 
 
+def meet(folder: Path, name: str, index: int, timeout: float = 1800.0) -> None:
+    """Mark this copy as at ``name`` and wait for the other copies (the folder's ``copies`` file holds their count)."""
+    (folder / f"{name}.{index}").touch()
+    copies = int((folder / "copies").read_text())
+    deadline = time.monotonic() + timeout
+    while len(list(folder.glob(f"{name}.*"))) < copies:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"bench_sam copy {index}: the other copies did not reach {name} in {timeout:.0f} s")
+        time.sleep(0.01)
+
+
+def run_copies(processes: int, argv: List[str]) -> int:
+    """``processes`` copies of this bench (``argv`` less ``--processes``) on the device at once, each stream
+    started together; prints, per stream, the seconds per image of all copies: their images over the time from the
+    first copy's start to the last one's end."""
+    import subprocess
+    import tempfile
+
+    drop = argv.index("--processes")
+    argv = argv[:drop] + argv[drop + 2 :]
+    json_at = argv.index("--json") + 1 if "--json" in argv else None
+    with tempfile.TemporaryDirectory() as folder:
+        meeting = Path(folder)
+        (meeting / "copies").write_text(str(processes))
+        children = []
+        for index in range(processes):
+            command = [sys.executable, __file__, *argv, "--together-in", folder, "--copy-index", str(index)]
+            if json_at is not None:
+                command[command.index("--json") + 1] = str(meeting / f"copy_{index}.json")
+            else:
+                command += ["--json", str(meeting / f"copy_{index}.json")]
+            children.append(subprocess.Popen(command))
+        codes = [child.wait() for child in children]
+        if any(codes):
+            print(f"bench_sam: copies exited with {codes}", file=sys.stderr)
+            return 1
+        records = [json.loads((meeting / f"copy_{index}.json").read_text()) for index in range(processes)]
+    together: List[dict] = []
+    for rows in zip(*(record["rows"] for record in records)):
+        row = {key: rows[0][key] for key in ("model_type", "workload", "precision", "images")}
+        row["processes"] = processes
+        for name in ("stream_one_at_a_time", "stream_overlapped"):
+            if f"{name}_s" not in rows[0]:
+                continue
+            span = max(r[f"{name}_ended"] for r in rows) - min(r[f"{name}_began"] for r in rows)
+            row[f"{name}_all_copies_s"] = span / sum(r["images"] for r in rows)
+            row[f"{name}_each_copy_s"] = [r[f"{name}_s"] for r in rows]
+            row[f"{name}_start_spread_s"] = max(r[f"{name}_began"] for r in rows) - min(
+                r[f"{name}_began"] for r in rows
+            )
+            row[f"{name}_labels_as_alone"] = all(r[f"{name}_labels_as_alone"] for r in rows)
+        together.append(row)
+        print(json.dumps(row), flush=True)
+    if json_at is not None:
+        Path(argv[json_at]).write_text(json.dumps({"copies": records, "rows": together}, indent=2))
+    print(f"\n{processes} copies on the device at once: seconds per image of all copies together (images / span)")
+    print("| model | workload | precision | images per copy | in a row, one / two at a time | each copy's own |")
+    print("|---|---|---|---|---|---|")
+    for row in together:
+        print(
+            f"| {row['model_type']} | {row['workload']} | {row['precision']} | {row['images']} | "
+            f"{row['stream_one_at_a_time_all_copies_s']:.3f} / {row['stream_overlapped_all_copies_s']:.3f} | "
+            f"{[round(v, 3) for v in row['stream_one_at_a_time_each_copy_s']]} / "
+            f"{[round(v, 3) for v in row['stream_overlapped_each_copy_s']]} |"
+        )
+    return 0
+
+
 def main(argv=None) -> int:
     from votesplat_ns.core.sam_masks import DEFAULT_POINTS_PER_BATCH, SAM_PRECISIONS
 
@@ -504,6 +582,16 @@ def main(argv=None) -> int:
         action="store_true",
         help="also time the images one after another and two at a time (host part overlapping the device part)",
     )
+    parser.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        help="with --stream: run this many copies of the bench on the device at once, their streams started "
+        "together, and report the images per second of all of them (each its own interpreter, as "
+        "`votesplat masks --processes-per-gpu` runs them)",
+    )
+    parser.add_argument("--together-in", type=Path, default=None, help=argparse.SUPPRESS)  # a copy's meeting folder
+    parser.add_argument("--copy-index", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument(
         "--decoder-only", action="store_true", help="time the prompt decoder's modes alone (points-per-batch prompts)"
@@ -524,6 +612,13 @@ def main(argv=None) -> int:
             )
         return 0
 
+    if args.processes > 1:
+        if not args.stream:
+            parser.error("--processes counts the streams: pass --stream")
+        return run_copies(args.processes, list(sys.argv[1:] if argv is None else argv))
+    args.together = None
+    if args.together_in is not None:
+        args.together = lambda name: meet(args.together_in, name, args.copy_index)
     if args.four_k:
         args.width, args.height, args.one_pass_only = 3840, 2160, True
     if args.no_model and "random" in args.workloads:
