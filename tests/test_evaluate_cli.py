@@ -27,6 +27,7 @@ from votesplat_ns.eval.ground_truth import (
     points_to_dataset_frame,
     projected_majority_labels,
     score_level,
+    solid_labels,
     surface_labels,
 )
 from votesplat_ns.eval.mask_noise import MaskNoise, write_noisy_masks
@@ -109,6 +110,30 @@ def test_geometric_and_projected_gaussian_labels_agree_on_the_demo_surface(demo_
     # occluders do not lend their label: a point hidden behind another surface in every view counts nothing
     hidden = projected_majority_labels(np.array([[0.0, 0.0, -1.0]]), labelled, depth_tolerance=0.01)
     assert hidden.tolist() == [0]
+
+
+def test_gaussians_off_every_solid_take_what_the_training_views_see_them_as(demo_points):
+    """A floater that the views show over an object (fuzz in a cup's hollow, a dark surface reconstructed thick in
+    depth) renders as that object, and a removal that leaves it shows a ghost of it: it is the object's. One that
+    the views show over the background, or that no view shows, is background."""
+    dataset = GroundTruthDataset.open(DEMO_SCENE)
+    scene = dataset.scene()
+    cup = next(o for o in scene.objects if o.id == 2).parts[0].primitives[0]
+    axis_of = lambda primitive, heights: primitive.pose[:3, 3] + np.outer(heights, primitive.pose[:3, 2])  # noqa: E731
+    in_the_hollow = axis_of(cup, [0.05, 0.1, 0.15])  # inside the cup's open profile, off its walls
+    above_an_object = axis_of(next(o for o in scene.objects if o.id == 1).parts[0].primitives[0], [0.15, 0.2])
+    hidden = np.array([[0.0, 0.0, -1.0]])  # behind the demo's surfaces in every view
+    floaters = np.concatenate([in_the_hollow, above_an_object, hidden])
+    labels, info = gaussian_ground_truth(dataset, floaters, ["instance"], method="geometry")
+    assert (solid_labels(scene, floaters, "instance", info["surface_tolerance"])[1]).all()  # off every solid
+    assert surface_labels(scene, floaters, "instance", info["surface_tolerance"]).tolist() == [0] * 6
+    assert labels["instance"].tolist() == [2, 2, 2, 0, 0, 0]
+    assert info["off_solids"] == {"instance": 6} and info["off_solids_on_objects"] == {"instance": 3}
+    # the points on a solid keep the geometry's labels
+    on_solids, info = gaussian_ground_truth(dataset, demo_points, ["instance"], method="geometry")
+    geometric, off = solid_labels(scene, demo_points, "instance", info["surface_tolerance"])
+    assert (~off).mean() > 0.9
+    assert np.array_equal(on_solids["instance"][~off], geometric[~off])
 
 
 def test_closed_primitives_have_an_inside_and_open_ones_do_not():

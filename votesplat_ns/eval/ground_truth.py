@@ -2,8 +2,8 @@
 
 :class:`GroundTruthDataset` reads a dataset's transforms.json and label images; the GT label of a
 Gaussian comes from the scene's exact geometry (:func:`surface_labels`) or, failing that, from the
-majority label under its projected mean (:func:`projected_majority_labels`); see
-:func:`gaussian_ground_truth`. :func:`score_level` turns rendered id maps and per-Gaussian ids into
+majority label under its projected mean (:func:`projected_majority_labels`), which also labels the Gaussians
+that lie on no solid (floaters: what the training views see them as); see :func:`gaussian_ground_truth`. :func:`score_level` turns rendered id maps and per-Gaussian ids into
 the 2D and 3D scores of ``votesplat eval``. Pure numpy/torch.
 """
 
@@ -80,8 +80,13 @@ def surface_labels(scene, points_world, level: str, tolerance: float) -> np.ndar
     id at level ``part``) and the background pieces (label 0). A point inside a closed primitive
     (a box, a full sweep of a closed profile) is at distance 0 from it: splatting fills solids
     with Gaussians that a removal of the object must take along. A point farther than
-    ``tolerance`` (world units) from every solid, e.g. a floater, gets 0.
+    ``tolerance`` (world units) from every solid, e.g. a floater, gets 0 (:func:`solid_labels` says which).
     """
+    return solid_labels(scene, points_world, level, tolerance)[0]
+
+
+def solid_labels(scene, points_world, level: str, tolerance: float) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`surface_labels`, and which points lie farther than ``tolerance`` from every solid (bool [N])."""
     if level not in GT_LEVELS:
         raise ValueError(f"no geometric ground truth for level {level!r}; use one of {list(GT_LEVELS)}")
     if not tolerance > 0:
@@ -92,15 +97,17 @@ def surface_labels(scene, points_world, level: str, tolerance: float) -> np.ndar
     owners = [(obj.id if level == "instance" else part.id, part) for obj in scene.objects for part in obj.parts]
     owners += [(0, part) for part in scene.background]
     labels = np.zeros(len(points), dtype=np.int64)
+    off_solids = np.ones(len(points), dtype=bool)
     finite = np.isfinite(points).all(axis=1)
     if not finite.any() or not owners:
-        return labels
+        return labels, off_solids
     distances = np.stack([scene.part_solid_distance(part, points[finite]) for _, part in owners], axis=1)
     nearest = distances.argmin(axis=1)
     ids = np.array([label for label, _ in owners], dtype=np.int64)[nearest]
     close = distances[np.arange(len(nearest)), nearest] <= tolerance
     labels[np.flatnonzero(finite)] = np.where(close, ids, 0)
-    return labels
+    off_solids[np.flatnonzero(finite)] = ~close
+    return labels, off_solids
 
 
 @dataclass
@@ -241,9 +248,18 @@ def gaussian_ground_truth(
 
     Labels: the object (or part) id, 0 for none, :data:`NOT_SCORED` (-1) for the Gaussians of an
     object that fewer than :data:`MIN_TRAINING_VIEWS_SCORED` training views show (listed in
-    ``info["unseen_objects"]``); :func:`score_level` leaves those out of the 3D scores."""
+    ``info["unseen_objects"]``); :func:`score_level` leaves those out of the 3D scores.
+
+    With the scene's geometry, a Gaussian within ``surface_tolerance_px`` pixel footprints of a solid takes that
+    solid's label; one farther from every solid (a floater: a dark or shiny surface reconstructed thick in depth,
+    fuzz in front of an object) takes what the training views see it as, the majority label under its projection
+    (:func:`projected_majority_labels`, occluded views left out), 0 where no view sees it. A floater that every
+    view shows over an object renders as that object: removing the object must take it, or it stays behind as a
+    ghost of it. ``info["off_solids"]`` counts them per level, ``info["off_solids_on_objects"]`` those labelled
+    an object."""
     from votesplat_ns.eval.synthetic.dataset_files import read_views
 
+    means_world = np.asarray(means_world, dtype=np.float64)
     meta, views = read_views(dataset.root)
     train = set(dataset.train_names())
     train_views = [v for v in views if v.name in train]
@@ -258,18 +274,28 @@ def gaussian_ground_truth(
         )
     info: Dict[str, object] = {"pixel_footprint": footprint}
     labels: Dict[str, np.ndarray] = {}
+
+    def labelled(level: str) -> List[LabelledView]:
+        return [LabelledView(v.viewmat, v.K, dataset.labels(v.name, level), dataset.depth(v.name)) for v in train_views]
+
     if scene is not None:
         tolerance = surface_tolerance_px * footprint
         info.update(method="geometry", surface_tolerance=tolerance, surface_tolerance_px=surface_tolerance_px)
+        off_counts: Dict[str, int] = {}
+        off_on_objects: Dict[str, int] = {}
         for level in levels:
-            labels[level] = surface_labels(scene, means_world, level, tolerance)
+            labels[level], off = solid_labels(scene, means_world, level, tolerance)
+            if off.any():
+                labels[level][off] = projected_majority_labels(
+                    means_world[off], labelled(level), depth_tolerance=footprint
+                )
+            off_counts[level] = int(off.sum())
+            off_on_objects[level] = int((labels[level][off] > 0).sum())
+        info.update(off_solids=off_counts, off_solids_on_objects=off_on_objects)
     else:
         info.update(method="projection", depth_tolerance=footprint, num_views=len(train_views))
         for level in levels:
-            labelled = [
-                LabelledView(v.viewmat, v.K, dataset.labels(v.name, level), dataset.depth(v.name)) for v in train_views
-            ]
-            labels[level] = projected_majority_labels(means_world, labelled, depth_tolerance=footprint)
+            labels[level] = projected_majority_labels(means_world, labelled(level), depth_tolerance=footprint)
     unseen: Dict[str, List[int]] = {}
     for level in levels:
         shown = training_view_counts(dataset, level)

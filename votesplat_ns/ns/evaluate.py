@@ -20,9 +20,10 @@ dataset's exact label images:
   ``votesplat synth`` (see :func:`surface_labels`): its mean is mapped back from nerfstudio's
   normalised frame to the dataset's world frame with the run's ``dataparser_transforms.json``, and
   takes the label of the nearest solid if it lies inside a closed one or within
-  ``surface_tolerance_px`` pixels (at the typical camera distance) of its surface. Otherwise it falls back to the majority label under the
-  projected mean in the training views where the mean is not hidden behind the GT depth
-  (:func:`projected_majority_labels`). An object that fewer than two training views show cannot
+  ``surface_tolerance_px`` pixels (at the typical camera distance) of its surface. A Gaussian off every
+  solid (a floater), and every Gaussian of a dataset without that geometry, takes the majority label under
+  the projected mean in the training views where the mean is not hidden behind the GT depth
+  (:func:`projected_majority_labels`): what the views see it as. An object that fewer than two training views show cannot
   be found from them; its Gaussians stay out of the 3D scores and ``gaussian_gt.unseen_objects``
   lists it.
 
