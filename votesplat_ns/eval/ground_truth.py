@@ -3,8 +3,9 @@
 :class:`GroundTruthDataset` reads a dataset's transforms.json and label images; the GT label of a
 Gaussian comes from the scene's exact geometry (:func:`surface_labels`) or, failing that, from the
 majority label under its projected mean (:func:`projected_majority_labels`), which also labels the Gaussians
-that lie on no solid (floaters: what the training views see them as); see :func:`gaussian_ground_truth`. :func:`score_level` turns rendered id maps and per-Gaussian ids into
-the 2D and 3D scores of ``votesplat eval``. Pure numpy/torch.
+that lie on no solid (floaters: what the training views see them as); see :func:`gaussian_ground_truth`.
+:func:`score_level` turns rendered id maps and per-Gaussian ids into the 2D and 3D scores of ``votesplat eval``.
+Pure numpy/torch.
 """
 
 from __future__ import annotations
@@ -86,7 +87,7 @@ def surface_labels(scene, points_world, level: str, tolerance: float) -> np.ndar
 
 
 def solid_labels(scene, points_world, level: str, tolerance: float) -> Tuple[np.ndarray, np.ndarray]:
-    """:func:`surface_labels`, and which points lie farther than ``tolerance`` from every solid (bool [N])."""
+    """:func:`surface_labels`, and which finite points lie farther than ``tolerance`` from every solid (bool [N])."""
     if level not in GT_LEVELS:
         raise ValueError(f"no geometric ground truth for level {level!r}; use one of {list(GT_LEVELS)}")
     if not tolerance > 0:
@@ -97,7 +98,7 @@ def solid_labels(scene, points_world, level: str, tolerance: float) -> Tuple[np.
     owners = [(obj.id if level == "instance" else part.id, part) for obj in scene.objects for part in obj.parts]
     owners += [(0, part) for part in scene.background]
     labels = np.zeros(len(points), dtype=np.int64)
-    off_solids = np.ones(len(points), dtype=bool)
+    off_solids = np.zeros(len(points), dtype=bool)
     finite = np.isfinite(points).all(axis=1)
     if not finite.any() or not owners:
         return labels, off_solids
@@ -253,8 +254,8 @@ def gaussian_ground_truth(
     With the scene's geometry, a Gaussian within ``surface_tolerance_px`` pixel footprints of a solid takes that
     solid's label; one farther from every solid (a floater: a dark or shiny surface reconstructed thick in depth,
     fuzz in front of an object) takes what the training views see it as, the majority label under its projection
-    (:func:`projected_majority_labels`, occluded views left out), 0 where no view sees it. A floater that every
-    view shows over an object renders as that object: removing the object must take it, or it stays behind as a
+    (:func:`projected_majority_labels`, occluded views left out), 0 where no view sees it. A floater that the
+    views show over an object renders as that object: removing the object must take it, or it stays behind as a
     ghost of it. ``info["off_solids"]`` counts them per level, ``info["off_solids_on_objects"]`` those labelled
     an object."""
     from votesplat_ns.eval.synthetic.dataset_files import read_views
