@@ -48,7 +48,7 @@ import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Dict, List, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -479,26 +479,28 @@ def meet(folder: Path, name: str, index: int, timeout: float = 1800.0) -> None:
         time.sleep(0.01)
 
 
-def run_copies(processes: int, argv: List[str]) -> int:
-    """``processes`` copies of this bench (``argv`` less ``--processes``) on the device at once, each stream
-    started together; prints, per stream, the seconds per image of all copies: their images over the time from the
-    first copy's start to the last one's end."""
+def run_copies(processes: int, argv: List[str], json_path: Optional[Path]) -> int:
+    """``processes`` copies of this bench (``argv``, with ``--processes 1`` and a ``--json`` of their own added: the
+    last value of a flag wins) on the device at once, each stream started together; prints, per stream, the seconds
+    per image of all copies: their images over the time from the first copy's start to the last one's end."""
     import subprocess
     import tempfile
 
-    drop = argv.index("--processes")
-    argv = argv[:drop] + argv[drop + 2 :]
-    json_at = argv.index("--json") + 1 if "--json" in argv else None
     with tempfile.TemporaryDirectory() as folder:
         meeting = Path(folder)
         (meeting / "copies").write_text(str(processes))
         children = []
         for index in range(processes):
-            command = [sys.executable, __file__, *argv, "--together-in", folder, "--copy-index", str(index)]
-            if json_at is not None:
-                command[command.index("--json") + 1] = str(meeting / f"copy_{index}.json")
-            else:
-                command += ["--json", str(meeting / f"copy_{index}.json")]
+            command = [
+                sys.executable,
+                __file__,
+                *argv,
+                "--processes",
+                "1",
+                "--json",
+                str(meeting / f"copy_{index}.json"),
+            ]
+            command += ["--together-in", folder, "--copy-index", str(index)]
             children.append(subprocess.Popen(command))
         codes = [child.wait() for child in children]
         if any(codes):
@@ -521,8 +523,8 @@ def run_copies(processes: int, argv: List[str]) -> int:
             row[f"{name}_labels_as_alone"] = all(r[f"{name}_labels_as_alone"] for r in rows)
         together.append(row)
         print(json.dumps(row), flush=True)
-    if json_at is not None:
-        Path(argv[json_at]).write_text(json.dumps({"copies": records, "rows": together}, indent=2))
+    if json_path is not None:
+        json_path.write_text(json.dumps({"copies": records, "rows": together}, indent=2))
     print(f"\n{processes} copies on the device at once: seconds per image of all copies together (images / span)")
     print("| model | workload | precision | images per copy | in a row, one / two at a time | each copy's own |")
     print("|---|---|---|---|---|---|")
@@ -615,7 +617,7 @@ def main(argv=None) -> int:
     if args.processes > 1:
         if not args.stream:
             parser.error("--processes counts the streams: pass --stream")
-        return run_copies(args.processes, list(sys.argv[1:] if argv is None else argv))
+        return run_copies(args.processes, list(sys.argv[1:] if argv is None else argv), args.json)
     args.together = None
     if args.together_in is not None:
         args.together = lambda name: meet(args.together_in, name, args.copy_index)
