@@ -29,7 +29,8 @@ of what each Gaussian looks like in the training views:
   merged cluster's mask is recomputed from all its Gaussians.
 * **Drop.** A cluster that sits in no mask in most of the views where it is decided becomes -1.
 * **Whole objects.** Then (``objects``) fragments join the instance whose masks they lie in,
-  floaters become background and hidden Gaussians join the object they lie inside
+  floaters become background, single Gaussians settle in the touching instance whose masks hold them
+  and hidden Gaussians join the object they lie inside
   (:mod:`votesplat_ns.core.whole_objects`, which also gives each instance a confidence).
 
 The thresholds are ratios, counts of views and the scene's own spacing, so they mean the same in
@@ -335,8 +336,9 @@ def regroup_with_masks(
     clusters that sit in no mask; renumbered by decreasing size. See the module docstring.
 
     With ``objects``, the whole-object rules of :func:`votesplat_ns.core.whole_objects.whole_objects`
-    follow (fragments join, floaters drop, hidden Gaussians join; ``object_options`` are its
-    keywords: ``join``, ``floaters``, ``hidden``, ``join_ratio``, ...; ``votes`` [N, 3], NaN where a
+    follow (fragments join, floaters drop, Gaussians settle in the instance whose masks hold them, hidden
+    Gaussians join; ``object_options`` are its keywords: ``join``, ``floaters``, ``settle``, ``hidden``,
+    ``join_ratio``, ...; ``votes`` [N, 3], NaN where a
     Gaussian has none, for ``join_vote_factor``); their counts go under
     ``stats["objects"]`` and the instances' confidence [K] under ``stats["confidence"]`` (an array,
     which :func:`votesplat_ns.core.clustering.cluster_levels` moves to the level)."""

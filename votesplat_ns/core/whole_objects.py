@@ -10,7 +10,7 @@ of error that a user sees in the instance list and in an object's removal:
 * **hidden Gaussians**: Gaussians behind an object's front surface in every training view never
   vote (vote support 0), so they stay background, and a removed object leaves them behind.
 
-Five rules, each switchable (keywords of :func:`whole_objects`, passed on by
+Six rules, each switchable (keywords of :func:`whole_objects`, passed on by
 :func:`~votesplat_ns.core.mask_consensus.regroup_with_masks`, so ``mc.<key>`` in
 ``benchmarks/sweep.py`` reaches them). The evidence is the check's per-view mask table [V, N]
 (-1: not seen, 0: seen in no mask, k >= 1: seen in mask k), read per member Gaussian instead of per
@@ -39,6 +39,17 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   then gives its Gaussians to the object they lie inside, so a removal still takes them. With
   ``unseen=False`` only an unseen instance that touches no other becomes background (contact is
   its only evidence otherwise).
+* **Settle** (``settle``): a Gaussian (of an instance, or background) moves to an instance it touches (within
+  ``contact_factor`` typical spacings of its Gaussians) when, in the views that tell the two apart (the instance
+  sits in a mask there, and not in the mask the Gaussian's own instance sits in; background sits in none), it
+  lies in that instance's mask in at least ``settle_agreement`` of its sightings, over at least ``min_views``
+  views. The vote clustering cuts touching objects along the votes and leaves an object's fringe out, so some of
+  an object's Gaussians sit in a neighbour's instance or in the background although the training masks show them
+  on the object; a removal of the object leaves them behind. Each Gaussian is decided on its own, against the
+  instances as the rules before left them (among several instances the one with the highest share wins); never an
+  instance's majority, since whole instances are the join rule's to move, and never from an instance into one of
+  at most ``join_ratio`` its size: the contact of a small object with its container, which the masks split about
+  evenly, is the contact rule's, which runs after it.
 * **Contact** (``contact``): a Gaussian of one instance that lies in the box (grown by ``hidden_reach``
   typical spacings) of an instance of at most ``join_ratio`` times its size moves to the smaller one when,
   over at least ``min_views`` views, it lies in the smaller one's mask in at least ``contact_ratio`` times
@@ -110,6 +121,10 @@ DEFAULT_HIDDEN_REACH = 1.5
 # when it lies in the small object's mask in at least half as many views as in its own instance's (BENCHMARKS.md
 # "Instances a user gets": chosen on the tuning scenes against 0.75 and 1).
 DEFAULT_CONTACT_RATIO = 0.5
+# Settle: a Gaussian moves to a touching instance whose masks hold it in this share of the views that tell the two
+# apart, as the join rule asks of a fragment's sightings (BENCHMARKS.md "Instances a user gets": chosen on the
+# tuning scenes against 0.8).
+DEFAULT_SETTLE_AGREEMENT = 0.6
 
 
 def _sightings(table: np.ndarray, members: np.ndarray, home: np.ndarray) -> Tuple[int, int, int]:
@@ -446,6 +461,74 @@ def take_hidden(
     return out, stats
 
 
+def settle_by_masks(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    spacing: float,
+    agreement: float = DEFAULT_SETTLE_AGREEMENT,
+    contact_factor: float = DEFAULT_CONTACT_FACTOR,
+    join_ratio: float = DEFAULT_JOIN_RATIO,
+    min_views: int = 2,
+    min_share: float = 0.5,
+    min_seen: int = 5,
+) -> Tuple[np.ndarray, Dict[str, int]]:
+    """Labels after the settle rule (module docstring), against the instances as the rules before left them. Stats:
+    the Gaussians moved, and of them those that were background."""
+    out = labels.copy()
+    stats = {"settled": 0, "settled_from_background": 0}
+    finite = np.isfinite(means).all(axis=1)
+    instances = [int(label) for label in np.unique(labels[labels >= 0])]
+    if len(instances) == 0:
+        return out, stats
+    homes = np.stack(
+        [sitting_masks(table, np.flatnonzero(labels == label), min_share, min_seen) for label in instances]
+    )
+    # background's mask is "none" in every view: a background Gaussian is told apart from an instance wherever the
+    # instance sits in a mask
+    homes = np.concatenate([homes, np.zeros((1, table.shape[0]), dtype=homes.dtype)])
+    row_of = np.full(int(labels.max()) + 1, len(instances))  # each label's row of homes
+    row_of[instances] = np.arange(len(instances))
+    best = np.zeros(labels.size)
+    target = np.full(labels.size, -1)
+    reach = contact_factor * spacing
+    sizes = np.bincount(labels[labels >= 0])
+    for row, label in enumerate(instances):
+        members = np.flatnonzero(labels == label)
+        low, high = _grown_box(means[members], reach)
+        # not from a container into a small object in or on it (at most join_ratio of its size): that contact is
+        # the contact rule's, whose masks split about evenly there
+        larger = np.zeros(labels.size, dtype=bool)
+        larger[labels >= 0] = sizes[labels[labels >= 0]] * join_ratio >= members.size
+        candidates = np.flatnonzero((labels != label) & finite & ~larger & _in_box(means, (low, high)))
+        if candidates.size == 0:
+            continue
+        distance, _ = cKDTree(means[members]).query(means[candidates])
+        candidates = candidates[distance <= reach]
+        if candidates.size == 0:
+            continue
+        sightings = table[:, candidates]
+        own = labels[candidates]
+        own_home = homes[np.where(own >= 0, row_of[np.maximum(own, 0)], len(instances))].T  # [V, C]: its own mask
+        home = homes[row][:, None]
+        telling = (home >= 1) & (sightings >= 0) & (own_home != home)
+        inside = ((sightings == home) & telling).sum(axis=0)
+        share = inside / np.maximum(telling.sum(axis=0), 1)
+        better = (inside >= min_views) & (share >= agreement) & (share > best[candidates])
+        best[candidates[better]] = share[better]
+        target[candidates[better]] = label
+    moving = target >= 0
+    # one Gaussian at a time, never an instance's majority: whole instances are the join rule's to move
+    for label in instances:
+        leaving = moving & (labels == label)
+        if leaving.sum() * 2 >= (labels == label).sum():
+            moving &= ~leaving
+    out[moving] = target[moving]
+    stats["settled"] = int(moving.sum())
+    stats["settled_from_background"] = int((moving & (labels < 0)).sum())
+    return out, stats
+
+
 def whole_objects(
     labels: np.ndarray,
     means: np.ndarray,
@@ -456,6 +539,7 @@ def whole_objects(
     hidden: bool = True,
     unseen: bool = True,
     contact: bool = True,
+    settle: bool = True,
     join_ratio: float = DEFAULT_JOIN_RATIO,
     join_agreement: float = DEFAULT_JOIN_AGREEMENT,
     contact_factor: float = DEFAULT_CONTACT_FACTOR,
@@ -464,6 +548,7 @@ def whole_objects(
     hidden_reach: float = DEFAULT_HIDDEN_REACH,
     contact_ratio: float = DEFAULT_CONTACT_RATIO,
     reach_in_masks: bool = True,
+    settle_agreement: float = DEFAULT_SETTLE_AGREEMENT,
     unseen_min_seen: bool = True,
     min_views: int = 2,
     min_share: float = 0.5,
@@ -477,7 +562,11 @@ def whole_objects(
     ``votes`` [N, 3] (NaN: none) with ``join_vote_factor`` adds vote proximity to the join rule."""
     from votesplat_ns.core.clustering import relabel_by_size
 
-    for name, value in (("join_ratio", join_ratio), ("join_agreement", join_agreement)):
+    for name, value in (
+        ("join_ratio", join_ratio),
+        ("join_agreement", join_agreement),
+        ("settle_agreement", settle_agreement),
+    ):
         if not 0.0 <= value <= 1.0:
             raise ValueError(f"{name} must be in [0, 1], got {value}")
     if contact_factor < 0 or hidden_margin < 0 or hidden_reach < 0 or hidden_neighbours < 1 or contact_ratio < 0:
@@ -505,6 +594,10 @@ def whole_objects(
     if floaters:
         out, stats["floaters"] = drop_floaters(
             out, means, table, spacing, contact_factor, min_views, unseen, min_seen if unseen_min_seen else 1
+        )
+    if settle:
+        out, stats["settle"] = settle_by_masks(
+            out, means, table, spacing, settle_agreement, contact_factor, join_ratio, min_views, min_share, min_seen
         )
     if contact:
         out, stats["contact"] = take_contact(
