@@ -122,9 +122,9 @@ DEFAULT_HIDDEN_REACH = 1.5
 # "Instances a user gets": chosen on the tuning scenes against 0.75 and 1).
 DEFAULT_CONTACT_RATIO = 0.5
 # Settle: a Gaussian moves to a touching instance whose masks hold it in this share of the views that tell the two
-# apart, as the join rule asks of a fragment's sightings (BENCHMARKS.md "Instances a user gets": chosen on the
-# tuning scenes against 0.8).
-DEFAULT_SETTLE_AGREEMENT = 0.6
+# apart: the share the join rule asks of a fragment's sightings, not tuned apart (BENCHMARKS.md "Instances a user
+# gets" chose the rule on the tuning scenes).
+DEFAULT_SETTLE_AGREEMENT = DEFAULT_JOIN_AGREEMENT
 
 
 def _sightings(table: np.ndarray, members: np.ndarray, home: np.ndarray) -> Tuple[int, int, int]:
