@@ -125,6 +125,8 @@ DEFAULT_CONTACT_RATIO = 0.5
 # apart: the share the join rule asks of a fragment's sightings, not tuned apart (BENCHMARKS.md "Instances a user
 # gets" chose the rule on the tuning scenes).
 DEFAULT_SETTLE_AGREEMENT = DEFAULT_JOIN_AGREEMENT
+# Candidates of the settle rule whose sightings are compared at once (their [V, C] slices of the table).
+SETTLE_CHUNK = 1 << 16
 
 
 def _sightings(table: np.ndarray, members: np.ndarray, home: np.ndarray) -> Tuple[int, int, int]:
@@ -493,6 +495,11 @@ def settle_by_masks(
     target = np.full(labels.size, -1)
     reach = contact_factor * spacing
     sizes = np.bincount(labels[labels >= 0])
+    # only a Gaussian seen in some mask in min_views views can move: counted view by view (the table is [V, N])
+    in_masks = np.zeros(labels.size, dtype=np.int64)
+    for row_of_view in table:
+        in_masks += row_of_view >= 1
+    movable = finite & (in_masks >= min_views)
     for row, label in enumerate(instances):
         members = np.flatnonzero(labels == label)
         low, high = _grown_box(means[members], reach)
@@ -500,23 +507,23 @@ def settle_by_masks(
         # the contact rule's, whose masks split about evenly there
         larger = np.zeros(labels.size, dtype=bool)
         larger[labels >= 0] = sizes[labels[labels >= 0]] * join_ratio >= members.size
-        candidates = np.flatnonzero((labels != label) & finite & ~larger & _in_box(means, (low, high)))
+        candidates = np.flatnonzero(movable & (labels != label) & ~larger & _in_box(means, (low, high)))
         if candidates.size == 0:
             continue
-        distance, _ = cKDTree(means[members]).query(means[candidates])
+        distance, _ = cKDTree(means[members]).query(means[candidates], workers=-1)
         candidates = candidates[distance <= reach]
-        if candidates.size == 0:
-            continue
-        sightings = table[:, candidates]
-        own = labels[candidates]
-        own_home = homes[np.where(own >= 0, row_of[np.maximum(own, 0)], len(instances))].T  # [V, C]: its own mask
         home = homes[row][:, None]
-        telling = (home >= 1) & (sightings >= 0) & (own_home != home)
-        inside = ((sightings == home) & telling).sum(axis=0)
-        share = inside / np.maximum(telling.sum(axis=0), 1)
-        better = (inside >= min_views) & (share >= agreement) & (share > best[candidates])
-        best[candidates[better]] = share[better]
-        target[candidates[better]] = label
+        # a chunk of candidates at a time: their [V, C] sightings stay small on scenes of millions
+        for chunk in np.array_split(candidates, max(1, candidates.size // SETTLE_CHUNK)) if candidates.size else ():
+            sightings = table[:, chunk]
+            own = labels[chunk]
+            own_home = homes[np.where(own >= 0, row_of[np.maximum(own, 0)], len(instances))].T  # [V, C]
+            telling = (home >= 1) & (sightings >= 0) & (own_home != home)
+            inside = ((sightings == home) & telling).sum(axis=0)
+            share = inside / np.maximum(telling.sum(axis=0), 1)
+            better = (inside >= min_views) & (share >= agreement) & (share > best[chunk])
+            best[chunk[better]] = share[better]
+            target[chunk[better]] = label
     moving = target >= 0
     # one Gaussian at a time, never an instance's majority: whole instances are the join rule's to move
     for label in instances:
