@@ -499,18 +499,20 @@ def settle_by_masks(
     in_masks = np.zeros(labels.size, dtype=np.int64)
     for row_of_view in table:
         in_masks += row_of_view >= 1
-    movable = finite & (in_masks >= min_views)
+    movable = np.flatnonzero(finite & (in_masks >= min_views))
+    movable_means, movable_labels = means[movable], labels[movable]
+    movable_sizes = np.where(movable_labels >= 0, sizes[np.maximum(movable_labels, 0)], 0)
     for row, label in enumerate(instances):
         members = np.flatnonzero(labels == label)
         low, high = _grown_box(means[members], reach)
         # not from a container into a small object in or on it (at most join_ratio of its size): that contact is
         # the contact rule's, whose masks split about evenly there
-        larger = np.zeros(labels.size, dtype=bool)
-        larger[labels >= 0] = sizes[labels[labels >= 0]] * join_ratio >= members.size
-        candidates = np.flatnonzero(movable & (labels != label) & ~larger & _in_box(means, (low, high)))
+        smaller = movable_sizes * join_ratio < members.size
+        candidates = movable[(movable_labels != label) & smaller & _in_box(movable_means, (low, high))]
         if candidates.size == 0:
             continue
-        distance, _ = cKDTree(means[members]).query(means[candidates], workers=-1)
+        # bounded by the reach: a far candidate's search stops early (most of a large instance's box is far)
+        distance, _ = cKDTree(means[members]).query(means[candidates], distance_upper_bound=reach, workers=-1)
         candidates = candidates[distance <= reach]
         home = homes[row][:, None]
         # a chunk of candidates at a time: their [V, C] sightings stay small on scenes of millions
