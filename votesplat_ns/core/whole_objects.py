@@ -528,10 +528,9 @@ def settle_by_masks(
             target[chunk[better]] = label
     moving = target >= 0
     # one Gaussian at a time, never an instance's majority: whole instances are the join rule's to move
-    for label in instances:
-        leaving = moving & (labels == label)
-        if leaving.sum() * 2 >= (labels == label).sum():
-            moving &= ~leaving
+    leaving = np.bincount(labels[moving & (labels >= 0)], minlength=sizes.size)
+    drained = np.flatnonzero(leaving * 2 >= np.maximum(sizes, 1))  # an instance would lose half or more
+    moving &= ~np.isin(labels, drained)
     out[moving] = target[moving]
     stats["settled"] = int(moving.sum())
     stats["settled_from_background"] = int((moving & (labels < 0)).sum())
