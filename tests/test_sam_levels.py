@@ -285,6 +285,36 @@ def test_sam_mask_source_runs_the_one_pass_generator(one_torch_thread):
     assert labels[1].max() > 0
 
 
+def test_sam_points_per_batch_reaches_the_generator_and_the_cache_key_and_a_bad_one_is_refused(one_torch_thread):
+    """``--sam-points-per-batch`` (both commands' SamOptions): the decoder's batch, named in the cache key; the labels
+    do not depend on it (the oracle tests above run batches of 4, 7 and 64); 0 is refused in one line naming both
+    flags, before any model is built."""
+    from votesplat_ns.core.mask_sources import SamMaskSource
+    from votesplat_ns.errors import VoteSplatInputError
+    from votesplat_ns.ns.mask_settings import SamOptions
+
+    sam = tiny_sam()
+    image = blocks_image()
+    options = dict(sam_points_per_side=4, sam_pred_iou_thresh=0.0, sam_stability_score_thresh=0.0)
+    labels, keys = [], []
+    for batch in (5, 16):
+        generator_options = SamOptions(sam_points_per_batch=batch, **options).sam_generator_options()
+        # what make_mask_source("sam", sam_options=generator_options) makes, with the tiny model instead of a checkpoint
+        source = SamMaskSource(sam_model=sam, device="cpu", levels=("m", "default"), **generator_options)
+        keys.append(source.config_key())
+        labels.append(source.masks_for_image(image, "blocks.png", 0))
+        assert source._generator.points_per_batch == batch
+    assert [key["points_per_batch"] for key in keys] == [5, 16]
+    assert all(np.array_equal(a, b) for a, b in zip(*labels)) and labels[0][1].max() > 0
+    assert SamOptions().sam_points_per_batch == 256 == SamMaskSource(sam_model=sam).config_key()["points_per_batch"]
+    with pytest.raises(VoteSplatInputError) as refused:
+        SamMaskSource(sam_model=sam, points_per_batch=0)
+    line = str(refused.value)
+    assert (
+        "\n" not in line and "--pipeline.datamanager.sam-points-per-batch" in line and "--sam-points-per-batch" in line
+    )
+
+
 def test_images_asked_for_from_two_threads_get_their_own_labels(one_torch_thread):
     """Two threads at once (the cache build's overlap of one view's host work with the next one's device work):
     each image gets the labels it gets alone, in any interleaving."""

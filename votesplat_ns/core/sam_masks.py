@@ -76,7 +76,9 @@ def check_sam_device(device: str) -> None:
 DEFAULT_POINTS_PER_BATCH = 256
 """Point prompts per decoder call. The decoder's activations take some 20-30 MiB per prompt in fp32 (the image
 embedding is repeated per prompt through its two-way transformer and upscaling), whatever the image's size: 5-8 GiB
-at 256. Its masks are upscaled apart, :data:`UPSCALE_BUDGET_BYTES` at a time."""
+at 256. Its masks are upscaled apart, :data:`UPSCALE_BUDGET_BYTES` at a time. 1024 (one call per crop of 32 x 32
+points) takes 15% off a vit_b image in bf16 at twice the working memory, 2-3% off a vit_h one (BENCHMARKS.md, "SAM
+masks")."""
 
 UPSCALE_BUDGET_BYTES = 1 << 31
 """Device memory for the masks upscaled at once: per mask, the 1024 x 1024 step of ``Sam.postprocess_masks`` (4 MiB)
@@ -147,6 +149,12 @@ class SamMaskSource(MaskSource):
             check_sam_device(device)
         if precision == "auto":  # resolved here, so that the cache key names the arithmetic that made the masks
             precision = default_sam_precision(device)
+        if int(points_per_batch) < 1:
+            raise VoteSplatInputError(
+                f"SAM points per batch {points_per_batch} must be at least 1: give "
+                "--pipeline.datamanager.sam-points-per-batch (ns-train) or --sam-points-per-batch (votesplat masks) a "
+                "positive number, e.g. 256"
+            )
         if max_long_side is not None and max_long_side < 16:
             raise VoteSplatInputError(f"max_long_side={max_long_side} is too small; use >= 16 or None")
         self.model_type = model_type

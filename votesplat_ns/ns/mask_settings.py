@@ -33,6 +33,8 @@ class SamOptions:
     """SAM automatic mask generator: lowest stability score of a kept mask."""
     sam_crop_n_layers: int = 1
     """SAM automatic mask generator: layers of image crops (0: whole image only)."""
+    sam_points_per_batch: int = 256
+    """SAM automatic mask generator: point prompts per decoder call (1024: one call per crop, about 15% faster with vit_b in bf16 but twice the working memory; vit_h gains little)."""
     sam_min_mask_region_area: int = 100
     """SAM automatic mask generator: smallest mask region kept, in pixels."""
     sam_max_long_side: Optional[int] = 1080
@@ -50,6 +52,7 @@ class SamOptions:
         """The automatic mask generator's settings, as ``make_mask_source(sam_options=...)`` takes them."""
         return dict(
             points_per_side=self.sam_points_per_side,
+            points_per_batch=self.sam_points_per_batch,
             pred_iou_thresh=self.sam_pred_iou_thresh,
             stability_score_thresh=self.sam_stability_score_thresh,
             crop_n_layers=self.sam_crop_n_layers,
