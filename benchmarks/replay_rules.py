@@ -141,6 +141,26 @@ def score(dump: Dict[str, np.ndarray], level: int, ids: np.ndarray, confidence, 
     return out
 
 
+def moved_gaussians(before: np.ndarray, after: np.ndarray) -> int:
+    """How many Gaussians changed instance between two labelings of one level (-1: background), whatever the
+    instances' numbers: the rules renumber instances by size, so a Gaussian added to one instance can swap two
+    instances' ids. Instances are paired one to one by their shared Gaussians (background with background), and a
+    Gaussian counts when its instance's pair does not hold it."""
+    from scipy.optimize import linear_sum_assignment
+
+    rows, row_of = np.unique(before, return_inverse=True)
+    cols, col_of = np.unique(after, return_inverse=True)
+    shared = np.zeros((rows.size, cols.size), dtype=np.int64)
+    np.add.at(shared, (row_of.ravel(), col_of.ravel()), 1)
+    weight = shared.astype(np.float64)
+    both = (rows[:, None] < 0) & (cols[None, :] < 0)
+    weight[(rows[:, None] < 0) ^ (cols[None, :] < 0)] = 0  # background pairs with background only
+    weight[both] += before.size + 1  # and always does, where both have some
+    r, c = linear_sum_assignment(weight, maximize=True)
+    kept = sum(int(shared[i, j]) for i, j in zip(r, c) if (rows[i] < 0) == (cols[j] < 0))
+    return int(before.size - kept)
+
+
 def _cell(before, after) -> str:
     fmt = lambda v: "-" if v is None else (str(v) if isinstance(v, (int, str)) else f"{v:.3f}")  # noqa: E731
     return fmt(before) if before == after else f"{fmt(before)} → {fmt(after)}"
@@ -165,7 +185,7 @@ def replay(paths: List[Path], variants: List[Tuple[str, dict]]) -> str:
                 raise SystemExit(f"{path}: the defaults do not give the dumped level {level} back; dump it again")
             for name, options in variants:
                 changed, changed_stats = rules(dump, level, **options)
-                moved = int((changed != ids).sum())
+                moved = moved_gaussians(ids, changed)
                 after = dict(base)
                 if moved:
                     after = score(dump, level, changed, changed_stats.get("confidence"), ghost=level == 0)

@@ -8,7 +8,7 @@ import json
 import statistics
 from pathlib import Path
 
-from conftest import run_benchmark
+from conftest import BENCHMARKS, run_benchmark
 
 
 def row(variant, seed, miou, num_pred=5):
@@ -199,3 +199,26 @@ def test_replayed_rules_give_the_evals_instances_back_and_score_a_variant_agains
         assert rows[level, "same"]["Gaussians moved"] == "0" and "→" not in "".join(rows[level, "same"].values())
     # without the whole-object rules the hidden Gaussians stay background: instances lose Gaussians
     assert int(rows["0", "none"]["Gaussians moved"]) > 0 and "→" in rows["0", "none"]["mean_completeness_3d"]
+
+
+def test_replay_counts_a_gaussian_as_moved_when_its_instance_changes_not_when_instances_are_renumbered(monkeypatch):
+    """The rules renumber instances by size, so one Gaussian added to an instance can swap two ids (on a tuning run
+    comparing ids counted 5,151 Gaussians where 1,253 had moved); the replay's "Gaussians moved" pairs the
+    instances by what they share."""
+    import importlib.util
+
+    import numpy as np
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS))  # replay_rules imports sweep, its sibling
+    spec = importlib.util.spec_from_file_location("replay_rules", BENCHMARKS / "replay_rules.py")
+    replay_rules = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(replay_rules)
+    moved = replay_rules.moved_gaussians
+
+    before = np.array([0, 0, 0, 1, 1, -1, -1, 2])
+    assert moved(before, before) == 0
+    assert moved(before, np.array([1, 1, 1, 0, 0, -1, -1, 2])) == 0  # the same instances, other ids
+    assert moved(before, np.array([1, 1, 1, 0, 0, 0, -1, 2])) == 1  # a background Gaussian joins, ids swapped
+    assert moved(before, np.array([0, 0, 1, 1, 1, -1, -1, 2])) == 1  # one Gaussian changes instance
+    assert moved(before, np.full(8, -1)) == 6  # every instance's Gaussians to the background
+    assert moved(np.array([-1, -1]), np.array([0, 0])) == 2  # background never pairs with an instance
