@@ -50,6 +50,7 @@ from typing import Dict, List, Optional, Sequence
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from votesplat_ns.core.ply_io import atomic_write  # noqa: E402  (after the path set-up)
+from votesplat_ns.eval.mask_noise import SAM_LIKE_NOISE  # noqa: E402
 
 ABLATIONS: Dict[str, Dict[str, str]] = {
     "full": {},
@@ -336,10 +337,10 @@ def parse_args(argv: Optional[List[str]] = None):
     )
     parser.add_argument("--min-weight", type=float, default=0.5)
     parser.add_argument("--work-dir", type=Path, default=Path("build/quality"))
-    parser.add_argument("--split-rate", type=float, default=0.15)
-    parser.add_argument("--merge-rate", type=float, default=0.1)
-    parser.add_argument("--jitter-rate", type=float, default=0.5)
-    parser.add_argument("--drop-rate", type=float, default=0.05)
+    parser.add_argument("--split-rate", type=float, default=SAM_LIKE_NOISE.split_rate)
+    parser.add_argument("--merge-rate", type=float, default=SAM_LIKE_NOISE.merge_rate)
+    parser.add_argument("--jitter-rate", type=float, default=SAM_LIKE_NOISE.jitter_rate)
+    parser.add_argument("--drop-rate", type=float, default=SAM_LIKE_NOISE.drop_rate)
     parser.add_argument("--noise-seed", type=int, default=0)
     parser.add_argument("--seeds", nargs="+", type=int, default=[42], help="repeat every run with each training seed")
     parser.add_argument(

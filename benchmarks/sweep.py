@@ -5,6 +5,9 @@
                 'maskonly:dm.border_masks=mask_only' \\
         --cluster fill 'nofill:fill=False' --steps 3000 --vote-start 500 --jobs 16 --work-dir build/sweep
 
+``--masks noisy`` trains on the GT masks with SAM-like errors (``SAM_LIKE_NOISE`` of
+votesplat_ns/eval/mask_noise.py, written under ``<work-dir>/<scene>/noisy_masks``).
+
 ``--family tuning|test`` takes every scene of that family set (``--family-dir``, default
 ``build/family_<set>``, written by ``votesplat synth family-set``), checked against the seeds in
 votesplat_ns/eval/synthetic/family.py: defaults are chosen on the tuning set only, the test set reports
@@ -35,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import json
 import statistics
 import subprocess
@@ -153,6 +157,14 @@ def run_job(job: dict) -> List[dict]:
                     }
                 )
     return rows
+
+
+def noisy_masks(scene: Path, folder: Path) -> Path:
+    """``--masks noisy``: the scene's GT masks with SAM-like errors (``SAM_LIKE_NOISE``: splits, merges, boundary
+    jitter, drops) written to ``folder``, the training's folder mask source."""
+    from votesplat_ns.eval.mask_noise import SAM_LIKE_NOISE, write_noisy_masks
+
+    return write_noisy_masks(scene, folder, SAM_LIKE_NOISE, overwrite=True)
 
 
 def table(rows: Sequence[dict]) -> str:
@@ -284,8 +296,6 @@ def main(argv: Optional[List[str]] = None) -> int:
         rows = [row for path in args.summarize for row in json.loads(path.read_text())["rows"]]
         print(table(rows))
         return 0
-    from votesplat_ns.cli.evaluate_cli import write_noisy_masks
-    from votesplat_ns.eval.mask_noise import MaskNoise
 
     work = args.work_dir.resolve()
     jobs = []
@@ -294,7 +304,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         for masks in args.masks:
             folder = None
             if masks == "noisy":
-                folder = write_noisy_masks(scene, work / name / "noisy_masks", MaskNoise(), overwrite=True)
+                folder = noisy_masks(scene, work / name / "noisy_masks")
             for train_name, train_settings in args.train:
                 for seed in args.seeds:
                     run_dir = work / name / f"{masks}_{train_name}_seed{seed}"
@@ -335,6 +345,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k not in ("job", "summarize")
     }
     settings["scenes"] = [str(s) for s in args.scenes]
+    if "noisy" in args.masks:
+        from votesplat_ns.eval.mask_noise import SAM_LIKE_NOISE
+
+        settings["noise"] = dataclasses.asdict(SAM_LIKE_NOISE)
     rows: List[dict] = []
     lock = threading.Lock()
     header = f"steps {args.steps}, vote start {args.vote_start}"

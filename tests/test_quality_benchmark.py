@@ -222,3 +222,33 @@ def test_replay_counts_a_gaussian_as_moved_when_its_instance_changes_not_when_in
     assert moved(before, np.array([0, 0, 1, 1, 1, -1, -1, 2])) == 1  # one Gaussian changes instance
     assert moved(before, np.full(8, -1)) == 6  # every instance's Gaussians to the background
     assert moved(np.array([-1, -1]), np.array([0, 0])) == 2  # background never pairs with an instance
+
+
+def test_the_sweeps_noisy_masks_carry_sam_like_errors_as_the_noise_command_and_quality_benchmark_do(
+    monkeypatch, tmp_path
+):
+    """``sweep.py --masks noisy`` trains on the GT masks with ``SAM_LIKE_NOISE``, the defaults of ``votesplat eval
+    noise`` and of ``quality.py``: with ``MaskNoise()`` (every rate 0) its "noisy" masks were the GT's, unchanged."""
+    import dataclasses
+    import importlib.util
+
+    from conftest import DEMO_SCENE
+
+    from votesplat_ns.cli.evaluate_cli import WriteNoisyMasks
+    from votesplat_ns.eval.mask_noise import NOISE_MANIFEST_NAME, SAM_LIKE_NOISE
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    spec = importlib.util.spec_from_file_location("sweep", BENCHMARKS / "sweep.py")
+    sweep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sweep)
+    folder = sweep.noisy_masks(DEMO_SCENE, tmp_path / "noisy")
+    manifest = json.loads((folder / NOISE_MANIFEST_NAME).read_text())
+    assert manifest["noise"] == dataclasses.asdict(SAM_LIKE_NOISE)
+    assert manifest["views_changed"]["instance"] >= manifest["num_views"] // 2 and manifest["views_changed"]["part"] > 0
+    assert WriteNoisyMasks(data=DEMO_SCENE, output=tmp_path / "x").noise() == SAM_LIKE_NOISE
+    spec = importlib.util.spec_from_file_location("quality", BENCHMARKS / "quality.py")
+    quality = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(quality)
+    args = quality.parse_args([])
+    rates = ("split_rate", "merge_rate", "jitter_rate", "drop_rate")
+    assert {rate: getattr(args, rate) for rate in rates} == {rate: getattr(SAM_LIKE_NOISE, rate) for rate in rates}

@@ -11,7 +11,7 @@ from typing import Literal, Optional, Tuple
 
 from votesplat_ns.eval.evaluation import DEFAULT_MAX_PSNR_DROP_DB, DEFAULT_MIN_GAIN_DB
 from votesplat_ns.eval.ground_truth import GT_LEVELS
-from votesplat_ns.eval.mask_noise import NOISE_MANIFEST_NAME, MaskNoise, write_noisy_masks
+from votesplat_ns.eval.mask_noise import NOISE_MANIFEST_NAME, SAM_LIKE_NOISE, MaskNoise, write_noisy_masks
 from votesplat_ns.ns.evaluate import METRICS_NAME, ViewSplit, evaluate_run
 
 
@@ -88,13 +88,13 @@ class WriteNoisyMasks:
     """Dataset folder with GT masks (written by votesplat synth)."""
     output: Path
     """Folder to write (<output>/<level>/<image_stem>.png)."""
-    split_rate: float = 0.15
+    split_rate: float = SAM_LIKE_NOISE.split_rate
     """Probability that a mask is cut in two (over-segmentation)."""
-    merge_rate: float = 0.1
+    merge_rate: float = SAM_LIKE_NOISE.merge_rate
     """Probability that a mask absorbs a neighbouring mask (under-segmentation)."""
-    jitter_rate: float = 0.5
+    jitter_rate: float = SAM_LIKE_NOISE.jitter_rate
     """Probability that a mask's boundary grows or shrinks by 1..max-jitter-px pixels."""
-    drop_rate: float = 0.05
+    drop_rate: float = SAM_LIKE_NOISE.drop_rate
     """Probability that a mask is missing."""
     max_jitter_px: int = 2
     merge_max_gap_px: int = 2

@@ -193,6 +193,11 @@ class MaskNoise:
             events.append(NoiseEvent("jitter", label, amount=radius if grow else -radius))
 
 
+SAM_LIKE_NOISE = MaskNoise(split_rate=0.15, merge_rate=0.1, jitter_rate=0.5, drop_rate=0.05)
+"""The benchmarks' "noisy masks" and ``votesplat eval noise``'s defaults: SAM's typical errors at rates that keep a
+mask's identity in most views (MaskNoise() itself changes nothing)."""
+
+
 # ----------------------------------------------------------------------------- noisy mask folders
 
 NOISE_MANIFEST_NAME = "noise.json"
