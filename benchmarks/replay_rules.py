@@ -15,7 +15,9 @@ record is neither read nor written) and records, per level, what the mask check'
 clustering's labels, the mask table, the votes, the options) and what the scorer was given (each Gaussian's GT
 object, the held-out views' GT maps), plus the Gaussians the removal check renders and the scores eval gave. It
 records them by wrapping ``regroup_with_masks`` and ``add_ghost_check`` as ``evaluate_run`` calls them; nothing
-else changes. A dump of a 256x192 family run is 8-19 MB.
+else changes. It also keeps the mask check's training views (cameras and mask labels per level), so that
+:func:`retable` computes a level's table again on any machine, for variants of the evidence itself (its depth
+tolerance, say) that the rules' keywords cannot reach. A dump of a 256x192 family run is 8-19 MB without the views.
 
 ``replay`` first replays the defaults and stops if they do not give the dumped instances and scores back. A
 variant is ``name:key=value,...`` of ``regroup_with_masks`` keywords (those of
@@ -50,6 +52,13 @@ def dump_run(config: Path, out: Path) -> Path:
 
     record: Dict[str, np.ndarray] = {}
     regroup, ghost, instances = mask_views.regroup_with_masks, evaluate.add_ghost_check, evaluate.run_instances
+    view_masks = mask_views._view_masks
+    train_views: Dict[int, tuple] = {}  # the mask check's views: index -> (view, masks per level)
+
+    def recording_view_masks(datamanager, known, level_names, index, view):
+        masks = view_masks(datamanager, known, level_names, index, view)
+        train_views[index] = (view, [masks[name] for name in level_names])
+        return masks
 
     def recording_regroup(ids, means, table, votes=None, **options):
         level = sum(key.startswith("ids_in_") for key in record)
@@ -84,12 +93,22 @@ def dump_run(config: Path, out: Path) -> Path:
         record[f"scores_{level}"] = np.array(json.dumps({key: result.get(key) for key in SCORES}))
 
     mask_views.regroup_with_masks, evaluate.add_ghost_check = recording_regroup, recording_ghost
+    mask_views._view_masks = recording_view_masks
     evaluate.run_instances = lambda scene, run_dir, *args, **kwargs: instances(scene, None, *args, **kwargs)
     try:
         with tempfile.TemporaryDirectory() as scratch:
             evaluate.evaluate_run(config, scratch, log=None)
     finally:
         mask_views.regroup_with_masks, evaluate.add_ghost_check, evaluate.run_instances = regroup, ghost, instances
+        mask_views._view_masks = view_masks
+    if train_views:
+        views = [train_views[index][0] for index in sorted(train_views)]
+        record["train_viewmats"] = np.stack([v.viewmat.cpu().numpy() for v in views]).astype(np.float32)
+        record["train_Ks"] = np.stack([v.K.cpu().numpy() for v in views]).astype(np.float32)
+        record["train_sizes"] = np.array([(v.width, v.height) for v in views])
+        for level in range(len(train_views[min(train_views)][1])):
+            masks = [train_views[index][1][level] for index in sorted(train_views)]
+            record[f"train_masks_{level}"] = np.stack(masks).astype(np.int32)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, **record)
     return out
@@ -159,6 +178,29 @@ def moved_gaussians(before: np.ndarray, after: np.ndarray) -> int:
     r, c = linear_sum_assignment(weight, maximize=True)
     kept = sum(int(shared[i, j]) for i, j in zip(r, c) if (rows[i] < 0) == (cols[j] < 0))
     return int(before.size - kept)
+
+
+def retable(dump: Dict[str, np.ndarray], level: int, depth_tolerance: Optional[float] = None) -> np.ndarray:
+    """The level's mask table [V, N] computed again from the dump's training views (the mask check's cameras and
+    masks) and Gaussians, as the check computes it (``centre`` evidence), on this machine's rasterizer: what a
+    variant of the evidence (``depth_tolerance``, default the check's) would have given the rules."""
+    import torch
+
+    from votesplat_ns.core.cameras import PinholeView
+    from votesplat_ns.core.mask_consensus import DEFAULT_DEPTH_TOLERANCE, fill_seen_masks, seen_pixels
+    from votesplat_ns.ns.rasterizer import rasterize
+
+    if "train_viewmats" not in dump:
+        raise SystemExit("this dump holds no training views (dumped before they were recorded); dump the run again")
+    tolerance = DEFAULT_DEPTH_TOLERANCE if depth_tolerance is None else depth_tolerance
+    gaussians = [torch.as_tensor(dump[name]) for name in ("g_means", "quats", "scales", "opacities")]
+    columns = np.flatnonzero(dump["keep"])
+    masks = dump[f"train_masks_{level}"]
+    table = np.full((len(masks), dump["keep"].shape[0]), -1, dtype=dump[f"table_{level}"].dtype)
+    for v, (viewmat, K, size) in enumerate(zip(dump["train_viewmats"], dump["train_Ks"], dump["train_sizes"])):
+        view = PinholeView(torch.tensor(viewmat), torch.tensor(K), int(size[0]), int(size[1]))
+        fill_seen_masks(table[v], seen_pixels(rasterize, *gaussians, view, tolerance), masks[v], columns)
+    return table
 
 
 def _cell(before, after) -> str:

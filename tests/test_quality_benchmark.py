@@ -8,6 +8,7 @@ import json
 import statistics
 from pathlib import Path
 
+import numpy as np
 from conftest import BENCHMARKS, run_benchmark
 
 
@@ -181,7 +182,20 @@ def test_sweep_table_averages_the_object_scores_over_scenes(tmp_path):
     assert cells["worst scene"] == "0.900 (a)" and cells["runs"] == "2"
 
 
-def test_replayed_rules_give_the_evals_instances_back_and_score_a_variant_against_them(trained_demo, tmp_path):
+def benchmark_module(name: str, monkeypatch):
+    """benchmarks/<name>.py imported (benchmarks/ is no package; its scripts import their siblings)."""
+    import importlib.util
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_replayed_rules_give_the_evals_instances_back_and_score_a_variant_against_them(
+    trained_demo, tmp_path, monkeypatch
+):
     """benchmarks/replay_rules.py: the dump of a trained run replays to the instances and scores that ``votesplat
     eval`` gave (the tool stops otherwise), without reading or writing the run's kept instances; a variant that
     changes them is scored against the defaults at both levels."""
@@ -190,6 +204,12 @@ def test_replayed_rules_give_the_evals_instances_back_and_score_a_variant_agains
     run_benchmark("replay_rules.py", "dump", "--config", str(trained_demo), "--out", str(tmp_path))
     assert (kept.read_bytes() if kept.exists() else None) == kept_before
     dump = tmp_path / f"{trained_demo.parent.name}.npz"
+    # the dump keeps the mask check's training views: its tables computed again from them are the check's
+    replay_rules = benchmark_module("replay_rules", monkeypatch)
+    dumped = replay_rules.load(dump)
+    for level in (0, 1):
+        np.testing.assert_array_equal(replay_rules.retable(dumped, level), dumped[f"table_{level}"])
+    assert (replay_rules.retable(dumped, 0, depth_tolerance=0.0) >= 0).sum() < (dumped["table_0"] >= 0).sum()
     table = run_benchmark(
         "replay_rules.py", "replay", str(dump), "--variant", "same:objects=True", "none:objects=False"
     )
@@ -205,15 +225,7 @@ def test_replay_counts_a_gaussian_as_moved_when_its_instance_changes_not_when_in
     """The rules renumber instances by size, so one Gaussian added to an instance can swap two ids (on a tuning run
     comparing ids counted 5,151 Gaussians where 1,253 had moved); the replay's "Gaussians moved" pairs the
     instances by what they share."""
-    import importlib.util
-
-    import numpy as np
-
-    monkeypatch.syspath_prepend(str(BENCHMARKS))  # replay_rules imports sweep, its sibling
-    spec = importlib.util.spec_from_file_location("replay_rules", BENCHMARKS / "replay_rules.py")
-    replay_rules = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(replay_rules)
-    moved = replay_rules.moved_gaussians
+    moved = benchmark_module("replay_rules", monkeypatch).moved_gaussians
 
     before = np.array([0, 0, 0, 1, 1, -1, -1, 2])
     assert moved(before, before) == 0
@@ -230,25 +242,17 @@ def test_the_sweeps_noisy_masks_carry_sam_like_errors_as_the_noise_command_and_q
     """``sweep.py --masks noisy`` trains on the GT masks with ``SAM_LIKE_NOISE``, the defaults of ``votesplat eval
     noise`` and of ``quality.py``: with ``MaskNoise()`` (every rate 0) its "noisy" masks were the GT's, unchanged."""
     import dataclasses
-    import importlib.util
 
     from conftest import DEMO_SCENE
 
     from votesplat_ns.cli.evaluate_cli import WriteNoisyMasks
     from votesplat_ns.eval.mask_noise import NOISE_MANIFEST_NAME, SAM_LIKE_NOISE
 
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    spec = importlib.util.spec_from_file_location("sweep", BENCHMARKS / "sweep.py")
-    sweep = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sweep)
-    folder = sweep.noisy_masks(DEMO_SCENE, tmp_path / "noisy")
+    folder = benchmark_module("sweep", monkeypatch).noisy_masks(DEMO_SCENE, tmp_path / "noisy")
     manifest = json.loads((folder / NOISE_MANIFEST_NAME).read_text())
     assert manifest["noise"] == dataclasses.asdict(SAM_LIKE_NOISE)
     assert manifest["views_changed"]["instance"] >= manifest["num_views"] // 2 and manifest["views_changed"]["part"] > 0
     assert WriteNoisyMasks(data=DEMO_SCENE, output=tmp_path / "x").noise() == SAM_LIKE_NOISE
-    spec = importlib.util.spec_from_file_location("quality", BENCHMARKS / "quality.py")
-    quality = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(quality)
-    args = quality.parse_args([])
+    args = benchmark_module("quality", monkeypatch).parse_args([])
     rates = ("split_rate", "merge_rate", "jitter_rate", "drop_rate")
     assert {rate: getattr(args, rate) for rate in rates} == {rate: getattr(SAM_LIKE_NOISE, rate) for rate in rates}
