@@ -222,9 +222,9 @@ def test_replayed_rules_give_the_evals_instances_back_and_score_a_variant_agains
 
 
 def test_replay_counts_a_gaussian_as_moved_when_its_instance_changes_not_when_instances_are_renumbered(monkeypatch):
-    """The rules renumber instances by size, so one Gaussian added to an instance can swap two ids (on a tuning run
-    comparing ids counted 5,151 Gaussians where 1,253 had moved); the replay's "Gaussians moved" pairs the
-    instances by what they share."""
+    """The rules renumber instances by size, so one Gaussian added to an instance can swap two ids, and comparing ids
+    would count every Gaussian of both (5,151 for 1,253 moved on a tuning run); the replay's "Gaussians moved" pairs
+    the instances by what they share."""
     moved = benchmark_module("replay_rules", monkeypatch).moved_gaussians
 
     before = np.array([0, 0, 0, 1, 1, -1, -1, 2])
@@ -240,7 +240,7 @@ def test_the_sweeps_noisy_masks_carry_sam_like_errors_as_the_noise_command_and_q
     monkeypatch, tmp_path
 ):
     """``sweep.py --masks noisy`` trains on the GT masks with ``SAM_LIKE_NOISE``, the defaults of ``votesplat eval
-    noise`` and of ``quality.py``: with ``MaskNoise()`` (every rate 0) its "noisy" masks were the GT's, unchanged."""
+    noise`` and of ``quality.py`` (``MaskNoise()`` alone, every rate 0, would leave the GT masks unchanged)."""
     import dataclasses
 
     from conftest import DEMO_SCENE
