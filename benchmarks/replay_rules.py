@@ -9,6 +9,8 @@ views that show an instance this way):
     python benchmarks/replay_rules.py dump --sweep build/sweep/sweep.json --out build/dumps
     # anywhere: each variant against the defaults, per run and level
     python benchmarks/replay_rules.py replay build/dumps/*.npz --variant anyseen:unseen_min_seen=False
+    # anywhere: the defaults with the check's masks made SAM-like noisy (the scene each run was trained on)
+    python benchmarks/replay_rules.py noisy-evidence --pair build/dumps/<run>.npz build/family_test/family_2055
 
 ``dump`` runs ``votesplat eval``'s ``evaluate_run`` on each run (instances computed in memory; the run's kept
 record is neither read nor written) and records, per level, what the mask check's rules were given (the vote
@@ -203,6 +205,56 @@ def retable(dump: Dict[str, np.ndarray], level: int, depth_tolerance: Optional[f
     return table
 
 
+def training_views(scene: Path, work: Path, mask_folder: Optional[Path] = None) -> Dict[str, np.ndarray]:
+    """The mask check's training views of a run trained on ``scene`` with votesplat's defaults, rebuilt on the CPU
+    without its checkpoint (the cameras in the trained frame, the masks per level: the dataset's, or
+    ``mask_folder``'s), under the keys a dump records them; the set-up's files go to ``work``."""
+    from votesplat_ns.ns import mask_views
+    from votesplat_ns.ns.method import setup_trainer_in_process
+
+    datamanager = setup_trainer_in_process(scene, work, 1, 0, "cpu", mask_folder=mask_folder).pipeline.datamanager
+    levels = list(datamanager.vote_levels)
+    indices, views = mask_views._mask_views(
+        datamanager, mask_views.DEFAULT_MASK_VIEWS, mask_views.DEFAULT_MASK_VIEW_WIDTH
+    )
+    masks = [mask_views._view_masks(datamanager, levels, levels, index, view) for index, view in zip(indices, views)]
+    record = {
+        "train_viewmats": np.stack([v.viewmat.cpu().numpy() for v in views]).astype(np.float32),
+        "train_Ks": np.stack([v.K.cpu().numpy() for v in views]).astype(np.float32),
+        "train_sizes": np.array([(v.width, v.height) for v in views]),
+    }
+    for level, name in enumerate(levels):
+        record[f"train_masks_{level}"] = np.stack([m[name] for m in masks]).astype(np.int32)
+    return record
+
+
+def noisy_evidence(path: Path, scene: Path, level: int = 0) -> str:
+    """A table row: the dumped run's rules and scores with the check's table from its training masks → from the same
+    views' masks with ``SAM_LIKE_NOISE``. The vote clustering stays the dumped training's: this measures what mask
+    errors do to the check and the whole-object rules, not a training on noisy masks."""
+    from votesplat_ns.eval.mask_noise import SAM_LIKE_NOISE, write_noisy_masks
+
+    dump = load(path)
+    with tempfile.TemporaryDirectory() as scratch:
+        if "train_viewmats" not in dump:  # dumped before the views were recorded
+            dump.update(training_views(scene, Path(scratch) / "masks"))
+        folder = write_noisy_masks(scene, Path(scratch) / "noisy_masks", SAM_LIKE_NOISE)
+        noisy = training_views(scene, Path(scratch) / "noisy", folder)
+    if not np.array_equal(noisy["train_viewmats"], dump["train_viewmats"]):
+        raise SystemExit(
+            f"{path}: the scene's training views are not the dumped run's; pass the scene it was trained on"
+        )
+    changed = float((noisy[f"train_masks_{level}"] != dump[f"train_masks_{level}"]).mean())
+    ids, stats = rules(dump, level)
+    before = score(dump, level, ids, stats.get("confidence"), ghost=True)
+    dump[f"train_masks_{level}"] = noisy[f"train_masks_{level}"]
+    dump[f"table_{level}"] = retable(dump, level)
+    noisy_ids, noisy_stats = rules(dump, level)
+    after = score(dump, level, noisy_ids, noisy_stats.get("confidence"), ghost=True)
+    cells = [_cell(before[key], after[key]) for key in SCORES]
+    return f"| {path.stem} | {level} | {100 * changed:.1f} | " + " | ".join(cells) + " |"
+
+
 def _cell(before, after) -> str:
     fmt = lambda v: "-" if v is None else (str(v) if isinstance(v, (int, str)) else f"{v:.3f}")  # noqa: E731
     return fmt(before) if before == after else f"{fmt(before)} → {fmt(after)}"
@@ -248,7 +300,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     again = commands.add_parser("replay", help="score variants of the rules on dumps against the defaults")
     again.add_argument("dumps", nargs="+", type=Path)
     again.add_argument("--variant", nargs="+", type=parse_variant, required=True, help="name:key=value,...")
+    noisy = commands.add_parser(
+        "noisy-evidence", help="score dumped runs with their check's masks made SAM-like noisy (the scene is needed)"
+    )
+    noisy.add_argument("--pair", nargs=2, action="append", required=True, metavar=("DUMP", "SCENE"), type=Path)
     args = parser.parse_args(argv)
+    if args.command == "noisy-evidence":
+        header = "| run | level | mask pixels changed % | " + " | ".join(SCORES) + " |"
+        print("\n".join([header, "|" + "---|" * (3 + len(SCORES))] + [noisy_evidence(d, s) for d, s in args.pair]))
+        return 0
     if args.command == "dump":
         runs = [(config, config.parent.name) for config in args.config]
         for sweep in args.sweep:

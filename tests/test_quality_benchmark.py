@@ -9,7 +9,7 @@ import statistics
 from pathlib import Path
 
 import numpy as np
-from conftest import BENCHMARKS, run_benchmark
+from conftest import BENCHMARKS, DEMO_SCENE, run_benchmark
 
 
 def row(variant, seed, miou, num_pred=5):
@@ -210,6 +210,13 @@ def test_replayed_rules_give_the_evals_instances_back_and_score_a_variant_agains
     for level in (0, 1):
         np.testing.assert_array_equal(replay_rules.retable(dumped, level), dumped[f"table_{level}"])
     assert (replay_rules.retable(dumped, 0, depth_tolerance=0.0) >= 0).sum() < (dumped["table_0"] >= 0).sum()
+    # rebuilt from the scene alone (for dumps without them), the views and masks are the run's
+    rebuilt = replay_rules.training_views(DEMO_SCENE, tmp_path / "rebuilt")
+    assert set(rebuilt) == {key for key in dumped if key.startswith("train_")}
+    for key, value in rebuilt.items():
+        np.testing.assert_array_equal(value, dumped[key])
+    noisy = parse_table(run_benchmark("replay_rules.py", "noisy-evidence", "--pair", str(dump), str(DEMO_SCENE)).stdout)
+    assert len(noisy) == 1 and float(noisy[0]["mask pixels changed %"]) > 0 and noisy[0]["ghost_percent"] != "-"
     table = run_benchmark(
         "replay_rules.py", "replay", str(dump), "--variant", "same:objects=True", "none:objects=False"
     )
@@ -242,8 +249,6 @@ def test_the_sweeps_noisy_masks_carry_sam_like_errors_as_the_noise_command_and_q
     """``sweep.py --masks noisy`` trains on the GT masks with ``SAM_LIKE_NOISE``, the defaults of ``votesplat eval
     noise`` and of ``quality.py`` (``MaskNoise()`` alone, every rate 0, would leave the GT masks unchanged)."""
     import dataclasses
-
-    from conftest import DEMO_SCENE
 
     from votesplat_ns.cli.evaluate_cli import WriteNoisyMasks
     from votesplat_ns.eval.mask_noise import NOISE_MANIFEST_NAME, SAM_LIKE_NOISE
