@@ -35,7 +35,7 @@ import json
 import sys
 import tempfile
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -104,13 +104,8 @@ def dump_run(config: Path, out: Path) -> Path:
         mask_views.regroup_with_masks, evaluate.add_ghost_check, evaluate.run_instances = regroup, ghost, instances
         mask_views._view_masks = view_masks
     if train_views:
-        views = [train_views[index][0] for index in sorted(train_views)]
-        record["train_viewmats"] = np.stack([v.viewmat.cpu().numpy() for v in views]).astype(np.float32)
-        record["train_Ks"] = np.stack([v.K.cpu().numpy() for v in views]).astype(np.float32)
-        record["train_sizes"] = np.array([(v.width, v.height) for v in views])
-        for level in range(len(train_views[min(train_views)][1])):
-            masks = [train_views[index][1][level] for index in sorted(train_views)]
-            record[f"train_masks_{level}"] = np.stack(masks).astype(np.int32)
+        views, masks = zip(*(train_views[index] for index in sorted(train_views)))
+        record.update(_views_record(views, list(zip(*masks))))
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, **record)
     return out
@@ -212,19 +207,21 @@ def training_views(scene: Path, work: Path, mask_folder: Optional[Path] = None) 
     from votesplat_ns.ns import mask_views
     from votesplat_ns.ns.method import setup_trainer_in_process
 
-    datamanager = setup_trainer_in_process(scene, work, 1, 0, "cpu", mask_folder=mask_folder).pipeline.datamanager
-    levels = list(datamanager.vote_levels)
-    indices, views = mask_views._mask_views(
-        datamanager, mask_views.DEFAULT_MASK_VIEWS, mask_views.DEFAULT_MASK_VIEW_WIDTH
-    )
-    masks = [mask_views._view_masks(datamanager, levels, levels, index, view) for index, view in zip(indices, views)]
+    pipeline = setup_trainer_in_process(scene, work, 1, 0, "cpu", mask_folder=mask_folder).pipeline
+    levels = list(pipeline.datamanager.vote_levels)
+    views, masks = mask_views.training_mask_views(pipeline, levels)
+    return _views_record(views, [masks[name] for name in levels])
+
+
+def _views_record(views: Sequence, masks_per_level: Sequence[Sequence[np.ndarray]]) -> Dict[str, np.ndarray]:
+    """Training views [V] (PinholeView) and, per level, their mask labels [V] under the keys of a dump."""
     record = {
         "train_viewmats": np.stack([v.viewmat.cpu().numpy() for v in views]).astype(np.float32),
         "train_Ks": np.stack([v.K.cpu().numpy() for v in views]).astype(np.float32),
         "train_sizes": np.array([(v.width, v.height) for v in views]),
     }
-    for level, name in enumerate(levels):
-        record[f"train_masks_{level}"] = np.stack([m[name] for m in masks]).astype(np.int32)
+    for level, masks in enumerate(masks_per_level):
+        record[f"train_masks_{level}"] = np.stack(masks).astype(np.int32)
     return record
 
 

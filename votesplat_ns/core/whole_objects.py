@@ -516,7 +516,7 @@ def settle_by_masks(
         candidates = candidates[distance <= reach]
         home = homes[row][:, None]
         # a chunk of candidates at a time: their [V, C] sightings stay small on scenes of millions
-        for chunk in np.array_split(candidates, max(1, candidates.size // SETTLE_CHUNK)) if candidates.size else ():
+        for chunk in np.array_split(candidates, max(1, candidates.size // SETTLE_CHUNK)):
             sightings = table[:, chunk]
             own = labels[chunk]
             own_home = homes[np.where(own >= 0, row_of[np.maximum(own, 0)], len(instances))].T  # [V, C]
