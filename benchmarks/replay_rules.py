@@ -265,6 +265,8 @@ def replay(paths: List[Path], variants: List[Tuple[str, dict]]) -> str:
     ]
     for path in paths:
         dump = load(path)
+        if not levels_of(dump):
+            raise SystemExit(f"{path}: holds no scored level (dumped by an older tool); dump the run again")
         for level in levels_of(dump):
             ids, stats = rules(dump, level)
             dumped = json.loads(str(dump[f"scores_{level}"]))
