@@ -8,6 +8,7 @@ import torch
 from votesplat_ns.core.cameras import PinholeView
 from votesplat_ns.core.clustering import cluster_levels
 from votesplat_ns.core.mask_consensus import (
+    bisect_by_masks,
     drawn_masks,
     drop_unmasked,
     merge_agreeing,
@@ -49,6 +50,41 @@ def test_split_moves_an_object_resting_in_another_out_of_its_cluster():
     assert np.unique(out[400:]).size == 1 and out[400] != 0
     # too small a group stays where it was
     assert (split_deviants(labels, means, table, radius=0.2, min_size=61) == 0).all()
+
+
+def _two_boxes_in_one_cluster(views=8, count=300):
+    """Two boxes of one size that voted into one cluster; each view shows one of them whole and 40% of the other,
+    so the cluster's mask is one box's in half of the views and the other's in the rest."""
+    rng = np.random.default_rng(3)
+    means = np.concatenate([blob([0, 0, 0], count, 0.2), blob([1, 0, 0], count, 0.2, seed=1)])
+    table = np.full((views, 2 * count), -1, dtype=np.int32)
+    for v in range(views):
+        a, b = 1 + v % 3, 5  # mask ids change from view to view
+        front, back = (slice(0, count), slice(count, None)) if v % 2 == 0 else (slice(count, None), slice(0, count))
+        table[v, front] = a if v % 2 == 0 else b
+        glimpsed = rng.random(count) < 0.4
+        table[v, back] = np.where(glimpsed, b if v % 2 == 0 else a, -1)
+    return means, np.zeros(2 * count, dtype=np.int64), table
+
+
+def test_bisect_cuts_two_objects_of_one_size_that_the_deviants_miss():
+    means, labels, table = _two_boxes_in_one_cluster()
+    table[3] = 7  # a view whose mask merges the two (a mask error)
+    # neither box's members lie away from the cluster's mask in most of their views
+    assert (split_deviants(labels, means, table, radius=0.3, min_size=5) == 0).all()
+    out = bisect_by_masks(labels, means, table, min_size=5)
+    assert np.unique(out[:300]).size == 1 and np.unique(out[300:]).size == 1 and out[0] != out[300]
+    # regroup_with_masks takes it (bisect=True) and the merge that follows keeps the cut
+    regrouped, stats = regroup_with_masks(labels, means, table, bisect=True, objects=False)
+    assert stats["num_clusters"] == 2 and regrouped[0] != regrouped[300]
+
+
+def test_bisect_keeps_one_object_whose_mask_one_view_splits():
+    means = blob([0, 0, 0], 400, 0.3)
+    labels = np.zeros(400, dtype=np.int64)
+    table = table_from([2] * 400, views=8)
+    table[5, means[:, 0] > 0] = 3  # a mask error: the object in two masks in one view
+    assert (bisect_by_masks(labels, means, table, min_size=5) == 0).all()
 
 
 def test_merge_joins_pieces_that_share_masks_and_keeps_neighbours_apart():
