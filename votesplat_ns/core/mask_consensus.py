@@ -280,10 +280,10 @@ def _nearest_filled(means: np.ndarray, members: np.ndarray, side: np.ndarray) ->
 
 def _two_sides(
     table: np.ndarray, members: np.ndarray, side: np.ndarray, min_share: float, min_seen: int, rounds: int
-) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Members [M] re-sided until stable: each goes to the side whose mask it lies in in more of the views that tell
-    the two sides apart (both sides sit in a mask there, not the same); -1 where no view tells. Returns the sides and
-    both sides' masks per view [V]."""
+) -> np.ndarray:
+    """Members' sides [M] (0, 1; -1 undecided) re-decided until stable: each goes to the side whose mask it lies in
+    in more of the views that tell the two sides apart (both sides sit in a mask there, not the same); -1 where no
+    view tells."""
     sub = table[:, members]
     for _ in range(rounds):
         homes = [sitting_masks(table, members[side == s], min_share, min_seen) for s in (0, 1)]
@@ -293,8 +293,7 @@ def _two_sides(
         if np.array_equal(new, side) or (new == 0).sum() == 0 or (new == 1).sum() == 0:
             break
         side = new
-    homes = [sitting_masks(table, members[side == s], min_share, min_seen) for s in (0, 1)]
-    return side, homes[0], homes[1]
+    return side
 
 
 def bisect_by_masks(
@@ -343,8 +342,7 @@ def bisect_by_masks(
                 candidates.append((int(counts[top[1]]), v, int(top[0]), int(top[1])))
         for _, v, a, b in sorted(candidates, reverse=True)[:seeds]:
             side = np.where(sub[v] == a, 0, np.where(sub[v] == b, 1, -1))
-            side, home_a, home_b = _two_sides(table, members, side, min_share, min_seen, rounds)
-            side = _nearest_filled(means, members, side)
+            side = _nearest_filled(means, members, _two_sides(table, members, side, min_share, min_seen, rounds))
             if min((side == 0).sum(), (side == 1).sum()) < min_size:
                 continue
             home_a = sitting_masks(table, members[side == 0], min_share, min_seen)
