@@ -153,21 +153,23 @@ def test_mask_check_splits_a_small_object_off_the_large_one_it_rests_against():
     scene, truth, cameras = two_objects()
     pipeline, _ = pipeline_with_true_masks(scene, truth, cameras)
     merged = np.zeros(len(truth), dtype=np.int64)  # the vote clustering left both in one cluster
-    ids, stats = mask_check(pipeline, scene, rasterize_torch, max_views=VIEWS, evidence="blend", grow=False)(
-        0, "instance", merged
-    )
+    # the split alone (the bisect rule, which also hands undecided members to a side, off)
+    check = dict(max_views=VIEWS, evidence="blend", bisect=False)
+    ids, stats = mask_check(pipeline, scene, rasterize_torch, grow=False, **check)(0, "instance", merged)
     assert stats["num_clusters"] == 2
     large = np.bincount(ids[truth == 1]).argmax()
     assert (ids[truth == 1] == large).mean() > 0.97
     split_off = (ids[truth == 2] != large).mean()
     assert split_off > 0.15  # the small object's visible surface leaves the large one's cluster
     # with grow (the default), the members no view decided follow the nearest decided ones
-    grown, _ = mask_check(pipeline, scene, rasterize_torch, max_views=VIEWS, evidence="blend", grow=True)(
-        0, "instance", merged
-    )
+    grown, _ = mask_check(pipeline, scene, rasterize_torch, grow=True, **check)(0, "instance", merged)
     large = np.bincount(grown[truth == 1]).argmax()
     assert (grown[truth == 1] == large).mean() > 0.97
     assert (grown[truth == 2] != large).mean() > max(0.8, split_off)
+    # the defaults (grow and bisect) keep the two apart as well
+    default, _ = mask_check(pipeline, scene, rasterize_torch, max_views=VIEWS, evidence="blend")(0, "instance", merged)
+    large = np.bincount(default[truth == 1]).argmax()
+    assert (default[truth == 1] == large).mean() > 0.97 and (default[truth == 2] != large).mean() > 0.8
 
 
 @pytest.mark.parametrize("evidence", ["centre", "blend"])
