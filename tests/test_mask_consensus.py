@@ -79,6 +79,28 @@ def test_bisect_cuts_two_objects_of_one_size_that_the_deviants_miss():
     assert stats["num_clusters"] == 2 and regrouped[0] != regrouped[300]
 
 
+def test_bisect_cuts_again_where_a_side_still_holds_two_objects():
+    # three boxes of one size in one cluster; each view shows one whole and glimpses the other two
+    rng = np.random.default_rng(5)
+    count, views = 200, 9
+    means = np.concatenate([blob([2.0 * b, 0, 0], count, 0.2, seed=b) for b in range(3)])
+    table = np.full((views, 3 * count), -1, dtype=np.int32)
+    for v in range(views):
+        for b in range(3):
+            box = slice(b * count, (b + 1) * count)
+            mask = 1 + (b + v) % 3  # mask ids change from view to view
+            glimpsed = rng.random(count) < (1.0 if b == v % 3 else 0.4)
+            table[v, box] = np.where(glimpsed, mask, -1)
+    labels = np.zeros(3 * count, dtype=np.int64)
+    out = bisect_by_masks(labels, means, table, min_size=5)
+    assert np.unique(out).size >= 3  # a cut in two leaves a side with two boxes, which is cut again
+    # a cut may leave a third box's pieces on both sides; the merge after it joins them again (one mask per view)
+    out, stats = regroup_with_masks(labels, means, table, objects=False)
+    boxes = [np.unique(out[b * count : (b + 1) * count]) for b in range(3)]
+    assert stats["num_clusters"] == 3 and all(ids.size == 1 for ids in boxes)
+    assert len({int(ids[0]) for ids in boxes}) == 3
+
+
 def test_bisect_keeps_one_object_whose_mask_one_view_splits():
     means = blob([0, 0, 0], 400, 0.3)
     labels = np.zeros(400, dtype=np.int64)

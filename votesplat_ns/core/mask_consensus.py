@@ -75,8 +75,8 @@ DEFAULT_MIN_SPLIT_SIZE = 5
 DEFAULT_GROW = True
 # Bisect clusters that hold two objects of about one size: on the tuning scenes (replays of 11 trainings, GT and
 # SAM-like masks) it separates two boxes that SAM-like masks left as one instance on 1006 (list precision 0.556 ->
-# 0.875, ghost 13.7 -> 8.8%) and raises part AP@50 on 5 of 11 runs, lowering it on none (BENCHMARKS.md "Instances
-# a user gets").
+# 0.875, ghost 13.7 -> 8.8%) and raises part AP@50 on 5 of 11 runs, lowering it on none; new tuning trainings with
+# SAM-like masks: part mIoU 0.680 -> 0.808, instance level unchanged (BENCHMARKS.md "Instances a user gets").
 DEFAULT_BISECT = True
 # relative depth behind the rendered surface that still counts as on it (tuning scene 1006's
 # training views: 83-98% of an object's centres in its unoccluded views; 2%: 49-86%)
@@ -321,7 +321,8 @@ def bisect_by_masks(
     cut is kept when both sides hold ``min_size`` members and they sit in one mask in fewer than
     ``min_agreement`` of the at least ``min_views`` views where both sit in a mask: what :func:`merge_agreeing`
     asks to keep two clusters apart, so a view whose mask splits one object (a mask error) starts a cut that is
-    not kept."""
+    not kept. With three objects in a cluster the first cut can leave pieces of one on both sides; each piece then
+    sits in that object's mask in every view, and :func:`merge_agreeing`, which follows, joins them."""
     out = labels.copy()
     next_label = int(labels.max()) + 1 if (labels >= 0).any() else 0
     queue = [int(x) for x in np.unique(labels[labels >= 0])]
