@@ -217,6 +217,17 @@ def _components(points: np.ndarray, radius: float) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
+def _nearest_filled(points: np.ndarray, values: np.ndarray, open_: np.ndarray) -> np.ndarray:
+    """``values`` [M] with each entry where ``open_`` [M] is true taken from the nearest (in ``points`` [M, 3]) entry
+    where it is false; unchanged when either set is empty."""
+    if not open_.any() or open_.all():
+        return values
+    _, nearest = cKDTree(points[~open_]).query(points[open_])
+    values = values.copy()
+    values[open_] = values[~open_][nearest]
+    return values
+
+
 def split_deviants(
     labels: np.ndarray,
     means: np.ndarray,
@@ -260,31 +271,22 @@ def split_deviants(
                 moved[np.isin(members, chosen)] = True
         if grow and moved.any():
             confirmed = (views >= min_views) & ~deviant
-            anchors = moved | confirmed
-            open_ = ~anchors
-            if open_.any():
-                _, nearest = cKDTree(means[members[anchors]]).query(means[members[open_]])
-                out[members[open_]] = out[members[anchors]][nearest]
+            out[members] = _nearest_filled(means[members], out[members], ~(moved | confirmed))
     return out
 
 
-def _nearest_filled(means: np.ndarray, members: np.ndarray, side: np.ndarray) -> np.ndarray:
-    """``side`` [M] (0, 1, or -1 where undecided) with each undecided member given its nearest decided member's."""
-    open_ = side < 0
-    if open_.any() and (~open_).any():
-        _, nearest = cKDTree(means[members[~open_]]).query(means[members[open_]])
-        side = side.copy()
-        side[open_] = side[~open_][nearest]
-    return side
-
-
 def _two_sides(
-    table: np.ndarray, members: np.ndarray, side: np.ndarray, min_share: float, min_seen: int, rounds: int
+    table: np.ndarray,
+    members: np.ndarray,
+    sub: np.ndarray,
+    side: np.ndarray,
+    min_share: float,
+    min_seen: int,
+    rounds: int,
 ) -> np.ndarray:
     """Members' sides [M] (0, 1; -1 undecided) re-decided until stable: each goes to the side whose mask it lies in
     in more of the views that tell the two sides apart (both sides sit in a mask there, not the same); -1 where no
-    view tells."""
-    sub = table[:, members]
+    view tells. ``sub`` is ``table[:, members]``."""
     for _ in range(rounds):
         homes = [sitting_masks(table, members[side == s], min_share, min_seen) for s in (0, 1)]
         telling = (homes[0] >= 1) & (homes[1] >= 1) & (homes[0] != homes[1])
@@ -343,7 +345,8 @@ def bisect_by_masks(
                 candidates.append((int(counts[top[1]]), v, int(top[0]), int(top[1])))
         for _, v, a, b in sorted(candidates, reverse=True)[:seeds]:
             side = np.where(sub[v] == a, 0, np.where(sub[v] == b, 1, -1))
-            side = _nearest_filled(means, members, _two_sides(table, members, side, min_share, min_seen, rounds))
+            side = _two_sides(table, members, sub, side, min_share, min_seen, rounds)
+            side = _nearest_filled(means[members], side, side < 0)
             if min((side == 0).sum(), (side == 1).sum()) < min_size:
                 continue
             home_a = sitting_masks(table, members[side == 0], min_share, min_seen)
