@@ -14,6 +14,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Dict, Literal, Optional
 
+from votesplat_ns.core.sam_masks import DEFAULT_POINTS_PER_BATCH
+
 
 @dataclass
 class SamOptions:
@@ -33,8 +35,8 @@ class SamOptions:
     """SAM automatic mask generator: lowest stability score of a kept mask."""
     sam_crop_n_layers: int = 1
     """SAM automatic mask generator: layers of image crops (0: whole image only)."""
-    sam_points_per_batch: int = 256
-    """SAM automatic mask generator: point prompts per decoder call (1024: one call per crop, about 15% faster with vit_b in bf16 but twice the working memory; vit_h gains little)."""
+    sam_points_per_batch: int = DEFAULT_POINTS_PER_BATCH
+    """SAM automatic mask generator: point prompts per decoder call (1024: faster with vit_b, twice the memory)."""
     sam_min_mask_region_area: int = 100
     """SAM automatic mask generator: smallest mask region kept, in pixels."""
     sam_max_long_side: Optional[int] = 1080
