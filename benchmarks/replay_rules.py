@@ -42,7 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from sweep import parse_variant  # noqa: E402  (benchmarks/ is no package)
+from sweep import noisy_masks, parse_variant  # noqa: E402  (benchmarks/ is no package)
 
 SCORES = ("num_predicted", "list_precision", "mean_completeness_3d", "mean_purity_3d", "ap50_3d", "ghost_percent")
 
@@ -229,13 +229,11 @@ def noisy_evidence(path: Path, scene: Path, level: int = 0) -> str:
     """A table row: the dumped run's rules and scores with the check's table from its training masks → from the same
     views' masks with ``SAM_LIKE_NOISE``. The vote clustering stays the dumped training's: this measures what mask
     errors do to the check and the whole-object rules, not a training on noisy masks."""
-    from votesplat_ns.eval.mask_noise import SAM_LIKE_NOISE, write_noisy_masks
-
     dump = load(path)
     with tempfile.TemporaryDirectory() as scratch:
         if "train_viewmats" not in dump:  # dumped before the views were recorded
             dump.update(training_views(scene, Path(scratch) / "masks"))
-        folder = write_noisy_masks(scene, Path(scratch) / "noisy_masks", SAM_LIKE_NOISE)
+        folder = noisy_masks(scene, Path(scratch) / "noisy_masks")  # the sweeps' --masks noisy
         noisy = training_views(scene, Path(scratch) / "noisy", folder)
     if not np.array_equal(noisy["train_viewmats"], dump["train_viewmats"]):
         raise SystemExit(
