@@ -101,9 +101,13 @@ def test_instance_no_view_sees_dissolves_into_the_object_it_lies_in() -> None:
     assert (out[cube] == 0).all() and (out[inner] == 0).all()
     assert (out[behind] == -1).all() and (out[glimpsed] == -1).all()
     assert stats["floaters"]["floaters"] == 3 and stats["num_instances"] == 1
-    # switched off, an unseen instance that touches another one is kept (contact as its only evidence)
-    kept, _, _ = run(means, labels, table, unseen=False)
+    # switched off, an unseen instance that touches another one is kept (contact as its only evidence), unless it
+    # lies inside another instance's hull: the rehome rule then moves its Gaussians there
+    kept, _, _ = run(means, labels, table, unseen=False, rehome=False)
     assert len(set(kept[kept >= 0])) == 4
+    rehomed, _, stats = run(means, labels, table, unseen=False)
+    assert (rehomed[inner] == rehomed[cube[0]]).all() and stats["rehome"]["rehomed"] == len(inner)
+    assert len(set(rehomed[rehomed >= 0])) == 3
 
 
 def test_instance_that_views_show_only_a_few_members_of_becomes_background() -> None:
@@ -373,3 +377,35 @@ def test_a_background_gaussian_that_joins_an_instance_becomes_foreground() -> No
     level = instances.level("instance")
     assert level.ids[-1] == level.ids[0] and level.foreground[-1]
     assert level.clustering["num_joined_background"] == 1 and level.confidence is not None
+
+
+def test_gaussians_no_view_sees_move_to_the_instance_whose_hull_holds_them() -> None:
+    scene = Scene()
+    left = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 0, [1, 1, 2, 2, 3, 3])
+    right = scene.add(box_surface([1.1, 0, 0], [2.1, 1, 1]), 1, [4, 4, 5, 5, 6, 6])
+    # hidden inside the right box in every view, but put in the left box's instance (by votes mixed at the contact)
+    stray = scene.add(box_interior([1.1, 0, 0], [2.1, 1, 1])[::25], 0, [-1] * 6)
+    # hidden inside the left box and in its instance: its own hull holds it, it stays
+    inner = scene.add(box_interior([0, 0, 0], [1, 1, 1])[::25], 0, [-1] * 6)
+    means, labels, table = scene.build()
+    out, _, stats = run(means, labels, table)
+    assert (out[stray] == out[right[0]]).all() and (out[inner] == out[left[0]]).all()
+    assert stats["rehome"]["rehomed"] == len(stray) and stats["num_instances"] == 2
+    off, _, stats_off = run(means, labels, table, rehome=False)
+    assert (off[stray] == off[left[0]]).all() and "rehome" not in stats_off
+
+
+def test_a_small_objects_hidden_side_is_not_rehomed_into_its_container() -> None:
+    scene = Scene()
+    # a bowl-like container (an open box) and a small box resting inside it; the small box's underside no view
+    # sees, and it lies outside the hull of the small box's seen top but inside the container's hull
+    bowl = scene.add(box_surface([0, 0, 0], [2, 2, 1], bottom=True), 0, [1, 1, 2, 2, 3, 3])
+    top = scene.add(box_surface([0.8, 0.8, 0.5], [1.2, 1.2, 0.6]), 1, [4, 4, 5, 5, 6, 6])
+    underside = scene.add(box_interior([0.7, 0.7, 0.1], [1.3, 1.3, 0.5]), 1, [-1] * 6)
+    means, labels, table = scene.build()
+    out, _, stats = run(means, labels, table, hidden=False)
+    assert (out[underside] == out[top[0]]).all() and (out[bowl] != out[top[0]]).all()
+    assert stats["rehome"]["rehomed"] == 0
+    # without the size guard (a container of at most 1 / join_ratio its size) it would have moved
+    loose, _, _ = run(means, labels, table, hidden=False, join_ratio=0.0)
+    assert (loose[underside] == loose[bowl[0]]).all()
