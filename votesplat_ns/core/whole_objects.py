@@ -570,20 +570,23 @@ def rehome_hidden(
     candidates = np.flatnonzero(~seen & finite & (labels >= 0))
     if len(ids) < 2 or candidates.size == 0:
         return out, {"rehomed": 0}
-    points = means[candidates]
-    depth = np.stack([_hull_depth(points, means[(labels == i) & seen]) for i in ids])  # [K, C]
-    ids_arr = np.asarray(ids)
-    columns = np.arange(candidates.size)
-    own_row = np.searchsorted(ids_arr, labels[candidates])
-    in_own = depth[own_row, columns] >= 0.0
-    deep = depth >= margin * spacing
-    deep[own_row, columns] = False
-    only = deep.sum(axis=0) == 1
-    target = ids_arr[deep.argmax(axis=0)]
+    points, own = means[candidates], labels[candidates]
+    # one instance at a time, no [instances, candidates] array (millions of candidates on a large scene)
+    in_own = np.zeros(candidates.size, dtype=bool)
+    holding = np.zeros(candidates.size, dtype=np.int64)  # other instances' hulls that hold it by the margin
+    target = np.full(candidates.size, -1, dtype=np.int64)
+    for label in ids:
+        depth = _hull_depth(points, means[(labels == label) & seen])
+        mine = own == label
+        in_own |= mine & (depth >= 0.0)
+        deep = ~mine & (depth >= margin * spacing)
+        holding += deep
+        target[deep] = label
     sizes = np.bincount(labels[labels >= 0])
     # not from a small object into its container (over 1 / size_ratio times its size): the small object's hidden
     # side lies inside the container's hull and outside the hull of its own seen Gaussians
-    moving = only & ~in_own & (sizes[labels[candidates]] >= size_ratio * sizes[target])
+    moving = (holding == 1) & ~in_own
+    moving[moving] &= sizes[own[moving]] >= size_ratio * sizes[target[moving]]
     out[candidates[moving]] = target[moving]
     return out, {"rehomed": int(moving.sum())}
 
