@@ -276,20 +276,14 @@ def split_deviants(
     return out
 
 
-def _two_sides(
-    table: np.ndarray,
-    members: np.ndarray,
-    sub: np.ndarray,
-    side: np.ndarray,
-    min_share: float,
-    min_seen: int,
-    rounds: int,
-) -> np.ndarray:
+def _two_sides(sub: np.ndarray, side: np.ndarray, min_share: float, min_seen: int, rounds: int) -> np.ndarray:
     """Members' sides [M] (0, 1; -1 undecided) re-decided until stable: each goes to the side whose mask it lies in
     in more of the views that tell the two sides apart (both sides sit in a mask there, not the same); -1 where no
-    view tells. ``sub`` is ``table[:, members]``."""
+    view tells. ``sub`` is the cluster's columns of the table, ``table[:, members]``."""
     for _ in range(rounds):
-        homes = [sitting_masks(table, members[side == s], min_share, min_seen) for s in (0, 1)]
+        # the sides' masks read from the cluster's columns, not the whole table: the same counts, 2-2.5x faster on
+        # a 5M-Gaussian table (its rows are megabytes; the cluster's are its members)
+        homes = [sitting_masks(sub, np.flatnonzero(side == s), min_share, min_seen) for s in (0, 1)]
         telling = (homes[0] >= 1) & (homes[1] >= 1) & (homes[0] != homes[1])
         votes = [((sub == home[:, None]) & telling[:, None]).sum(axis=0) for home in homes]
         new = np.where(votes[0] > votes[1], 0, np.where(votes[1] > votes[0], 1, -1))
@@ -346,12 +340,12 @@ def bisect_by_masks(
                 candidates.append((int(counts[top[1]]), v, int(top[0]), int(top[1])))
         for _, v, a, b in sorted(candidates, reverse=True)[:seeds]:
             side = np.where(sub[v] == a, 0, np.where(sub[v] == b, 1, -1))
-            side = _two_sides(table, members, sub, side, min_share, min_seen, rounds)
+            side = _two_sides(sub, side, min_share, min_seen, rounds)
             side = _nearest_filled(means[members], side, side < 0)
             if min((side == 0).sum(), (side == 1).sum()) < min_size:
                 continue
-            home_a = sitting_masks(table, members[side == 0], min_share, min_seen)
-            home_b = sitting_masks(table, members[side == 1], min_share, min_seen)
+            home_a = sitting_masks(sub, np.flatnonzero(side == 0), min_share, min_seen)
+            home_b = sitting_masks(sub, np.flatnonzero(side == 1), min_share, min_seen)
             both = (home_a >= 1) & (home_b >= 1)
             if both.sum() < min_views or (home_a[both] == home_b[both]).mean() >= min_agreement:
                 continue
