@@ -72,3 +72,55 @@ def test_a_failing_patch_warns_and_the_others_still_apply(monkeypatch):
     with pytest.warns(RuntimeWarning, match=r"patch 'broken' \(somewhere\) not applied: exporter moved"):
         patches.apply()
     assert applied == [1]
+
+
+def test_splatfacto_get_viewmat_runs_without_the_viewers_interrupt_trace():
+    import threading
+
+    import torch
+    from nerfstudio.models import splatfacto
+
+    patches.install_rasterizer_in_splatfacto()
+    viewmat = splatfacto.get_viewmat
+    patches.install_rasterizer_in_splatfacto()  # idempotent: no second wrapper
+    assert splatfacto.get_viewmat is viewmat and getattr(viewmat, "votesplat_untraced", False)
+    assert not getattr(viewmat.__wrapped__, "votesplat_untraced", False)
+
+    # a trace like the viewer's, raising on a line of the compiled function (the camera moved while dynamo traced it)
+    class Moved(Exception):
+        pass
+
+    seen_inside = []
+
+    def compiled(x):
+        seen_inside.append(sys.gettrace())
+        return x
+
+    def interrupt(frame, event, arg):
+        if event == "line" and frame.f_code is compiled.__code__:
+            raise Moved
+        return interrupt
+
+    def render(function):  # in its own thread, as the viewer's renders run
+        outcome = {}
+
+        def run():
+            sys.settrace(interrupt)
+            try:
+                outcome["value"] = function(3)
+                outcome["trace_after"] = sys.gettrace()
+            except Moved:
+                outcome["moved"] = True
+            finally:
+                sys.settrace(None)
+
+        thread = threading.Thread(target=run)
+        thread.start()
+        thread.join()
+        return outcome
+
+    assert render(compiled) == {"moved": True}
+    assert render(patches.untraced(compiled)) == {"value": 3, "trace_after": interrupt} and seen_inside == [None]
+    # splatfacto's own function still gives its view matrix through the wrapper
+    c2w = torch.eye(4)[None, :3, :]
+    assert torch.equal(splatfacto.get_viewmat(c2w), viewmat.__wrapped__(c2w))

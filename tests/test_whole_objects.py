@@ -406,6 +406,6 @@ def test_a_small_objects_hidden_side_is_not_rehomed_into_its_container() -> None
     out, _, stats = run(means, labels, table, hidden=False)
     assert (out[underside] == out[top[0]]).all() and (out[bowl] != out[top[0]]).all()
     assert stats["rehome"]["rehomed"] == 0
-    # without the size guard (a container of at most 1 / join_ratio its size) it would have moved
+    # with the size guard off (join_ratio 0) the underside moves into the bowl, whose hull holds it
     loose, _, _ = run(means, labels, table, hidden=False, join_ratio=0.0)
     assert (loose[underside] == loose[bowl[0]]).all()

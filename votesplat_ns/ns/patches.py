@@ -29,6 +29,9 @@ Scoped, applied where they are needed (listed here so that an upgrade checks the
 * ``splatfacto rasterization`` (:func:`install_rasterizer_in_splatfacto`, when the model is built):
   rebinds ``nerfstudio.models.splatfacto.rasterization`` to ``ns/rasterizer.py`` ``rasterize``
   (torch rasteriser on CPU, cameras recorded for the vote pass).
+* ``splatfacto get_viewmat untraced`` (:func:`untraced`, by :func:`install_rasterizer_in_splatfacto`): its
+  ``torch.compile``'d ``get_viewmat`` runs with the viewer's interrupt trace suspended, so a camera move during its
+  first compilation cannot kill a render thread.
 * ``Tensor.cuda on CPU`` (:func:`cuda_calls_stay_on_cpu`) and ``metrics at first use``
   (:func:`metrics_at_first_use`): context managers around nerfstudio code that calls ``.cuda()``
   unconditionally, or that imports torchmetrics (seconds) and downloads AlexNet to build metrics that
@@ -309,7 +312,8 @@ _rasterizer_lock = threading.Lock()
 
 
 def install_rasterizer_in_splatfacto() -> None:
-    """Point ``nerfstudio.models.splatfacto.rasterization`` at ``ns/rasterizer.py`` ``rasterize`` (idempotent).
+    """Point ``nerfstudio.models.splatfacto.rasterization`` at ``ns/rasterizer.py`` ``rasterize``, and its
+    ``get_viewmat`` at :func:`untraced` of itself (idempotent).
 
     splatfacto calls that module-level name; gsplat's own ``rasterization`` JIT-builds CUDA code and
     cannot run on CPU, and the vote pass needs the cameras splatfacto rendered with (see
@@ -324,6 +328,34 @@ def install_rasterizer_in_splatfacto() -> None:
         if getattr(splatfacto_module, "rasterization", None) is not rasterize:
             # the module's own import of gsplat's function, replaced as a name of that module
             setattr(splatfacto_module, "rasterization", rasterize)
+        if not getattr(splatfacto_module.get_viewmat, "votesplat_untraced", False):
+            setattr(splatfacto_module, "get_viewmat", untraced(splatfacto_module.get_viewmat))
+
+
+def untraced(function: Callable) -> Callable:
+    """``function`` called with the calling thread's trace function (``sys.settrace``) suspended.
+
+    splatfacto's ``get_viewmat`` is ``torch.compile``'d and compiles on its first call. The viewer's render threads
+    run under a per-line trace that raises ``IOChangeException`` when the camera moves; raised while dynamo traces
+    ``get_viewmat``, it becomes an ``InternalTorchDynamoError`` that kills the render thread, and the page never
+    updates again. The viewer control compiles it before any render (``ns/viewer.py``), but a browser that connects
+    while the viewer is still being built can render first (CI saw it once). The interrupt is checked again on the
+    render's next line.
+    """
+
+    def call(*args, **kwargs):
+        trace = sys.gettrace()
+        if trace is None:
+            return function(*args, **kwargs)
+        sys.settrace(None)
+        try:
+            return function(*args, **kwargs)
+        finally:
+            sys.settrace(trace)
+
+    call.votesplat_untraced = True  # pyright: ignore[reportFunctionMemberAccess]
+    call.__wrapped__ = function  # pyright: ignore[reportFunctionMemberAccess]
+    return call
 
 
 # ----------------------------------------------------------------------------- Tensor.cuda on CPU

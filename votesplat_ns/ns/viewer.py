@@ -79,8 +79,9 @@ def _viewer_control_class() -> type:
         ``get_viewmat`` is ``torch.compile``'d and compiles on its first call. If that call is the
         first viewer render, the viewer's per-line interrupt trace can fire inside dynamo (the
         camera moved); dynamo turns it into an InternalTorchDynamoError that kills the render
-        thread and the page never updates again. ``_setup`` runs in the main thread before any
-        render thread starts, so compiling there (as the renders call it: no grad, float32) is safe.
+        thread and the page never updates again. ``_setup`` runs in the main thread, so compiling there (as the
+        renders call it: no grad, float32) is safe; a browser that connects while the viewer is still being built
+        can render first, which ``ns/patches.py`` ``untraced`` covers.
         """
 
         def _setup(self, viewer: Any) -> None:
