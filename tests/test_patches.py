@@ -80,9 +80,9 @@ def test_splatfacto_get_viewmat_runs_without_the_viewers_interrupt_trace():
     import torch
     from nerfstudio.models import splatfacto
 
-    patches.install_rasterizer_in_splatfacto()
+    patches.install_untraced_viewmat()
     viewmat = splatfacto.get_viewmat
-    patches.install_rasterizer_in_splatfacto()  # idempotent: no second wrapper
+    patches.install_untraced_viewmat()  # idempotent: no second wrapper
     assert splatfacto.get_viewmat is viewmat and getattr(viewmat, "votesplat_untraced", False)
     assert not getattr(viewmat.__wrapped__, "votesplat_untraced", False)
 

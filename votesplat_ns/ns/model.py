@@ -32,7 +32,12 @@ from votesplat_ns.core.vote_maps import pixels_and_targets
 from votesplat_ns.core.vote_render import DIVERGED_VOTES, VoteRender, VoteRenderOptions, render_votes_tiled, vote_losses
 from votesplat_ns.errors import VoteSplatInputError
 from votesplat_ns.ns.compat import UnavailableMetric
-from votesplat_ns.ns.patches import cuda_calls_stay_on_cpu, install_rasterizer_in_splatfacto, metrics_at_first_use
+from votesplat_ns.ns.patches import (
+    cuda_calls_stay_on_cpu,
+    install_rasterizer_in_splatfacto,
+    install_untraced_viewmat,
+    metrics_at_first_use,
+)
 from votesplat_ns.ns.rasterizer import project_for_votes, rasterize
 from votesplat_ns.ns.retrofit_source import retrofit_gaussians
 from votesplat_ns.ns.run import SPLAT_PARAM_NAMES
@@ -138,6 +143,7 @@ class VoteSplatModel(SplatfactoModel):
             raise ValueError(f"vote_every_n_steps must be >= 1 (got {self.config.vote_every_n_steps})")
         self.config.vote_levels = self._resolve_vote_levels()
         install_rasterizer_in_splatfacto()
+        install_untraced_viewmat()
         self.vote_options = self.config.vote_render_options()
         self._kernel_warm_up: Optional[KernelWarmUp] = None  # compiling the fused kernels (CUDA)
         if (self.kwargs.get("metadata") or {}).get("vote_training"):

@@ -29,7 +29,7 @@ Scoped, applied where they are needed (listed here so that an upgrade checks the
 * ``splatfacto rasterization`` (:func:`install_rasterizer_in_splatfacto`, when the model is built):
   rebinds ``nerfstudio.models.splatfacto.rasterization`` to ``ns/rasterizer.py`` ``rasterize``
   (torch rasteriser on CPU, cameras recorded for the vote pass).
-* ``splatfacto get_viewmat untraced`` (:func:`untraced`, by :func:`install_rasterizer_in_splatfacto`): its
+* ``splatfacto get_viewmat untraced`` (:func:`install_untraced_viewmat`, when the model is built): its
   ``torch.compile``'d ``get_viewmat`` runs with the viewer's interrupt trace suspended, so a camera move during its
   first compilation cannot kill a render thread.
 * ``Tensor.cuda on CPU`` (:func:`cuda_calls_stay_on_cpu`) and ``metrics at first use``
@@ -312,8 +312,7 @@ _rasterizer_lock = threading.Lock()
 
 
 def install_rasterizer_in_splatfacto() -> None:
-    """Point ``nerfstudio.models.splatfacto.rasterization`` at ``ns/rasterizer.py`` ``rasterize``, and its
-    ``get_viewmat`` at :func:`untraced` of itself (idempotent).
+    """Point ``nerfstudio.models.splatfacto.rasterization`` at ``ns/rasterizer.py`` ``rasterize`` (idempotent).
 
     splatfacto calls that module-level name; gsplat's own ``rasterization`` JIT-builds CUDA code and
     cannot run on CPU, and the vote pass needs the cameras splatfacto rendered with (see
@@ -328,6 +327,14 @@ def install_rasterizer_in_splatfacto() -> None:
         if getattr(splatfacto_module, "rasterization", None) is not rasterize:
             # the module's own import of gsplat's function, replaced as a name of that module
             setattr(splatfacto_module, "rasterization", rasterize)
+
+
+def install_untraced_viewmat() -> None:
+    """Point ``nerfstudio.models.splatfacto.get_viewmat`` at :func:`untraced` of itself (idempotent; under the
+    rasterizer's lock, as the viewer renders from another thread)."""
+    import nerfstudio.models.splatfacto as splatfacto_module
+
+    with _rasterizer_lock:
         if not getattr(splatfacto_module.get_viewmat, "votesplat_untraced", False):
             setattr(splatfacto_module, "get_viewmat", untraced(splatfacto_module.get_viewmat))
 
