@@ -253,8 +253,8 @@ def split_deviants(
     next_label = int(labels.max()) + 1
     for label in np.unique(labels[labels >= 0]):
         members = np.flatnonzero(labels == label)
-        home = sitting_masks(table, members, min_share, min_seen)
         sub = table[:, members]
+        home = sitting_masks(sub, np.arange(members.size), min_share, min_seen)  # from the cluster's columns
         decided = (home[:, None] >= 1) & (sub >= 1)
         away = (decided & (sub != home[:, None])).sum(axis=0)
         views = decided.sum(axis=0)
