@@ -18,7 +18,7 @@ datamanager's); ``default`` alone trains with the defaults. A clustering variant
 ``name:key=value,...`` of :func:`votesplat_ns.core.clustering.cluster_levels` keywords, plus
 ``mask_check=False`` (the vote clustering alone) and ``mc.<key>=value`` for the training-mask
 check (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`: ``mc.split=False``, ``mc.bisect=False``, ...),
-whose whole-object rules (:mod:`votesplat_ns.core.whole_objects`) switch with ``mc.objects=False`` (all), ``mc.join=False``,
+whose whole-object rules (:mod:`votesplat_ns.core.whole_objects`) switch with ``mc.objects=False`` (all), ``mc.join=False``, ``mc.orphans=False``,
 ``mc.floaters=False``, ``mc.hidden=False``, ``mc.unseen=False``, ``mc.unseen_min_seen=False``, ``mc.contact=False``,
 ``mc.reach_in_masks=False``, ``mc.rehome=False`` and take ``mc.join_ratio``, ``mc.join_agreement``, ``mc.contact_factor``,
 ``mc.contact_ratio``, ``mc.hidden_margin``, ``mc.hidden_reach``, ``mc.join_vote_factor``. Every

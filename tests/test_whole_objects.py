@@ -140,6 +140,29 @@ def test_small_object_with_its_own_masks_stays_apart() -> None:
     assert stats["join"]["joined"] == 0 and stats["join"]["refused_by_masks"] == 1
 
 
+def test_a_fragment_in_the_other_half_of_a_split_mask_joins_the_object_that_holds_the_mask() -> None:
+    scene = Scene()
+    body = scene.add(box_surface([0, 0, 0], [1, 1, 1]), 1, [1, 1, 1, 2, 3, -1])
+    # a fragment on the object's side, seen in three views
+    fragment = scene.add(box_surface([1.1, 0.4, 0.4], [1.2, 0.6, 0.6]), 2, [1, 1, 1, -1, -1, -1])
+    # a fruit resting on the object: its own mask in two views, merged into the object's in two others
+    fruit = scene.add(box_surface([0.3, 0.3, 1.1], [0.5, 0.5, 1.2]), 3, [6, 7, 2, 2, -1, 0])
+    # an object apart, in the views' highest mask ids
+    shelf = scene.add(box_surface([3, 0, 0], [4, 1, 1]), 0, [9, 9, 9, 4, 4, -1])
+    means, labels, table = scene.build()
+    # in those three views the masks split the object in two, and the fragment lies in the smaller half
+    side = body[means[body, 0] > 0.75]
+    table[:3, side] = 5
+    table[:3, fragment] = 5
+    out, _, stats = run(means, labels, table)
+    assert 2 * len(side) < len(body)  # the object sits in mask 1: the fragment agrees with it in none of its views
+    assert stats["join"]["joined"] == 0
+    assert (out[fragment] == out[body[0]]).all() and stats["orphans"] == {"adopted": 1, "adopted_gaussians": 18}
+    assert out[fruit[0]] != out[body[0]] and stats["num_instances"] == 3 and len(set(out[shelf])) == 1
+    kept, _, stats = run(means, labels, table, orphans=False)
+    assert len(set(kept[kept >= 0])) == 4 and "orphans" not in stats
+
+
 def test_the_container_gaussians_at_a_small_objects_contact_that_its_masks_see_move_to_it() -> None:
     scene = Scene()
     bowl = scene.add(box_surface([0, 0, 0], [1.5, 1.5, 0.6]), 0, [1, 1, 2, 2, 3, 3])
@@ -181,17 +204,18 @@ def test_gaussians_that_the_masks_show_on_a_touching_instance_settle_in_it() -> 
     # not this rule's (the hidden rule's reach in the masks takes it)
     fringe = scene.add(patch + [1.05, 0, 0], -1, [4, -1, 5, -1, -1, -1])
     glimpsed = scene.add(patch + [1.05, 0, 0.3], -1, [4, -1, -1, -1, -1, -1])
-    # a small instance that the masks show on the right cube moves only as a whole, by the join rule
+    # a small instance that the masks show on the right cube moves only as a whole, by the join or orphans rule
     small = scene.add(patch + [0.5, 0, 0.55], 2, [4, 4, 5, 5, 6, 6])
     means, labels, table = scene.build()
-    out, _, stats = run(means, labels, table, join=False)
+    out, _, stats = run(means, labels, table, join=False, orphans=False)
     assert (out[misplaced] == out[right[0]]).all() and (out[split] == out[left[0]]).all()
     assert (out[fringe] == out[right[0]]).all() and (out[glimpsed] == out[right[0]]).all()  # the latter by the reach
     assert len(np.unique(out[small])) == 1 and out[small[0]] not in (out[left[0]], out[right[0]])
     assert stats["settle"] == {"settled": len(misplaced) + len(fringe), "settled_from_background": len(fringe)}
-    off, _, stats = run(means, labels, table, join=False, settle=False)
+    off, _, stats = run(means, labels, table, join=False, orphans=False, settle=False)
     assert (off[misplaced] == off[left[0]]).all() and "settle" not in stats
-    stricter, _, _ = run(means, labels, table, join=False, settle_agreement=0.9)  # 4 of 5 views is below 0.9
+    # 4 of 5 views is below 0.9
+    stricter, _, _ = run(means, labels, table, join=False, orphans=False, settle_agreement=0.9)
     assert (stricter[misplaced] == stricter[left[0]]).all()
 
 
@@ -341,7 +365,8 @@ def test_vote_proximity_is_an_optional_extra_condition() -> None:
     votes = np.empty_like(means)
     votes[body] = [0.5, 0.5, 0.5] + rng.normal(0, 0.05, (len(body), 3))
     votes[fragment] = [3.0, 0.5, 0.5]  # voted far from the body's centre
-    far, _, stats = run(means, labels, table, votes=votes, join_vote_factor=2.0)
+    # (the orphans rule, which reads no votes, off: the body holds every mask the fragment sits in)
+    far, _, stats = run(means, labels, table, votes=votes, join_vote_factor=2.0, orphans=False)
     assert far[fragment[0]] != far[body[0]] and stats["join"]["refused_by_votes"] == 1
     votes[fragment] = [0.55, 0.5, 0.5]
     near, _, _ = run(means, labels, table, votes=votes, join_vote_factor=2.0)

@@ -438,7 +438,7 @@ def regroup_with_masks(
 
     With ``objects``, the whole-object rules of :func:`votesplat_ns.core.whole_objects.whole_objects`
     follow (fragments join, floaters drop, Gaussians settle in the instance whose masks hold them, hidden
-    Gaussians join; ``object_options`` are its keywords: ``join``, ``floaters``, ``settle``, ``hidden``, ``rehome``,
+    Gaussians join; ``object_options`` are its keywords: ``join``, ``orphans``, ``floaters``, ``settle``, ``hidden``, ``rehome``,
     ``join_ratio``, ...; ``votes`` [N, 3], NaN where a
     Gaussian has none, for ``join_vote_factor``); their counts go under
     ``stats["objects"]`` and the instances' confidence [K] under ``stats["confidence"]`` (an array,

@@ -10,7 +10,7 @@ of error that a user sees in the instance list and in an object's removal:
 * **hidden Gaussians**: Gaussians behind an object's front surface in every training view never
   vote (vote support 0), so they stay background, and a removed object leaves them behind.
 
-Seven rules, each switchable (keywords of :func:`whole_objects`, passed on by
+Eight rules, each switchable (keywords of :func:`whole_objects`, passed on by
 :func:`~votesplat_ns.core.mask_consensus.regroup_with_masks`, so ``mc.<key>`` in
 ``benchmarks/sweep.py`` reaches them). The evidence is the check's per-view mask table [V, N]
 (-1: not seen, 0: seen in no mask, k >= 1: seen in mask k), read per member Gaussian instead of per
@@ -26,6 +26,13 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   ``join_vote_factor`` (off by default) the fragment's median vote must also lie within that many
   of the larger one's vote spreads of its median vote: a fragment exists because its votes missed
   the object's centre, so vote proximity is weak evidence, kept as a variant to measure.
+* **Orphans** (``orphans``): an instance of at most ``join_ratio`` times another's size that makes up at least
+  ``min_share`` of the mask it sits in in fewer than ``min_views`` views (SAM never showed it on its own) joins the
+  instance it touches that holds at least ``min_share`` of those masks in the most views (at least ``min_views``).
+  Noise in the masks splits an object's mask in two: a fragment whose Gaussians lie in the half that its host sits
+  in less often then fails the join rule's agreement, yet every mask it lies in is mostly its host's. A real
+  object, however small, is the larger part of its own mask in the views that show it (on the scene family every
+  object instance is, in at least two views; the fragments left, in none). It reads no votes.
 * **Floaters** (``floaters``): an instance whose sightings lie in no mask in most views with
   evidence (at least ``min_views``) becomes background. So does one that fewer than ``min_views``
   views see (``unseen``): a cluster hidden inside or behind an object in every view, whose
@@ -137,6 +144,10 @@ DEFAULT_SETTLE_AGREEMENT = DEFAULT_JOIN_AGREEMENT
 # SAM-like masks) the instance ghost fell 2.47 -> 2.32% (GT) and 4.65 -> 4.61% (noisy), the part ghost 5.09 -> 4.87%
 # and 9.37 -> 9.17%, mIoU unchanged; the largest rise was 0.2 points (BENCHMARKS.md "Instances a user gets").
 DEFAULT_REHOME = True
+# Orphans join the instance that owns their masks: on the tuning dumps it moved one part of 8 Gaussians and nothing
+# else; on test 2056 with SAM-like masks it joined the two fragments of its largest object (BENCHMARKS.md "Instances a
+# user gets").
+DEFAULT_ORPHANS = True
 # Candidates of the settle rule whose sightings are compared at once (their [V, C] slices of the table).
 SETTLE_CHUNK = 1 << 16
 
@@ -245,6 +256,73 @@ def join_fragments(
             size[label] = 0
             stats["joined"] += 1
             stats["joined_gaussians"] += int(members.size)
+    return out, stats
+
+
+def adopt_orphans(
+    labels: np.ndarray,
+    means: np.ndarray,
+    table: np.ndarray,
+    spacing: float,
+    join_ratio: float = DEFAULT_JOIN_RATIO,
+    contact_factor: float = DEFAULT_CONTACT_FACTOR,
+    min_views: int = 2,
+    min_share: float = 0.5,
+    min_seen: int = 5,
+) -> Tuple[np.ndarray, Dict[str, int]]:
+    """Labels after the orphans rule (module docstring); stats: instances adopted and their Gaussians. Who holds a
+    mask is read once, from the labels as they come in."""
+    out = labels.copy()
+    stats = {"adopted": 0, "adopted_gaussians": 0}
+    ids, sizes = np.unique(out[out >= 0], return_counts=True)
+    if ids.size < 2 or spacing <= 0:
+        return out, stats
+    size = {int(i): int(s) for i, s in zip(ids, sizes)}
+    candidates = [int(i) for i, s in zip(ids, sizes) if s <= join_ratio * sizes.max()]
+    homes = {label: sitting_masks(table, np.flatnonzero(out == label), min_share, min_seen) for label in candidates}
+    # per view, the Gaussians of each instance (column 0: background) in each mask some candidate sits in: one
+    # bincount over the view's row of the table (not seen and seen in no mask fall in mask 0's row, never read)
+    width = int(ids.max()) + 2
+    held: Dict[Tuple[int, int], np.ndarray] = {}
+    for view in range(table.shape[0]):
+        wanted = {int(home[view]) for home in homes.values() if home[view] >= 1}
+        if not wanted:
+            continue
+        rows = int(table[view].max()) + 1
+        keys = np.maximum(table[view], 0).astype(np.int64) * width + (out + 1)
+        counts = np.bincount(keys, minlength=rows * width).reshape(rows, width)
+        held.update(((view, mask), counts[mask]) for mask in wanted)
+    labelled = np.flatnonzero(out >= 0)
+    tree = cKDTree(means[labelled])
+    for label in sorted(candidates, key=lambda c: size[c]):
+        owned, owners = 0, {}
+        for view in np.flatnonzero(homes[label] >= 1):
+            row = held[(int(view), int(homes[label][view]))]
+            if row[label + 1] >= min_share * row.sum():
+                owned += 1
+                continue
+            others = row[1:].copy()
+            others[label] = 0
+            owner = int(others.argmax())
+            if others[owner] >= min_share * row.sum():
+                owners[owner] = owners.get(owner, 0) + 1
+        if owned >= min_views or not owners:
+            continue
+        members = np.flatnonzero(out == label)
+        touching = set(int(t) for t in _touching(means, out, members, contact_factor * spacing, tree, labelled))
+        hosts = [
+            (views, host)
+            for host, views in owners.items()
+            if host in touching and views >= min_views and members.size <= join_ratio * size[host]
+        ]
+        if not hosts:
+            continue
+        _, host = max(hosts)
+        out[members] = host
+        size[host] += members.size
+        size[label] = 0
+        stats["adopted"] += 1
+        stats["adopted_gaussians"] += int(members.size)
     return out, stats
 
 
@@ -613,6 +691,7 @@ def whole_objects(
     settle_agreement: float = DEFAULT_SETTLE_AGREEMENT,
     unseen_min_seen: bool = True,
     rehome: bool = DEFAULT_REHOME,
+    orphans: bool = DEFAULT_ORPHANS,
     min_views: int = 2,
     min_share: float = 0.5,
     min_seen: int = 5,
@@ -653,6 +732,10 @@ def whole_objects(
             min_seen,
             None if votes is None else np.asarray(votes, dtype=np.float64),
             join_vote_factor,
+        )
+    if orphans:
+        out, stats["orphans"] = adopt_orphans(
+            out, means, table, spacing, join_ratio, contact_factor, min_views, min_share, min_seen
         )
     if floaters:
         out, stats["floaters"] = drop_floaters(
