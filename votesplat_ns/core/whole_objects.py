@@ -31,8 +31,8 @@ cluster, so a fragment seen by one or two of its Gaussians per view still has a 
   instance it touches that holds at least ``min_share`` of those masks in the most views (at least ``min_views``).
   Noise in the masks splits an object's mask in two: a fragment whose Gaussians lie in the half that its host sits
   in less often then fails the join rule's agreement, yet every mask it lies in is mostly its host's. A real
-  object, however small, is the larger part of its own mask in the views that show it (on the scene family every
-  object instance is, in at least two views; the fragments left, in none). It reads no votes.
+  object, however small, is the larger part of its own mask in the views that show it (on dumped runs of the scene
+  family every object's instance is, in at least two views; the fragments left, in none). It reads no votes.
 * **Floaters** (``floaters``): an instance whose sightings lie in no mask in most views with
   evidence (at least ``min_views``) becomes background. So does one that fewer than ``min_views``
   views see (``unseen``): a cluster hidden inside or behind an object in every view, whose
@@ -144,9 +144,9 @@ DEFAULT_SETTLE_AGREEMENT = DEFAULT_JOIN_AGREEMENT
 # SAM-like masks) the instance ghost fell 2.47 -> 2.32% (GT) and 4.65 -> 4.61% (noisy), the part ghost 5.09 -> 4.87%
 # and 9.37 -> 9.17%, mIoU unchanged; the largest rise was 0.2 points (BENCHMARKS.md "Instances a user gets").
 DEFAULT_REHOME = True
-# Orphans join the instance that owns their masks: on the tuning dumps it moved one part of 8 Gaussians and nothing
-# else; on test 2056 with SAM-like masks it joined the two fragments of its largest object (BENCHMARKS.md "Instances a
-# user gets").
+# Orphans join the instance that holds their masks: on the tuning scenes (24 trainings, GT and SAM-like masks) it
+# changed 8 of 48 run-levels, each to fewer instances and a higher list precision, the ghost lower or equal
+# (BENCHMARKS.md "Instances a user gets").
 DEFAULT_ORPHANS = True
 # Candidates of the settle rule whose sightings are compared at once (their [V, C] slices of the table).
 SETTLE_CHUNK = 1 << 16
