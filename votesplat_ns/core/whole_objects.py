@@ -151,9 +151,9 @@ DEFAULT_REHOME = True
 # (BENCHMARKS.md "Instances a user gets").
 DEFAULT_ORPHANS = True
 # A mask counts as the host's for an orphan only when it holds at least this share of the host's Gaussians that the
-# view sees: half of a split mask holds a quarter or more of its object (0.25-1.0 on the dumped runs), while the mask
-# of a small object resting on a larger one holds a few of the larger one's Gaussians just behind it, which the centre
-# test's depth tolerance lets through (0.3-0.4% for a fruit's visible top on its bowl).
+# view sees: the masks of the fragments adopted on the dumped runs hold 25-100% of their host in at least three views
+# each, while the mask of a small object resting on a larger one holds a few of the larger one's Gaussians just behind
+# it, which the centre test's depth tolerance lets through (0.3-0.4% for a fruit's visible top on its bowl).
 DEFAULT_ORPHAN_COVER = 0.1
 # Candidates of the settle rule whose sightings are compared at once (their [V, C] slices of the table).
 SETTLE_CHUNK = 1 << 16
