@@ -95,6 +95,7 @@ def score(metrics: dict, level: str) -> dict:
         "list_precision": entry.get("list_precision"),
         "ap50_3d": entry.get("ap50_3d"),
         "ghost_percent": entry.get("ghost_percent"),
+        "ghost_matched_percent": entry.get("ghost_matched_percent"),
     }
 
 
@@ -190,6 +191,7 @@ def table(rows: Sequence[dict]) -> str:
         "list precision",
         "AP@50 3D",
         "ghost %",
+        "ghost % of matched",
         "#objects",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -208,6 +210,7 @@ def table(rows: Sequence[dict]) -> str:
             _mean(group, "list_precision"),
             _mean(group, "ap50_3d"),
             _mean(group, "ghost_percent", 1),
+            _mean(group, "ghost_matched_percent", 1),
             _mean(group, "num_gt", 1),
         ]
         lines.append("| " + " | ".join([*map(str, key), str(len(group)), *cells]) + " |")

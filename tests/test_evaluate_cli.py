@@ -296,9 +296,11 @@ def test_eval_command_writes_consistent_metrics(demo_eval):
         ghosts = [e["ghost_percent"] for e in entries if e["visible"]]
         assert level["ghost_objects"] == len(ghosts) > 0
         assert level["ghost_percent"] == pytest.approx(np.mean(ghosts))
+        with_instance = [e["ghost_percent"] for e in entries if e["visible"] and e["matched_instance_3d"] is not None]
+        assert level["ghost_matched_percent"] == pytest.approx(np.mean(with_instance))
         assert all(0.0 <= g <= 100.0 for g in ghosts)
         assert all(0.0 <= e["shown_before_percent"] <= 100.0 for e in entries if e["visible"])
-        for key in ("list_precision", "ap50_3d", "ghost_percent", "mean_purity_3d"):
+        for key in ("list_precision", "ap50_3d", "ghost_percent", "ghost_matched_percent", "mean_purity_3d"):
             assert metrics["summary"][name][key] == level[key]
 
 

@@ -33,7 +33,8 @@ dataset's exact label images:
   else by size), and the object-removal check (:mod:`votesplat_ns.eval.removal`): each object's
   3D-matched instance is deleted and the held-out views rendered again; ``ghost_percent`` is the
   share of the object's GT pixels that its leftover Gaussians still cover (per object and the
-  mean). It costs (objects + 1) renders per held-out view and level; ``ghost_check=False`` skips it.
+  mean; ``ghost_matched_percent``, the mean over the objects that have a match, leaves out those
+  without one, which show whole). It costs (objects + 1) renders per held-out view and level; ``ghost_check=False`` skips it.
 
 Output folder: ``metrics.json`` (atomic; per level the scores, ``per_view`` the PSNR and verdict of
 each view) and ``comparison_<level>.png`` (GT | prediction per view, a matched prediction shown in
@@ -356,7 +357,8 @@ def add_ghost_check(result: dict, scene: TrainedScene, gt_labels, pred_ids, view
     Each GT object carried by some Gaussian loses the Gaussians of its 3D match
     (``scores_3d.per_gt_match``; nothing when it has none); ``per_instance`` gains
     ``ghost_percent`` and ``shown_before_percent``, the level ``ghost_percent`` (their mean over
-    objects with GT pixels, None if none) and ``ghost_objects`` (how many were checked).
+    objects with GT pixels, None if none), ``ghost_objects`` (how many were checked) and
+    ``ghost_matched_percent`` (the mean over those with a match, whose instance is removed).
     """
     keep = scene.finite()
     add_ghost_check_on(result, scene.gaussians(keep)[:4], keep, gt_labels, pred_ids, views, gt_maps, rasterize_fn)
@@ -379,6 +381,8 @@ def add_ghost_check_on(result: dict, gaussians, keep, gt_labels, pred_ids, views
         entry["shown_before_percent"] = _percent(None if ghost is None else ghost["shown_before"])
     result["ghost_percent"] = mean_ghost_percent(ghosts)
     result["ghost_objects"] = sum(g["ghost_fraction"] is not None for g in ghosts.values())
+    # the mean over the objects that have an instance to remove: an object without one shows whole
+    result["ghost_matched_percent"] = mean_ghost_percent({g: v for g, v in ghosts.items() if removed[g] is not None})
 
 
 def _percent(fraction: Optional[float]) -> Optional[float]:
@@ -404,6 +408,7 @@ SUMMARY_KEYS = (
     "num_gt_objects",
     "ap50_3d",
     "ghost_percent",
+    "ghost_matched_percent",
 )
 
 
@@ -428,14 +433,15 @@ def format_table(metrics: dict) -> str:
     rows += [
         "",
         "What a user sees (over Gaussians; matched = one-to-one at Gaussian IoU >= 0.5; ghost = % of an object's pixels left after removing its instance):",
-        "| level | completeness/object | purity/object | list precision | #objects | #instances | AP@50 | ghost % |",
-        "|---|---|---|---|---|---|---|---|",
+        "| level | completeness/object | purity/object | list precision | #objects | #instances | AP@50 | ghost % | ghost % of matched |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, level in metrics["levels"].items():
-        ghost = level.get("ghost_percent")
+        ghost, matched = level.get("ghost_percent"), level.get("ghost_matched_percent")
         rows.append(
             f"| {name} | {level['mean_completeness_3d']:.3f} | {_fmt(level['mean_purity_3d'])} | {level['list_precision']:.3f} | "
-            f"{level['num_gt_objects']} | {level['num_predicted']} | {_fmt(level['ap50_3d'])} | {'-' if ghost is None else f'{ghost:.1f}'} |"
+            f"{level['num_gt_objects']} | {level['num_predicted']} | {_fmt(level['ap50_3d'])} | {'-' if ghost is None else f'{ghost:.1f}'} | "
+            f"{'-' if matched is None else f'{matched:.1f}'} |"
         )
     check = metrics["reconstruction"]
     median = check["median_psnr"]
