@@ -21,7 +21,7 @@ check (:func:`votesplat_ns.core.mask_consensus.regroup_with_masks`: ``mc.split=F
 whose whole-object rules (:mod:`votesplat_ns.core.whole_objects`) switch with ``mc.objects=False`` (all), ``mc.join=False``, ``mc.orphans=False``,
 ``mc.floaters=False``, ``mc.hidden=False``, ``mc.unseen=False``, ``mc.unseen_min_seen=False``, ``mc.contact=False``,
 ``mc.reach_in_masks=False``, ``mc.rehome=False`` and take ``mc.join_ratio``, ``mc.join_agreement``, ``mc.contact_factor``,
-``mc.contact_ratio``, ``mc.hidden_margin``, ``mc.hidden_reach``, ``mc.join_vote_factor``. Every
+``mc.contact_ratio``, ``mc.hidden_margin``, ``mc.hidden_reach``, ``mc.orphan_cover``, ``mc.join_vote_factor``. Every
 (scene, masks, training variant, seed) trains once in its own process (``--jobs`` at a time: a
 small scene leaves most of a GPU idle); every clustering variant then scores that run with
 ``votesplat eval``'s scorer at the instance and the part level. Rows go to
@@ -191,7 +191,7 @@ def table(rows: Sequence[dict]) -> str:
         "list precision",
         "AP@50 3D",
         "ghost %",
-        "ghost % of matched",
+        "ghost % of objects with an instance",
         "#objects",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]

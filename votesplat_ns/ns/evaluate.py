@@ -33,8 +33,8 @@ dataset's exact label images:
   else by size), and the object-removal check (:mod:`votesplat_ns.eval.removal`): each object's
   3D-matched instance is deleted and the held-out views rendered again; ``ghost_percent`` is the
   share of the object's GT pixels that its leftover Gaussians still cover (per object and the
-  mean; ``ghost_matched_percent``, the mean over the objects that have a match, leaves out those
-  without one, which show whole). It costs (objects + 1) renders per held-out view and level; ``ghost_check=False`` skips it.
+  mean; ``ghost_matched_percent``, the mean over the objects that the 3D assignment gives an
+  instance, at any IoU, leaves out those without one, which show whole). It costs (objects + 1) renders per held-out view and level; ``ghost_check=False`` skips it.
 
 Output folder: ``metrics.json`` (atomic; per level the scores, ``per_view`` the PSNR and verdict of
 each view) and ``comparison_<level>.png`` (GT | prediction per view, a matched prediction shown in
@@ -433,7 +433,7 @@ def format_table(metrics: dict) -> str:
     rows += [
         "",
         "What a user sees (over Gaussians; matched = one-to-one at Gaussian IoU >= 0.5; ghost = % of an object's pixels left after removing its instance):",
-        "| level | completeness/object | purity/object | list precision | #objects | #instances | AP@50 | ghost % | ghost % of matched |",
+        "| level | completeness/object | purity/object | list precision | #objects | #instances | AP@50 | ghost % | ghost % of objects with an instance |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, level in metrics["levels"].items():
