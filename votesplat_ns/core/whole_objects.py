@@ -147,7 +147,7 @@ DEFAULT_SETTLE_AGREEMENT = DEFAULT_JOIN_AGREEMENT
 # and 9.37 -> 9.17%, mIoU unchanged; the largest rise was 0.2 points (BENCHMARKS.md "Instances a user gets").
 DEFAULT_REHOME = True
 # Orphans join the instance that holds their masks: on the tuning scenes (24 trainings, GT and SAM-like masks) it
-# changed 8 of 48 run-levels, each to fewer instances and a higher list precision, the ghost lower or equal
+# changed 6 of 48 run-levels, each to fewer instances and a higher list precision, the ghost lower or equal
 # (BENCHMARKS.md "Instances a user gets").
 DEFAULT_ORPHANS = True
 # A mask counts as the host's for an orphan only when it holds at least this share of the host's Gaussians that the
