@@ -345,9 +345,9 @@ def untraced(function: Callable) -> Callable:
     splatfacto's ``get_viewmat`` is ``torch.compile``'d and compiles on its first call. The viewer's render threads
     run under a per-line trace that raises ``IOChangeException`` when the camera moves; raised while dynamo traces
     ``get_viewmat``, it becomes an ``InternalTorchDynamoError`` that kills the render thread, and the page never
-    updates again. The viewer control compiles it before any render (``ns/viewer.py``), but a browser that connects
-    while the viewer is still being built can render first (CI saw it once). The interrupt is checked again on the
-    render's next line.
+    updates again (CI saw it once, a browser connected while the viewer was still being built). Suspending the trace
+    for the call covers every thread and every first call, so nothing compiles it ahead. The interrupt is checked
+    again on the render's next line.
     """
 
     def call(*args, **kwargs):

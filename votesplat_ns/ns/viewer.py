@@ -70,31 +70,6 @@ def scene_from_model(model: Any) -> ViewerScene:
     return ViewerScene(gaussians, model._get_background_color().detach(), model.config.rasterize_mode)
 
 
-def _viewer_control_class() -> type:
-    from nerfstudio.viewer.viewer_elements import ViewerControl
-
-    class VoteSplatViewerControl(ViewerControl):
-        """nerfstudio's ViewerControl, plus compiling splatfacto's ``get_viewmat`` when the viewer attaches.
-
-        ``get_viewmat`` is ``torch.compile``'d and compiles on its first call. If that call is the
-        first viewer render, the viewer's per-line interrupt trace can fire inside dynamo (the
-        camera moved); dynamo turns it into an InternalTorchDynamoError that kills the render
-        thread and the page never updates again. ``_setup`` runs in the main thread, so compiling there (as the
-        renders call it: no grad, float32) is safe; a browser that connects while the viewer is still being built
-        can render first, which ``ns/patches.py`` ``untraced`` covers.
-        """
-
-        def _setup(self, viewer: Any) -> None:
-            super()._setup(viewer)
-            from nerfstudio.models import splatfacto
-
-            device = viewer.get_model().device
-            with torch.no_grad():
-                splatfacto.get_viewmat(torch.eye(4, device=device)[None, :3, :])
-
-    return VoteSplatViewerControl
-
-
 class VoteSplatViewerState:
     """ns-viewer controls for a VoteSplat model (instances, selection, text query, export).
 
@@ -109,6 +84,7 @@ class VoteSplatViewerState:
         from nerfstudio.viewer.viewer_elements import (
             ViewerButton,
             ViewerCheckbox,
+            ViewerControl,
             ViewerDropdown,
             ViewerNumber,
             ViewerText,
@@ -170,7 +146,9 @@ class VoteSplatViewerState:
             )
         model.instance_gui_6_export = ViewerButton("Export selected instance (PLY)", cb_hook=self._on_export)
         model.instance_gui_7_status = ViewerText("Status", self.state.status, disabled=True)
-        model.instance_gui_viewer_control = _viewer_control_class()()
+        # the camera and the viewer handle; splatfacto's compiled get_viewmat needs no warm-up here: it runs with the
+        # viewer's interrupt trace suspended (ns/patches.py untraced), whatever thread compiles it first
+        model.instance_gui_viewer_control = ViewerControl()
 
     # -------------------------------------------------------------- callbacks (state only)
     @property
