@@ -288,20 +288,20 @@ def adopt_orphans(
     size = {int(i): int(s) for i, s in zip(ids, sizes)}
     candidates = [int(i) for i, s in zip(ids, sizes) if s <= join_ratio * sizes.max()]
     homes = {label: sitting_masks(table, np.flatnonzero(out == label), min_share, min_seen) for label in candidates}
-    # per view, the Gaussians of each instance (column 0: background) in each mask some candidate sits in: one
-    # bincount over the view's row of the table (not seen and seen in no mask fall in mask 0's row, never read)
+    # per view, the Gaussians of each instance (column 0: background) in each mask some candidate sits in, and those
+    # the view sees at all: one bincount over the view's row of the table, by table value + 1 (row 0: not seen)
     width = int(ids.max()) + 2
     held: Dict[Tuple[int, int], np.ndarray] = {}
-    seen: Dict[int, np.ndarray] = {}  # per view, each instance's Gaussians that it sees
+    seen: Dict[int, np.ndarray] = {}
     for view in range(table.shape[0]):
         wanted = {int(home[view]) for home in homes.values() if home[view] >= 1}
         if not wanted:
             continue
-        rows = int(table[view].max()) + 1
-        keys = np.maximum(table[view], 0).astype(np.int64) * width + (out + 1)
+        rows = int(table[view].max()) + 2
+        keys = (table[view].astype(np.int64) + 1) * width + (out + 1)
         counts = np.bincount(keys, minlength=rows * width).reshape(rows, width)
-        held.update(((view, mask), counts[mask]) for mask in wanted)
-        seen[view] = np.bincount(out[table[view] >= 0] + 1, minlength=width)
+        held.update(((view, mask), counts[mask + 1]) for mask in wanted)
+        seen[view] = counts[1:].sum(axis=0)
     labelled = np.flatnonzero(out >= 0)
     tree = cKDTree(means[labelled])
     for label in sorted(candidates, key=lambda c: size[c]):
