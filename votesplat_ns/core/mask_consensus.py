@@ -34,8 +34,8 @@ of what each Gaussian looks like in the training views:
   at least ``min_views`` such views, merges while that ratio is at least ``min_agreement``; a
   merged cluster's mask is recomputed from all its Gaussians.
 * **Drop.** A cluster that sits in no mask in most of the views where it is decided becomes -1.
-* **Whole objects.** Then (``objects``) fragments join the instance whose masks they lie in,
-  floaters become background, single Gaussians settle in the touching instance whose masks hold them,
+* **Whole objects.** Then (``objects``) fragments join the instance whose masks they lie in, or
+  that holds the masks they lie in when they are never most of one, floaters become background, single Gaussians settle in the touching instance whose masks hold them,
   hidden Gaussians join the object they lie inside, and those an instance holds move to the one whose hull they
   lie inside
   (:mod:`votesplat_ns.core.whole_objects`, which also gives each instance a confidence).
@@ -438,9 +438,9 @@ def regroup_with_masks(
 
     With ``objects``, the whole-object rules of :func:`votesplat_ns.core.whole_objects.whole_objects`
     follow (fragments join, floaters drop, Gaussians settle in the instance whose masks hold them, hidden
-    Gaussians join; ``object_options`` are its keywords: ``join``, ``orphans``, ``floaters``, ``settle``, ``hidden``, ``rehome``,
-    ``join_ratio``, ...; ``votes`` [N, 3], NaN where a
-    Gaussian has none, for ``join_vote_factor``); their counts go under
+    Gaussians join; ``object_options`` are its keywords: ``join``, ``orphans``, ``floaters``, ``settle``,
+    ``hidden``, ``rehome``, ``join_ratio``, ...; ``votes`` [N, 3], NaN where a Gaussian has none, for
+    ``join_vote_factor``); their counts go under
     ``stats["objects"]`` and the instances' confidence [K] under ``stats["confidence"]`` (an array,
     which :func:`votesplat_ns.core.clustering.cluster_levels` moves to the level)."""
     labels = np.asarray(labels, dtype=np.int64)

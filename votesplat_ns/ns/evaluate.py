@@ -34,7 +34,8 @@ dataset's exact label images:
   3D-matched instance is deleted and the held-out views rendered again; ``ghost_percent`` is the
   share of the object's GT pixels that its leftover Gaussians still cover (per object and the
   mean; ``ghost_matched_percent``, the mean over the objects that the 3D assignment gives an
-  instance, at any IoU, leaves out those without one, which show whole). It costs (objects + 1) renders per held-out view and level; ``ghost_check=False`` skips it.
+  instance, at any IoU, leaves out those without one, which show whole). It costs (objects + 1)
+  renders per held-out view and level; ``ghost_check=False`` skips it.
 
 Output folder: ``metrics.json`` (atomic; per level the scores, ``per_view`` the PSNR and verdict of
 each view) and ``comparison_<level>.png`` (GT | prediction per view, a matched prediction shown in
